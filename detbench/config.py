@@ -1,0 +1,160 @@
+"""YAML configs: inheritance, command-line overrides and validation against known keys.
+
+A config file may name bases with `_base_: other.yaml` (or a list of files), resolved
+relative to the file; later bases and the file itself override earlier ones, dictionaries
+merge key by key, anything else is replaced. `--set a.b.c=value` overrides parse `value`
+as YAML (so `1e-3`, `true`, `[1, 2]` work).
+
+Validation is against a *reference* config (the defaults a tool ships): a key that is not
+in the reference is an error that names the key, the file it came from and the closest
+known key. Keys under a mapping listed in `open_keys` may be free-form.
+"""
+from __future__ import annotations
+
+import copy
+import difflib
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import yaml
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+class ConfigError(ValueError):
+    """A config problem, worded for the user: what is wrong, where, and how to fix it."""
+
+
+def _read_yaml(path: Path) -> dict:
+    if not path.is_file():
+        raise ConfigError(f"{path}: config file not found")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of keys, got {type(data).__name__}")
+    return data
+
+
+def deep_merge(base: Mapping, over: Mapping) -> dict:
+    out = copy.deepcopy(dict(base))
+    for k, v in over.items():
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = copy.deepcopy(v)
+    return out
+
+
+def resolve_config_path(name: str | Path, relative_to: Path | None = None) -> Path:
+    """A path as given, else relative to `relative_to`, else in the project's configs/."""
+    p = Path(name)
+    candidates = [p]
+    if relative_to is not None:
+        candidates.append(relative_to / p)
+    candidates.append(CONFIG_DIR / p)
+    if p.suffix == "":
+        candidates += [c.with_suffix(".yaml") for c in candidates]
+    for c in candidates:
+        if c.is_file():
+            return c.resolve()
+    known = sorted(x.stem for x in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
+    hint = f"; configs shipped: {', '.join(known)}" if known else ""
+    raise ConfigError(f"config {str(name)!r} not found (looked in {', '.join(str(c.parent) for c in candidates[:3])}){hint}")
+
+
+def load_config(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
+    """Load a YAML config with its `_base_` chain merged in."""
+    path = resolve_config_path(path)
+    if path in _seen:
+        raise ConfigError(f"{path}: _base_ cycle: {' -> '.join(str(p) for p in _seen + (path,))}")
+    data = _read_yaml(path)
+    bases = data.pop("_base_", [])
+    if isinstance(bases, str):
+        bases = [bases]
+    merged: dict = {}
+    for b in bases:
+        merged = deep_merge(merged, load_config(resolve_config_path(b, path.parent), _seen + (path,)))
+    return deep_merge(merged, data)
+
+
+def parse_override(item: str) -> tuple[list[str], Any]:
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} must look like key.sub=value")
+    key, _, raw = item.partition("=")
+    key = key.strip()
+    if not key:
+        raise ConfigError(f"override {item!r} has an empty key")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return key.split("."), value
+
+
+def apply_overrides(cfg: dict, overrides: Iterable[str], reference: Mapping | None = None,
+                    open_keys: Iterable[str] = ()) -> dict:
+    """Return a copy of `cfg` with `key.sub=value` overrides applied (validated if `reference`)."""
+    out = copy.deepcopy(cfg)
+    for item in overrides or ():
+        keys, value = parse_override(item)
+        if reference is not None:
+            _check_path(keys, reference, f"--set {item}", tuple(open_keys))
+        node = out
+        for k in keys[:-1]:
+            if not isinstance(node.get(k), dict):
+                node[k] = {}
+            node = node[k]
+        node[keys[-1]] = value
+    return out
+
+
+def _closest(key: str, choices: Iterable[str]) -> str:
+    m = difflib.get_close_matches(key, list(choices), n=1, cutoff=0.5)
+    return f"; did you mean {m[0]!r}?" if m else ""
+
+
+def _check_path(keys: list[str], reference: Mapping, where: str, open_keys: tuple[str, ...]) -> None:
+    node: Any = reference
+    for depth, k in enumerate(keys):
+        dotted = ".".join(keys[: depth + 1])
+        parent = ".".join(keys[:depth])
+        if parent in open_keys:
+            return
+        if not isinstance(node, Mapping):
+            raise ConfigError(f"{where}: {'.'.join(keys[:depth])} is a value, not a section; it has no key {k!r}")
+        if k not in node:
+            known = ", ".join(sorted(map(str, node))) or "(none)"
+            raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(k, map(str, node))} "
+                              f"(known keys here: {known})")
+        node = node[k]
+
+
+def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys: Iterable[str] = (),
+             _prefix: str = "") -> None:
+    """Raise ConfigError for any key of `cfg` that `reference` does not have."""
+    open_keys = tuple(open_keys)
+    for k, v in cfg.items():
+        dotted = f"{_prefix}{k}"
+        if k not in reference:
+            known = ", ".join(sorted(map(str, reference))) or "(none)"
+            raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(str(k), map(str, reference))} "
+                              f"(known keys here: {known})")
+        if isinstance(v, Mapping) and isinstance(reference[k], Mapping) and dotted not in open_keys:
+            validate(v, reference[k], where, open_keys, f"{dotted}.")
+
+
+def get(cfg: Mapping, dotted: str, default: Any = None) -> Any:
+    node: Any = cfg
+    for k in dotted.split("."):
+        if not isinstance(node, Mapping) or k not in node:
+            return default
+        node = node[k]
+    return node
+
+
+def dump(cfg: Mapping) -> str:
+    return yaml.safe_dump(dict(cfg), sort_keys=False)

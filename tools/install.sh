@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Install detbench (editable) and what it needs. Usage: bash tools/install.sh [--dev]
+#   --dev   also install what the test suite needs (pytest).
+# torch is installed first only when it is not importable, so a user who already has a
+# CUDA build keeps it; on a fresh machine `pip install torch==2.13.0` takes the platform's
+# default wheel (a CPU build where one is provided locally, the CUDA build from PyPI on Linux).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+extra=""
+[ "${1:-}" = "--dev" ] && extra="[dev]"
+if ! "$PY" -c "import torch" >/dev/null 2>&1; then
+  echo "[install] torch not importable: installing torch==2.13.0"
+  "$PY" -m pip install --quiet "torch==2.13.0"
+fi
+"$PY" -m pip install --quiet -e ".${extra}"
+echo "[install] detbench installed ($("$PY" -c 'import torch; print("torch", torch.__version__)'))"
