@@ -1,0 +1,109 @@
+"""Config loading/validation, atomic writes and the Frame/Sensor types."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from detbench import config as C
+from detbench.data.frame import Frame, Sensor, height_key
+from detbench.utils import io
+
+
+def write(p, text):
+    p.write_text(text)
+    return p
+
+
+def test_base_inheritance_and_overrides(tmp_path):
+    write(tmp_path / "base.yaml", "model:\n  name: second\n  width: 64\ntrain:\n  lr: 0.001\n  epochs: 10\n")
+    write(tmp_path / "child.yaml", "_base_: base.yaml\nmodel:\n  width: 32\n")
+    cfg = C.load_config(tmp_path / "child.yaml")
+    assert cfg == {"model": {"name": "second", "width": 32}, "train": {"lr": 0.001, "epochs": 10}}
+    ref = C.load_config(tmp_path / "base.yaml")
+    out = C.apply_overrides(cfg, ["train.lr=3e-3", "model.name=pillarnet"], reference=ref)
+    assert out["train"]["lr"] == pytest.approx(3e-3) and out["model"]["name"] == "pillarnet"
+    assert cfg["train"]["lr"] == 0.001  # the input is not modified
+
+
+def test_unknown_key_names_closest(tmp_path):
+    ref = {"train": {"epochs": 1, "lr": 0.1}}
+    with pytest.raises(C.ConfigError, match=r"'train.epoch'.*did you mean 'epochs'"):
+        C.validate({"train": {"epoch": 3}}, ref, where="my.yaml")
+    with pytest.raises(C.ConfigError, match=r"--set tran.lr=1.*did you mean 'train'"):
+        C.apply_overrides({}, ["tran.lr=1"], reference=ref)
+    C.validate({"train": {"lr": 0.2}}, ref)  # known keys pass
+
+
+def test_base_cycle_and_bad_yaml(tmp_path):
+    write(tmp_path / "a.yaml", "_base_: b.yaml\n")
+    write(tmp_path / "b.yaml", "_base_: a.yaml\n")
+    with pytest.raises(C.ConfigError, match="cycle"):
+        C.load_config(tmp_path / "a.yaml")
+    write(tmp_path / "bad.yaml", "a: [1, 2\n")
+    with pytest.raises(C.ConfigError, match="bad.yaml: not valid YAML"):
+        C.load_config(tmp_path / "bad.yaml")
+    with pytest.raises(C.ConfigError, match="not found"):
+        C.load_config(tmp_path / "missing.yaml")
+    with pytest.raises(C.ConfigError, match="key.sub=value"):
+        C.apply_overrides({}, ["novalue"])
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path):
+    target = tmp_path / "report.json"
+    io.atomic_write_json(target, {"a": 1, "nan": float("nan"), "arr": np.arange(3)})
+    assert json.loads(target.read_text()) == {"a": 1, "nan": None, "arr": [0, 1, 2]}
+
+    def failing_writer(p):
+        p.write_text("partial")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        io.atomic_save(target, failing_writer)
+    assert json.loads(target.read_text())["a"] == 1
+    assert [f for f in os.listdir(tmp_path) if f.startswith(".tmp")] == []
+
+
+def test_read_json_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.json"):
+        io.read_json(tmp_path / "nope.json")
+    write(tmp_path / "broken.json", "{\"a\": ")
+    with pytest.raises(ValueError, match="broken.json: not valid JSON"):
+        io.read_json(tmp_path / "broken.json")
+
+
+def test_height_key():
+    assert [height_key(h) for h in (0.5, 1, 1.8, 0.25, 2.0)] == ["0.5", "1.0", "1.8", "0.25", "2.0"]
+    for bad in (0, -1, float("nan")):
+        with pytest.raises(ValueError):
+            height_key(bad)
+
+
+def _frame(points, boxes):
+    m = len(boxes)
+    return Frame("0000_000", "0000", points, boxes, np.array(["car"] * m), np.arange(m), np.zeros(m, np.int64),
+                 Sensor(height=1.8))
+
+
+def test_frame_check():
+    good = _frame(np.zeros((3, 4), np.float32), np.array([[10, 0, 0.75, 4.5, 1.8, 1.5, 0]], np.float32))
+    good.check()
+    with pytest.raises(ValueError, match="float32"):
+        _frame(np.zeros((3, 4), np.float64), good.boxes).check()
+    with pytest.raises(ValueError, match=r"\(N, 4\)"):
+        _frame(np.zeros((3, 3), np.float32), good.boxes).check()
+    nan_pts = np.zeros((3, 4), np.float32)
+    nan_pts[1, 2] = np.nan
+    with pytest.raises(ValueError, match="1 point"):
+        _frame(nan_pts, good.boxes).check(where="x.npy")
+    neg = good.boxes.copy()
+    neg[0, 3] = -1
+    with pytest.raises(ValueError, match="negative sizes"):
+        _frame(good.points, neg).check()
+
+
+def test_sensor_roundtrip():
+    s = Sensor(height=1.8, pitch_deg=2.5, vfov_deg=(-15.0, 10.0), name="h3-1.8")
+    assert Sensor.from_dict(s.to_dict()) == s
+    with pytest.raises(ValueError, match="unknown sensor field"):
+        Sensor.from_dict({**s.to_dict(), "colour": "red"})
