@@ -1,0 +1,80 @@
+"""tools/bench_sparse.py: command line, fallback scan, backbone topology, report files."""
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from detbench.sparse import SparseConvTensor
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_bench():
+    spec = importlib.util.spec_from_file_location("bench_sparse", ROOT / "tools" / "bench_sparse.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_help_lists_options_with_units(capsys):
+    bench = load_bench()
+    with pytest.raises(SystemExit) as exc:
+        bench.main(["--help"])
+    assert exc.value.code == 0
+    text = capsys.readouterr().out
+    for opt in ("--out", "--scans", "--repeats", "--threads", "--voxel-size", "--range", "--dense-crop-x"):
+        assert opt in text
+    assert "metres" in text and "milliseconds" in text.lower()
+
+
+def test_synthetic_scan_geometry():
+    bench = load_bench()
+    pts = bench.synthetic_scan(0)
+    assert pts.dtype == np.float32 and pts.shape[1] == 4 and len(pts) > 10000
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    assert r.max() <= 150.5 and pts[:, 0].min() > -1.0  # 180 deg ahead, 150 m range
+    ground = np.abs(pts[:, 2]) < 0.05
+    assert 0.5 < ground.mean() < 1.0  # mostly road, some car returns above it
+    assert pts[~ground, 2].max() < 1.9 and pts[:, 2].min() > -0.1
+
+
+def test_backbone_shapes_and_rulebook_reuse():
+    bench = load_bench()
+    net = bench.backbone(4).eval()
+    g = torch.Generator().manual_seed(0)
+    idx = torch.unique(torch.cat([torch.zeros(300, 1, dtype=torch.long),
+                                  torch.randint(0, 41, (300, 1), generator=g),
+                                  torch.randint(0, 40, (300, 2), generator=g)], 1), dim=0).int()
+    x = SparseConvTensor(torch.randn(idx.shape[0], 4, generator=g), idx, [41, 40, 40], 1)
+    with torch.no_grad():
+        y = net(x)
+    assert y.features.shape[1] == 128 and y.spatial_shape == [2, 5, 5]
+    # 12 conv layers share 8 rule books (subm1 x2, subm2 x2, subm3 x2, subm4 x2 reuse).
+    assert len(y.indice_dict) == 8
+    assert len([m for m in net.modules() if hasattr(m, "indice_key")]) == 12
+
+
+def test_markdown_report():
+    bench = load_bench()
+    r = {"source": "synthetic", "scans": 1, "points": [10], "voxel_size_m": [0.1, 0.1, 0.15],
+         "range_m": [0, -15, -1, 150, 15, 4], "grid_xyz": [1500, 300, 33], "spatial_shape_zyx": [34, 300, 1500],
+         "active_sites": 5, "device": "cpu", "threads": 2, "torch": "x", "repeats": 1, "flop_convention": "2/MAC",
+         "spconv": "not installed",
+         "cases": [{"case": "a", "ms": 1.234, "ms_best": 1.0, "gflops": 2.5, "sites": 5}]}
+    md = bench.markdown(r)
+    assert "| a | 1.23 | 1.00 | 2.5 | sites=5 |" in md and "spconv: not installed" in md
+
+
+@pytest.mark.slow
+def test_full_run_writes_reports(tmp_path):
+    bench = load_bench()
+    assert bench.main(["--out", str(tmp_path), "--source", "synthetic", "--repeats", "1", "--threads", "1",
+                       "--dense-crop-x", "5"]) == 0
+    data = json.loads((tmp_path / "bench_sparse.json").read_text())
+    assert data["active_sites"] > 1000
+    assert data["spconv"] == "not installed" or isinstance(data["spconv"], dict)
+    assert all(c["ms"] > 0 for c in data["cases"])
+    assert (tmp_path / "bench_sparse.md").read_text().startswith("# Sparse convolution benchmark")

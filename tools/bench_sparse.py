@@ -1,0 +1,394 @@
+"""Benchmark detbench.sparse and detbench.ops.voxelize on the voxels of a 1.8 m LiDAR scan.
+
+Times (milliseconds, median and best of --repeats runs after one warm-up):
+  voxelization; rule-book builds; SubMConv3d 16->16 and 32->32; a strided SparseConv3d;
+  a SECOND-style 3D backbone (OpenPCDet VoxelBackBone8x topology) forward, and forward +
+  backward; a dense conv3d on a cropped grid (where it fits in memory) against the sparse
+  conv on the same crop; the implicit-GEMM alternative kernel; spconv when installed.
+Reports active sites, rule-book pairs and achieved GFLOP/s of the useful multiply-adds
+(one multiply-add = 2 FLOP; useful = one per active (input, output, offset) pair and
+channel pair). Writes bench_sparse.json and bench_sparse.md to --out.
+
+Usage: python tools/bench_sparse.py [--out DIR] [--scans N] [--repeats N] ...  (see --help)
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+import torch.nn.functional as F  # noqa: E402
+from torch import nn  # noqa: E402
+from tqdm import tqdm  # noqa: E402
+
+from detbench.ops.voxelize import (dynamic_voxelize, scatter_mean, unique_voxels, voxel_grid_size,  # noqa: E402
+                                   voxelize)
+from detbench.sparse import (SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d,  # noqa: E402
+                             build_conv_rulebook, build_subm_rulebook, sparse_conv)
+from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+
+
+# ----------------------------------------------------------------------------- input scan
+def synthetic_scan(seed: int, height: float = 1.8, vfov_deg=(-15.0, 10.0), hfov_deg: float = 180.0,
+                   channels: int = 128, h_samples: int = 480, max_range: float = 150.0,
+                   num_cars: int = 30) -> np.ndarray:
+    """Fallback scan: flat road sampled by channels x h_samples beams from ``height`` metres plus
+    car-sized axis-aligned boxes on six lanes; (N, 4) float32 x, y, z, intensity (ego ground frame)."""
+    rng = np.random.default_rng(seed)
+    el = np.deg2rad(np.linspace(vfov_deg[0], vfov_deg[1], channels))
+    az = np.deg2rad(np.linspace(-hfov_deg / 2, hfov_deg / 2, h_samples))
+    e, a = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
+    origin = np.array([0.0, 0.0, height])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[:, 2] < 0, -height / d[:, 2], np.inf)
+        lanes = np.array([-8.75, -5.25, -1.75, 1.75, 5.25, 8.75])
+        for _ in range(num_cars):
+            x = rng.uniform(6.0, max_range)
+            y = rng.choice(lanes) + rng.normal(0, 0.25)
+            length, width, tall = rng.uniform(4.0, 5.0), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.8)
+            lo = np.array([x - length / 2, y - width / 2, 0.0])
+            hi = np.array([x + length / 2, y + width / 2, tall])
+            t1, t2 = (lo - origin) / d, (hi - origin) / d
+            t_near = np.nanmax(np.minimum(t1, t2), axis=1)
+            t_far = np.nanmin(np.maximum(t1, t2), axis=1)
+            hit = (t_near <= t_far) & (t_far > 0) & (t_near < t)
+            t = np.where(hit, np.maximum(t_near, 0.0), t)
+    ok = np.isfinite(t) & (t <= max_range)
+    xyz = origin + d[ok] * t[ok, None] + rng.normal(0, 0.01, (int(ok.sum()), 3))
+    return np.concatenate([xyz, rng.uniform(0, 1, (len(xyz), 1))], 1).astype(np.float32)
+
+
+def load_scans(num: int, seed: int, source: str) -> tuple[list[np.ndarray], str]:
+    """``num`` scans of the 1.8 m LiDAR: from detbench.sim when importable (and source != synthetic)."""
+    note = ""
+    if source in ("auto", "sim"):
+        try:
+            from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+
+            sim = HighwaySimulator(load_sim_config("paper"), seed=seed)
+            lidar = lidar_preset("h3-1.8")
+            scans = [frames[0].points[:, :4].astype(np.float32) for frames in sim.run(num, [lidar])]
+            return scans, f"detbench.sim HighwaySimulator (preset paper, lidar h3-1.8, seed {seed})"
+        except Exception as exc:  # the simulator is optional here; say why it was not used
+            if source == "sim":
+                raise
+            note = f" (detbench.sim not usable: {type(exc).__name__}: {exc})"
+    scans = [synthetic_scan(seed + i) for i in range(num)]
+    return scans, ("synthetic: flat road + 30 car boxes, 128 x 480 beams, vfov -15..10 deg, hfov 180 deg, "
+                   f"from 1.8 m{note}")
+
+
+# ----------------------------------------------------------------------------- helpers
+def timed(fn, repeats: int, sync) -> dict:
+    """Run ``fn`` once to warm up, then ``repeats`` times; milliseconds (median, best)."""
+    fn()
+    sync()
+    ts = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        sync()
+        ts.append((time.perf_counter() - t0) * 1e3)
+    return {"ms": statistics.median(ts), "ms_best": min(ts)}
+
+
+def backbone(in_channels: int = 4) -> SparseSequential:
+    """SECOND-style 3D backbone (OpenPCDet VoxelBackBone8x topology, BN eps 1e-3, momentum 0.01)."""
+    def block(cin, cout, key, stride=1, padding=1, kind="subm", kernel=3):
+        conv = (SubMConv3d(cin, cout, kernel, bias=False, indice_key=key) if kind == "subm" else
+                SparseConv3d(cin, cout, kernel, stride=stride, padding=padding, bias=False, indice_key=key))
+        return SparseSequential(conv, nn.BatchNorm1d(cout, eps=1e-3, momentum=0.01), nn.ReLU())
+
+    return SparseSequential(
+        block(in_channels, 16, "subm1"),
+        block(16, 16, "subm1"),
+        block(16, 32, "spconv2", 2, 1, "spconv"), block(32, 32, "subm2"), block(32, 32, "subm2"),
+        block(32, 64, "spconv3", 2, 1, "spconv"), block(64, 64, "subm3"), block(64, 64, "subm3"),
+        block(64, 64, "spconv4", 2, (0, 1, 1), "spconv"), block(64, 64, "subm4"), block(64, 64, "subm4"),
+        block(64, 128, "spconv_down2", (2, 1, 1), 0, "spconv", (3, 1, 1)),
+    )
+
+
+def implicit_gemm(features: torch.Tensor, weight: torch.Tensor, table: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    """The alternative kernel (for comparison only): gather (N_out, K * C_in) with zero rows for
+    missing neighbours and multiply by the (K * C_in, C_out) weight, in row chunks."""
+    n_in, c_in = features.shape
+    c_out, kvol = weight.shape[0], table.shape[1]
+    padded = torch.cat([features, features.new_zeros(1, c_in)])
+    idx = torch.where(table < 0, torch.full_like(table, n_in), table)
+    w = weight.reshape(c_out, c_in, kvol).permute(2, 1, 0).reshape(kvol * c_in, c_out)
+    out = features.new_empty(table.shape[0], c_out)
+    for s in range(0, table.shape[0], chunk):
+        rows = padded.index_select(0, idx[s:s + chunk].reshape(-1)).view(-1, kvol * c_in)
+        torch.mm(rows, w, out=out[s:s + chunk])
+    return out
+
+
+def gflops(pairs: int, cin: int, cout: int, ms: float) -> float:
+    """Useful GFLOP/s: 2 FLOP per multiply-add, pairs * cin * cout multiply-adds."""
+    return 2.0 * pairs * cin * cout / (ms * 1e-3) / 1e9 if ms > 0 else float("nan")
+
+
+# ----------------------------------------------------------------------------- main
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="results/bench_sparse",
+                    help="output folder for bench_sparse.json and bench_sparse.md (default: %(default)s)")
+    ap.add_argument("--scans", type=int, default=1,
+                    help="number of 1.8 m scans batched together (batch size; default %(default)s)")
+    ap.add_argument("--source", choices=["auto", "sim", "synthetic"], default="auto",
+                    help="scan source: detbench.sim when importable (auto), force sim, or the built-in synthetic scan")
+    ap.add_argument("--seed", type=int, default=0, help="random seed of the scan and the weights")
+    ap.add_argument("--repeats", type=int, default=5, help="timed runs per case after one warm-up (default %(default)s)")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default %(default)s)")
+    ap.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default %(default)s)")
+    ap.add_argument("--voxel-size", type=float, nargs=3, default=[0.1, 0.1, 0.15], metavar=("VX", "VY", "VZ"),
+                    help="voxel size in metres (default: %(default)s, SECOND-like)")
+    ap.add_argument("--range", type=float, nargs=6, default=[0.0, -15.0, -1.0, 150.0, 15.0, 4.0],
+                    metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                    help="point-cloud range in metres, ego frame (default: %(default)s)")
+    ap.add_argument("--max-points", type=int, default=5, help="hard voxelization: points per voxel (default %(default)s)")
+    ap.add_argument("--dense-crop-x", type=float, default=30.0,
+                    help="x extent in metres of the crop (from XMIN) for the dense conv3d comparison; 0 skips it "
+                         "(default %(default)s)")
+    ap.add_argument("--dense-max-gb", type=float, default=2.0,
+                    help="skip the dense comparison when its input + output tensors exceed this many GB")
+    args = ap.parse_args(argv)
+    if args.scans < 1 or args.repeats < 1 or args.threads < 1:
+        ap.error("--scans, --repeats and --threads must be >= 1")
+    torch.set_num_threads(args.threads)
+    device = torch.device(args.device)
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+    torch.manual_seed(args.seed)
+
+    scans, source = load_scans(args.scans, args.seed, args.source)
+    grid_xyz = voxel_grid_size(args.voxel_size, args.range)
+    # OpenPCDet adds one z layer so that the strided z sizes divide evenly: (Z + 1, Y, X).
+    spatial = [grid_xyz[2] + 1, grid_xyz[1], grid_xyz[0]]
+    results: dict = {
+        "source": source, "scans": args.scans, "points": [int(len(s)) for s in scans],
+        "voxel_size_m": args.voxel_size, "range_m": args.range, "grid_xyz": list(grid_xyz),
+        "spatial_shape_zyx": spatial, "threads": args.threads, "device": str(device),
+        "torch": torch.__version__, "cpu": platform.processor() or platform.machine(),
+        "repeats": args.repeats, "flop_convention": "GFLOP/s = 2 * useful multiply-adds / time "
+        "(forward + backward rows count 3x the forward multiply-adds)",
+        "cases": [],
+    }
+
+    def add(name, timing, **extra):
+        row = {"case": name, **timing, **extra}
+        results["cases"].append(row)
+        tqdm.write(f"{name:58s} {timing['ms']:9.2f} ms (best {timing['ms_best']:.2f})"
+                   + (f"  {extra['gflops']:.1f} GFLOP/s" if "gflops" in extra else ""))
+        return row
+
+    steps = tqdm(total=11, desc="bench_sparse", unit="case")
+    # Voxelization (numba) and the mean-VFE input features.
+    vox = timed(lambda: [voxelize(s, args.voxel_size, args.range, args.max_points, 150000) for s in scans],
+                args.repeats, lambda: None)
+    hv = [voxelize(s, args.voxel_size, args.range, args.max_points, 150000) for s in scans]
+    add("hard voxelization (numba, all scans)", vox, voxels=int(sum(len(h.coords) for h in hv)))
+    pts_t = [torch.from_numpy(s).to(device) for s in scans]
+
+    def dynamic_mean():
+        # Dynamic voxelization + unique voxels + scatter-mean (what a dynamic VFE does), torch path.
+        per = [dynamic_voxelize(p, args.voxel_size, args.range) for p in pts_t]
+        cc = torch.cat([torch.cat([torch.full_like(c[:, :1], b), c], 1) for b, c in enumerate(per)])
+        cc[(cc[:, 1:] < 0).any(1)] = -1
+        vc, inv = unique_voxels(cc)
+        return scatter_mean(torch.cat(pts_t), inv, vc.shape[0])
+
+    t = timed(dynamic_mean, args.repeats, sync)
+    add("dynamic voxelization + unique + scatter_mean (torch)", t, voxels=int(dynamic_mean().shape[0]))
+    steps.update()
+    coords = torch.cat([torch.cat([torch.full((len(h.coords), 1), b, dtype=torch.int32),
+                                   torch.from_numpy(h.coords)], 1) for b, h in enumerate(hv)]).to(device)
+    feats = torch.cat([torch.from_numpy(h.voxels.sum(1) / np.maximum(h.num_points, 1)[:, None])
+                       for h in hv]).float().to(device)
+    n_sites = int(coords.shape[0])
+    results["active_sites"] = n_sites
+    x4 = SparseConvTensor(feats, coords, spatial, args.scans)
+
+    # Rule books.
+    rb_s = build_subm_rulebook(coords, spatial, 3, batch_size=args.scans)
+    t = timed(lambda: build_subm_rulebook(coords, spatial, 3, batch_size=args.scans), args.repeats, sync)
+    add("rule book SubM k3", t, sites_in=n_sites, pairs=rb_s.num_pairs,
+        neighbours_per_site=rb_s.num_pairs / max(n_sites, 1))
+    rb_c = build_conv_rulebook(coords, spatial, 3, 2, 1, batch_size=args.scans)
+    t = timed(lambda: build_conv_rulebook(coords, spatial, 3, 2, 1, batch_size=args.scans), args.repeats, sync)
+    add("rule book SparseConv k3 s2 p1", t, sites_in=n_sites, sites_out=rb_c.num_out, pairs=rb_c.num_pairs)
+    steps.update()
+
+    # Single layers: compute only (cached rule book), and cold (rule book built in the call).
+    with torch.no_grad():
+        for c in (16, 32):
+            f = torch.randn(n_sites, c, device=device)
+            w = torch.randn(c, c, 3, 3, 3, device=device) * 0.05
+            t = timed(lambda: sparse_conv(f, w, rb_s), args.repeats, sync)
+            add(f"SubMConv3d {c}->{c} k3 (rule book cached)", t, sites=n_sites, pairs=rb_s.num_pairs,
+                gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
+            layer = SubMConv3d(c, c, 3, bias=False).to(device)
+            t = timed(lambda: layer(SparseConvTensor(f, coords, spatial, args.scans, check=False)), args.repeats, sync)
+            add(f"SubMConv3d {c}->{c} k3 (incl. rule book build)", t, sites=n_sites,
+                gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
+            steps.update()
+            table = rb_s.neighbour_table()
+            t = timed(lambda: implicit_gemm(f, w, table), args.repeats, sync)
+            add(f"  alternative: implicit GEMM {c}->{c} (not used)", t, sites=n_sites,
+                gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
+            steps.update()
+        f = torch.randn(n_sites, 16, device=device)
+        w = torch.randn(32, 16, 3, 3, 3, device=device) * 0.05
+        t = timed(lambda: sparse_conv(f, w, rb_c), args.repeats, sync)
+        add("SparseConv3d 16->32 k3 s2 p1 (rule book cached)", t, sites_in=n_sites, sites_out=rb_c.num_out,
+            pairs=rb_c.num_pairs, gflops=gflops(rb_c.num_pairs, 16, 32, t["ms"]))
+        layer = SparseConv3d(16, 32, 3, 2, 1, bias=False).to(device)
+        t = timed(lambda: layer(SparseConvTensor(f, coords, spatial, args.scans, check=False)), args.repeats, sync)
+        add("SparseConv3d 16->32 k3 s2 p1 (incl. rule book build)", t, sites_in=n_sites, sites_out=rb_c.num_out,
+            gflops=gflops(rb_c.num_pairs, 16, 32, t["ms"]))
+        steps.update()
+
+    # SECOND-style backbone.
+    net = backbone(4).to(device)
+    convs = [m for m in net.modules() if isinstance(m, (SubMConv3d, SparseConv3d))]
+    stats: dict = {}
+
+    def run_backbone():
+        x = SparseConvTensor(feats, coords, spatial, args.scans, check=False)
+        y = net(x)
+        stats["keys"] = len(y.indice_dict)
+        stats["out_sites"] = int(y.indices.shape[0])
+        stats["out_shape"] = y.spatial_shape
+        return y
+
+    def backbone_flops() -> int:
+        # Useful multiply-adds of every conv layer, from the rule books of one forward.
+        x = SparseConvTensor(feats, coords, spatial, args.scans, check=False)
+        total, h = 0, x
+        for blk in net:
+            conv = blk[0]
+            h2 = blk(h)
+            rb = h.indice_dict[conv.indice_key]
+            total += rb.num_pairs * conv.in_channels * conv.out_channels
+            h = h2
+        return total
+
+    net.eval()
+    with torch.no_grad():
+        macs = backbone_flops()
+        t = timed(run_backbone, args.repeats, sync)
+    add("SECOND-style backbone forward (eval, no grad)", t, sites_in=n_sites, sites_out=stats["out_sites"],
+        out_spatial_shape=stats["out_shape"], conv_layers=len(convs), rule_books_built=stats["keys"],
+        gflops=2.0 * macs / (t["ms"] * 1e-3) / 1e9, useful_gflop=2.0 * macs / 1e9)
+    steps.update()
+    net.train()
+
+    def train_step():
+        y = run_backbone()
+        y.features.square().mean().backward()
+
+    t = timed(train_step, max(1, args.repeats // 2), sync)
+    add("SECOND-style backbone forward + backward (train)", t, sites_in=n_sites, conv_layers=len(convs),
+        rule_books_built=stats["keys"], gflops=3 * 2.0 * macs / (t["ms"] * 1e-3) / 1e9)
+    net.zero_grad(set_to_none=True)
+    steps.update()
+
+    # Dense conv3d on a crop x in [XMIN, XMIN + crop) against the sparse conv on the crop's sites.
+    dense_row = None
+    if args.dense_crop_x > 0:
+        nx = min(spatial[2], int(round(args.dense_crop_x / args.voxel_size[0])))
+        crop_shape = [spatial[0], spatial[1], nx]
+        nbytes = 2 * args.scans * 16 * math.prod(crop_shape) * 4
+        if nbytes / 1e9 > args.dense_max_gb:
+            results["dense_skipped"] = f"needs {nbytes / 1e9:.1f} GB > --dense-max-gb {args.dense_max_gb}"
+        else:
+            keep = coords[:, 3] < nx
+            cc = coords[keep]
+            f = torch.randn(int(cc.shape[0]), 16, device=device)
+            w = torch.randn(16, 16, 3, 3, 3, device=device) * 0.05
+            xs = SparseConvTensor(f, cc, crop_shape, args.scans, check=False)
+            rb_crop = build_subm_rulebook(cc, crop_shape, 3, batch_size=args.scans)
+            dense_in = xs.dense()
+            with torch.no_grad():
+                td = timed(lambda: F.conv3d(dense_in, w, None, 1, 1), max(1, args.repeats // 2), sync)
+                ts = timed(lambda: sparse_conv(f, w, rb_crop), args.repeats, sync)
+            dense_macs = args.scans * math.prod(crop_shape) * 27 * 16 * 16
+            dense_row = add(f"dense conv3d 16->16 k3 on crop {crop_shape} (x < {nx * args.voxel_size[0]:.0f} m)", td,
+                            grid_sites=args.scans * math.prod(crop_shape),
+                            gflops_total=2.0 * dense_macs / (td["ms"] * 1e-3) / 1e9,
+                            gflops=gflops(rb_crop.num_pairs, 16, 16, td["ms"]))
+            add(f"  sparse SubMConv3d 16->16 on the same crop ({int(cc.shape[0])} sites)", ts,
+                sites=int(cc.shape[0]), pairs=rb_crop.num_pairs, gflops=gflops(rb_crop.num_pairs, 16, 16, ts["ms"]))
+            del dense_in
+    steps.update()
+
+    # spconv (optional; never installed by this script).
+    try:
+        import spconv.pytorch as spconv  # noqa: F401
+
+        results["spconv"] = _bench_spconv(spconv, feats, coords, spatial, args, sync, n_sites, rb_s, add)
+    except ImportError:
+        results["spconv"] = "not installed"
+        tqdm.write("spconv: not installed")
+    steps.update()
+    steps.close()
+
+    out = Path(args.out)
+    atomic_write_json(out / "bench_sparse.json", results)
+    atomic_write_text(out / "bench_sparse.md", markdown(results))
+    print(f"wrote {out / 'bench_sparse.json'} and {out / 'bench_sparse.md'}")
+    return 0
+
+
+def _bench_spconv(spconv, feats, coords, spatial, args, sync, n_sites, rb_s, add) -> dict:
+    """Time spconv's SubMConv3d on the same sites (only when spconv happens to be installed)."""
+    out = {}
+    with torch.no_grad():
+        for c in (16, 32):
+            f = torch.randn(n_sites, c, device=feats.device)
+            layer = spconv.SubMConv3d(c, c, 3, bias=False, indice_key="s").to(feats.device)
+            x = spconv.SparseConvTensor(f, coords, spatial, args.scans)
+            layer(x)  # builds and caches the pairs under "s"
+            t = timed(lambda: layer(x), args.repeats, sync)
+            row = add(f"spconv SubMConv3d {c}->{c} k3 (pairs cached)", t, sites=n_sites,
+                      gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
+            out[f"subm{c}_ms"] = row["ms"]
+    return out
+
+
+def markdown(r: dict) -> str:
+    """Human-readable report of the results dict."""
+    lines = [
+        "# Sparse convolution benchmark (tools/bench_sparse.py)", "",
+        f"- scan source: {r['source']}",
+        f"- scans (batch): {r['scans']}, points per scan: {r['points']}",
+        f"- voxel size {r['voxel_size_m']} m, range {r['range_m']} m, grid (X, Y, Z) {r['grid_xyz']}, "
+        f"sparse spatial_shape (Z+1, Y, X) {r['spatial_shape_zyx']}",
+        f"- active sites (voxels): {r.get('active_sites')}",
+        f"- device {r['device']}, torch threads {r['threads']}, torch {r['torch']}, {r['repeats']} timed runs "
+        "after a warm-up; times in milliseconds (median, best)",
+        f"- {r['flop_convention']}; useful multiply-adds = rule-book pairs x C_in x C_out",
+        f"- spconv: {r['spconv'] if isinstance(r['spconv'], str) else 'installed, see table'}",
+    ]
+    if "dense_skipped" in r:
+        lines.append(f"- dense comparison skipped: {r['dense_skipped']}")
+    lines += ["", "| case | median ms | best ms | GFLOP/s (useful) | details |", "|---|---:|---:|---:|---|"]
+    for row in r["cases"]:
+        details = ", ".join(f"{k}={v:.2f}" if isinstance(v, float) else f"{k}={v}"
+                            for k, v in row.items() if k not in ("case", "ms", "ms_best", "gflops"))
+        g = f"{row['gflops']:.1f}" if "gflops" in row else ""
+        lines.append(f"| {row['case'].strip()} | {row['ms']:.2f} | {row['ms_best']:.2f} | {g} | {details} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
