@@ -1,0 +1,652 @@
+"""The detection evaluator of the Height3 paper (Section V): recall and AP@R40 by range and level.
+
+Every rule is written down, with examples, in docs/evaluation.md. In short, for each range
+(small / moderate / large) and level (all / top3 / top6) of `detbench.eval.regions`:
+
+- the *evaluated* ground truth of a frame is the set of its vehicles in that range and level
+  that the LiDAR detected (>= 1 point inside the box with its bottom raised 0.05 m); every
+  other ground-truth box of the frame is an *ignored* box;
+- predictions with score < `score_threshold` are dropped; the rest, highest score first
+  (ties: input order), are matched greedily: a prediction takes the still-unmatched evaluated
+  box with the highest IoU >= `iou_threshold` (a TP); failing that it is ignored if its IoU
+  with an ignored box is >= `iou_threshold`; failing that it is an FP when its centre lies
+  in the range and ignored when it does not. A second prediction on an already matched box
+  is therefore an FP (that box is evaluated, not ignored);
+- recall = TP / LiDAR-detected count (paper eq. 2); AP@R40 (eq. 3) is the mean over the 40
+  recall levels r = 1/40 .. 1 of the interpolated precision max_{r' >= r} p(r'), over the
+  non-ignored predictions of all frames pooled and ranked by score (ties: frame order, then
+  input order within the frame); a recall level never reached counts 0.
+
+Speed: each frame's IoU matrix (kept predictions x all ground truth) is computed once and
+reused by the nine range/level pairs; the greedy matching of all frames and pairs runs in one
+numba kernel, parallel over frames.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, NamedTuple, Sequence
+
+import numpy as np
+from numba import njit, prange
+
+from detbench.eval.regions import LEVELS, RANGE_NAMES, importance_mask, in_range
+
+IOU_KINDS: tuple[str, ...] = ("3d", "bev")
+# An IoU counts as reaching the threshold when IoU >= threshold - IOU_EPS. The exact IoU of
+# boxes built to overlap by exactly the threshold (a box inside another with half its volume
+# has IoU 0.5) is computed with rounding errors of ~1e-15; the tolerance makes such cases
+# deterministic without changing any IoU that is meaningfully below the threshold.
+IOU_EPS = 1e-9
+AP_RECALL_LEVELS = 40
+# Extra variants computed by `evaluate(..., extras=True)`: (iou_kind, iou_threshold).
+DEFAULT_EXTRAS: tuple[tuple[str, float], ...] = (("3d", 0.7), ("bev", 0.7), ("3d", 0.5), ("bev", 0.5))
+
+# Per-prediction outcome codes of the matching kernel.
+FP, TP, IGNORED = 0, 1, -1
+
+PAIRS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)
+
+
+# --------------------------------------------------------------------------------------------
+# Input type
+# --------------------------------------------------------------------------------------------
+
+def _as_boxes(value: Any, name: str, where: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size == 0:
+        return np.zeros((0, 7), dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 7:
+        raise ValueError(f"{where}: {name} must have shape (N, 7) = x, y, z, dx, dy, dz, heading; "
+                         f"got shape {tuple(arr.shape)}")
+    if not np.isfinite(arr).all():
+        row = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
+        raise ValueError(f"{where}: {name} row {row} is not finite ({arr[row].tolist()}); "
+                         f"remove or fix that box")
+    if (arr[:, 3:6] < 0).any():
+        row = int(np.flatnonzero((arr[:, 3:6] < 0).any(axis=1))[0])
+        raise ValueError(f"{where}: {name} row {row} has a negative size dx, dy, dz = "
+                         f"{arr[row, 3:6].tolist()}; sizes are lengths in metres, >= 0")
+    return np.ascontiguousarray(arr)
+
+
+def _as_vector(value: Any, name: str, where: str, n: int, dtype, integral: bool) -> np.ndarray:
+    raw = np.asarray(value)
+    if raw.size == 0 and n == 0:
+        return np.zeros(0, dtype=dtype)
+    if raw.ndim != 1 or raw.shape[0] != n:
+        raise ValueError(f"{where}: {name} must have shape ({n},) to match the boxes; got shape "
+                         f"{tuple(raw.shape)}")
+    if integral:
+        f = raw.astype(np.float64)
+        if not np.isfinite(f).all() or (f != np.round(f)).any():
+            raise ValueError(f"{where}: {name} must hold whole numbers; got {raw.tolist()[:8]}")
+        return f.astype(dtype)
+    arr = raw.astype(dtype)
+    if not np.isfinite(arr).all():
+        raise ValueError(f"{where}: {name} must be finite; got {arr.tolist()[:8]}")
+    return arr
+
+
+@dataclass
+class EvalFrame:
+    """Ground truth and predictions of one frame, as the evaluator needs them.
+
+    gt_boxes: (N, 7) x, y, z, dx, dy, dz, heading (metres, radians), ego ground frame.
+    gt_num_points: (N,) number of LiDAR points inside each box with its bottom raised 0.05 m
+        (`detbench.ops.points_in_boxes(points, boxes, bottom_lift=0.05)[0]`); a box with >= 1
+        point is LiDAR-detected.
+    gt_lane: (N,) lane relative to the ego (0 ego, +1 left, -1 right; any other value takes
+        no part in Top-k).
+    pred_boxes: (M, 7) predicted boxes, same layout as gt_boxes.
+    pred_scores: (M,) confidence scores (compared with the score threshold, e.g. 0.1).
+    frame_id: optional name used in error messages.
+
+    Arrays are converted on construction (float64 boxes and scores, int64 counts and lanes);
+    empty inputs may be given as `[]` or arrays of shape (0,) / (0, 7).
+    """
+
+    gt_boxes: np.ndarray
+    gt_num_points: np.ndarray
+    gt_lane: np.ndarray
+    pred_boxes: np.ndarray
+    pred_scores: np.ndarray
+    frame_id: str | None = None
+
+    def __post_init__(self) -> None:
+        where = f"EvalFrame {self.frame_id!r}" if self.frame_id is not None else "EvalFrame"
+        self.gt_boxes = _as_boxes(self.gt_boxes, "gt_boxes", where)
+        n = len(self.gt_boxes)
+        self.gt_num_points = _as_vector(self.gt_num_points, "gt_num_points", where, n, np.int64, True)
+        if (self.gt_num_points < 0).any():
+            raise ValueError(f"{where}: gt_num_points must be >= 0; got {self.gt_num_points.tolist()[:8]}")
+        self.gt_lane = _as_vector(self.gt_lane, "gt_lane", where, n, np.int64, True)
+        self.pred_boxes = _as_boxes(self.pred_boxes, "pred_boxes", where)
+        self.pred_scores = _as_vector(self.pred_scores, "pred_scores", where, len(self.pred_boxes),
+                                      np.float64, False)
+
+
+class Predictions(NamedTuple):
+    """Detections of one frame: boxes (M, 7) as in `EvalFrame.pred_boxes`, scores (M,)."""
+
+    boxes: np.ndarray
+    scores: np.ndarray
+
+
+# --------------------------------------------------------------------------------------------
+# AP@R40
+# --------------------------------------------------------------------------------------------
+
+def ap_r40_ranked(is_tp: Sequence[bool] | np.ndarray, num_gt: int) -> float | None:
+    """AP@R40 of a list of predictions already ranked best first.
+
+    is_tp: (K,) bool, True for a TP and False for an FP (ignored predictions must be removed
+        before). num_gt: number of evaluated ground-truth boxes (the recall denominator).
+    Returns the mean over r in {1/40, ..., 40/40} of max_{k: recall_k >= r} precision_k, where
+    precision_k = TP_k / k and recall_k = TP_k / num_gt after the first k predictions; a
+    level never reached contributes 0. Returns None when num_gt == 0 (nothing to evaluate).
+    The comparison recall_k >= r is done in integers (40 TP_k >= i num_gt), so no rounding.
+    """
+    num_gt = int(num_gt)
+    if num_gt < 0:
+        raise ValueError(f"num_gt must be >= 0, got {num_gt}")
+    if num_gt == 0:
+        return None
+    tp = np.asarray(is_tp, dtype=bool).reshape(-1)
+    n = tp.size
+    if n == 0:
+        return 0.0
+    tp_cum = np.cumsum(tp, dtype=np.int64)
+    if tp_cum[-1] > num_gt:
+        raise ValueError(f"{int(tp_cum[-1])} true positives for only {num_gt} ground-truth boxes; "
+                         f"each box can be matched once")
+    precision = tp_cum / np.arange(1, n + 1, dtype=np.float64)
+    best_after = np.maximum.accumulate(precision[::-1])[::-1]  # max precision at rank >= k
+    need = np.arange(1, AP_RECALL_LEVELS + 1, dtype=np.int64) * num_gt
+    first = np.searchsorted(tp_cum * AP_RECALL_LEVELS, need, side="left")
+    reached = first < n
+    interp = np.where(reached, best_after[np.minimum(first, n - 1)], 0.0)
+    return float(interp.sum() / AP_RECALL_LEVELS)
+
+
+def ap_r40(scores: Sequence[float] | np.ndarray, is_tp: Sequence[bool] | np.ndarray, num_gt: int) -> float | None:
+    """AP@R40 of unranked predictions: ranks by score, highest first, ties in the given order.
+
+    scores: (K,) scores; is_tp: (K,) bool (TP True, FP False); num_gt as in `ap_r40_ranked`.
+    """
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    is_tp = np.asarray(is_tp, dtype=bool).reshape(-1)
+    if scores.shape != is_tp.shape:
+        raise ValueError(f"scores {scores.shape} and is_tp {is_tp.shape} must have the same length")
+    order = np.argsort(-scores, kind="stable")
+    return ap_r40_ranked(is_tp[order], num_gt)
+
+
+# --------------------------------------------------------------------------------------------
+# Matching kernel
+# --------------------------------------------------------------------------------------------
+
+@njit(cache=True, parallel=True)
+def _match_kernel(iou_flat, iou_off, pred_off, gt_off, gt_eval, pred_in_range, pair_range, thr):
+    """Greedy matching of every frame and every range/level pair.
+
+    iou_flat: concatenation of each frame's (m_f, n_f) IoU matrix (row = prediction in ranked
+    order, column = ground truth), starting at iou_off[f]. pred_off, gt_off: (F + 1,) offsets of
+    each frame's predictions (ranked, score-filtered) and ground truth. gt_eval: (N, P) bool,
+    ground truth evaluated in pair p. pred_in_range: (M, R) bool, prediction centre in range r.
+    pair_range: (P,) range index of each pair. thr: IoU threshold (tolerance already applied).
+    Returns flags (M, P) int8: 1 TP, 0 FP, -1 ignored.
+    """
+    num_frames = pred_off.shape[0] - 1
+    num_pairs = gt_eval.shape[1]
+    flags = np.full((pred_off[num_frames], num_pairs), -1, dtype=np.int8)
+    for f in prange(num_frames):
+        p0 = pred_off[f]
+        m = pred_off[f + 1] - p0
+        g0 = gt_off[f]
+        n = gt_off[f + 1] - g0
+        if m == 0:
+            continue
+        base = iou_off[f]
+        matched = np.zeros(n, dtype=np.bool_)
+        for p in range(num_pairs):
+            for i in range(n):
+                matched[i] = False
+            r = pair_range[p]
+            for j in range(m):
+                best = -1
+                best_iou = -1.0
+                on_ignored = False
+                row = base + j * n
+                for i in range(n):
+                    v = iou_flat[row + i]
+                    if v >= thr:
+                        if gt_eval[g0 + i, p]:
+                            if not matched[i] and v > best_iou:
+                                best = i
+                                best_iou = v
+                        else:
+                            on_ignored = True
+                if best >= 0:
+                    matched[best] = True
+                    flags[p0 + j, p] = 1
+                elif on_ignored:
+                    flags[p0 + j, p] = -1
+                elif pred_in_range[p0 + j, r]:
+                    flags[p0 + j, p] = 0
+                else:
+                    flags[p0 + j, p] = -1
+    return flags
+
+
+# --------------------------------------------------------------------------------------------
+# Evaluation
+# --------------------------------------------------------------------------------------------
+
+def _iou_function(kind: str):
+    if kind not in IOU_KINDS:
+        raise ValueError(f"unknown iou_kind {kind!r}; use one of {', '.join(IOU_KINDS)}")
+    from detbench.ops import boxes_iou3d, boxes_iou_bev
+
+    return boxes_iou3d if kind == "3d" else boxes_iou_bev
+
+
+def _check_threshold(value: float, name: str, low_open: bool) -> float:
+    v = float(value)
+    if not math.isfinite(v) or v > 1.0 or (v <= 0.0 if low_open else v < 0.0):
+        rng = "(0, 1]" if low_open else "[0, 1]"
+        raise ValueError(f"{name} must be a number in {rng}, got {value!r}")
+    return v
+
+
+class _Prepared(NamedTuple):
+    num_frames: int
+    gt_off: np.ndarray  # (F+1,)
+    pred_off: np.ndarray  # (F+1,)
+    gt_level: np.ndarray  # (N, P) bool: in range and level
+    gt_eval: np.ndarray  # (N, P) bool: in range, level and LiDAR-detected
+    pred_boxes: np.ndarray  # (M, 7) kept predictions, ranked within each frame
+    pred_scores: np.ndarray  # (M,)
+    pred_in_range: np.ndarray  # (M, R) bool
+    gt_boxes: np.ndarray  # (N, 7)
+
+
+def _prepare(frames: Sequence[EvalFrame], score_threshold: float) -> _Prepared:
+    num_frames = len(frames)
+    n_gt = np.array([len(f.gt_boxes) for f in frames], dtype=np.int64)
+    n_pred = np.array([len(f.pred_boxes) for f in frames], dtype=np.int64)
+    gt_off = np.zeros(num_frames + 1, dtype=np.int64)
+    np.cumsum(n_gt, out=gt_off[1:])
+
+    def cat(arrays, shape_tail, dtype):
+        arrays = [a for a in arrays if len(a)]
+        return np.concatenate(arrays) if arrays else np.zeros((0, *shape_tail), dtype=dtype)
+
+    gt_boxes = cat([f.gt_boxes for f in frames], (7,), np.float64)
+    gt_points = cat([f.gt_num_points for f in frames], (), np.int64)
+    gt_lane = cat([f.gt_lane for f in frames], (), np.int64)
+    all_boxes = cat([f.pred_boxes for f in frames], (7,), np.float64)
+    all_scores = cat([f.pred_scores for f in frames], (), np.float64)
+
+    # Drop low scores, then rank: frame order, score descending, ties by input order.
+    pred_frame = np.repeat(np.arange(num_frames, dtype=np.int64), n_pred)
+    kept = np.flatnonzero(all_scores >= score_threshold)
+    kept = kept[np.argsort(-all_scores[kept], kind="stable")]
+    kept = kept[np.argsort(pred_frame[kept], kind="stable")]
+    pred_boxes = np.ascontiguousarray(all_boxes[kept])
+    pred_scores = all_scores[kept]
+    pred_off = np.zeros(num_frames + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pred_frame[kept], minlength=num_frames), out=pred_off[1:])
+
+    # Ranges are per box (one vectorised call over all frames); Top-k is per frame.
+    pred_in_range = np.zeros((len(pred_boxes), len(RANGE_NAMES)), dtype=bool)
+    gt_level = np.zeros((len(gt_boxes), len(PAIRS)), dtype=bool)
+    for ri, r in enumerate(RANGE_NAMES):
+        if len(pred_boxes):
+            pred_in_range[:, ri] = in_range(pred_boxes, r)
+        if not len(gt_boxes):
+            continue
+        cand = in_range(gt_boxes, r)
+        for li, lv in enumerate(LEVELS):
+            p = ri * len(LEVELS) + li
+            if lv == "all":
+                gt_level[:, p] = cand
+                continue
+            for f in range(num_frames):
+                a, b = gt_off[f], gt_off[f + 1]
+                if b > a and cand[a:b].any():
+                    gt_level[a:b, p] = importance_mask(gt_boxes[a:b], gt_lane[a:b], cand[a:b], lv)
+    gt_eval = gt_level & (gt_points >= 1)[:, None]
+    return _Prepared(num_frames, gt_off, pred_off, gt_level, gt_eval, pred_boxes, pred_scores,
+                     pred_in_range, gt_boxes)
+
+
+def _iou_blocks(prep: _Prepared, kind: str, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's (m_f, n_f) IoU matrix, flattened into one buffer, and its offsets."""
+    iou_fn = _iou_function(kind)
+    m = np.diff(prep.pred_off)
+    n = np.diff(prep.gt_off)
+    iou_off = np.zeros(prep.num_frames + 1, dtype=np.int64)
+    np.cumsum(m * n, out=iou_off[1:])
+    flat = np.zeros(int(iou_off[-1]), dtype=np.float64)
+    frames_iter: Iterable[int] = np.flatnonzero((m > 0) & (n > 0)).tolist()
+    if progress:
+        from tqdm import tqdm
+
+        frames_iter = tqdm(frames_iter, desc=f"IoU {kind}", unit="frame", leave=False)
+    for f in frames_iter:
+        a, b = prep.pred_off[f], prep.pred_off[f + 1]
+        c, d = prep.gt_off[f], prep.gt_off[f + 1]
+        block = np.asarray(iou_fn(prep.pred_boxes[a:b], prep.gt_boxes[c:d]), dtype=np.float64)
+        flat[iou_off[f]:iou_off[f + 1]] = block.reshape(-1)
+    return flat, iou_off
+
+
+def _results(prep: _Prepared, flags: np.ndarray) -> dict:
+    """The nested results dict {range_name: {level: {...}}} from the kernel's flags."""
+    totals = prep.gt_level.sum(axis=0)
+    detected = prep.gt_eval.sum(axis=0)
+    out: dict[str, dict[str, dict]] = {r: {} for r in RANGE_NAMES}
+    for p, (r, lv) in enumerate(PAIRS):
+        col = flags[:, p] if len(flags) else np.zeros(0, dtype=np.int8)
+        keep = col >= 0
+        is_tp = col[keep] == TP
+        tp = int(is_tp.sum())
+        fp = int(keep.sum()) - tp
+        total, det = int(totals[p]), int(detected[p])
+        # The kept predictions are already in frame order, ranked within each frame; a stable
+        # sort by score therefore breaks ties by frame order, then by input order.
+        ap = ap_r40(prep.pred_scores[keep], is_tp, det) if det else None
+        out[r][lv] = {
+            "total": total,
+            "lidar_detected": det,
+            "ldr": det / total if total else None,
+            "tp": tp,
+            "fp": fp,
+            "recall": tp / det if det else None,
+            "ap_r40": ap,
+        }
+    return out
+
+
+def _as_eval_frames(frames: Iterable[EvalFrame]) -> list[EvalFrame]:
+    out = []
+    for i, f in enumerate(frames):
+        if isinstance(f, EvalFrame):
+            out.append(f)
+        elif isinstance(f, Mapping):
+            try:
+                out.append(EvalFrame(**f))
+            except TypeError as e:
+                raise TypeError(f"frame {i}: cannot build an EvalFrame from keys {sorted(f)} ({e}); "
+                                f"give gt_boxes, gt_num_points, gt_lane, pred_boxes, pred_scores") from None
+        else:
+            raise TypeError(f"frame {i}: expected an EvalFrame (or a dict of its fields), got "
+                            f"{type(f).__name__}")
+    return out
+
+
+def _parse_extras(extras, iou_kind: str, iou_threshold: float) -> list[tuple[str, float]]:
+    if extras is False or extras is None:
+        return []
+    pairs = DEFAULT_EXTRAS if extras is True else extras
+    out = []
+    for item in pairs:
+        try:
+            kind, thr = item
+        except (TypeError, ValueError):
+            raise ValueError(f"extras entries must be (iou_kind, iou_threshold) pairs, got {item!r}") from None
+        if kind not in IOU_KINDS:
+            raise ValueError(f"extras: unknown iou_kind {kind!r}; use one of {', '.join(IOU_KINDS)}")
+        thr = _check_threshold(thr, "extras iou_threshold", low_open=True)
+        if (kind, thr) != (iou_kind, iou_threshold) and (kind, thr) not in out:
+            out.append((kind, thr))
+    return out
+
+
+def extra_key(iou_kind: str, iou_threshold: float) -> str:
+    """Name of an extra variant in `report["extras"]`, e.g. "bev_0.7" or "3d_0.5"."""
+    return f"{iou_kind}_{iou_threshold:g}"
+
+
+def evaluate(
+    frames: Iterable[EvalFrame],
+    iou_threshold: float = 0.7,
+    score_threshold: float = 0.1,
+    iou_kind: str = "3d",
+    extras: bool | Sequence[tuple[str, float]] = False,
+    progress: bool = False,
+    timings: dict | None = None,
+) -> dict:
+    """Recall and AP@R40 per range and level, as in the paper's Section V.
+
+    frames: EvalFrame objects (or dicts of their fields), one per frame.
+    iou_threshold: IoU (fraction) a prediction needs with a box to match it (>=, see IOU_EPS).
+    score_threshold: predictions with score < this are dropped before matching.
+    iou_kind: "3d" (rotated 3D IoU) or "bev" (rotated bird's-eye-view IoU).
+    extras: True adds report["extras"] with the variants of DEFAULT_EXTRAS other than the
+        main one (3D/BEV at IoU 0.7 and 0.5); or a list of (iou_kind, iou_threshold) pairs.
+        Each extra is {"iou_kind", "iou_threshold", "results"} with the main results layout.
+    progress: show tqdm progress bars over frames.
+    timings: if a dict is given, it receives the wall seconds of each stage
+        ("prepare", "iou", "match", "ap").
+
+    Returns {"iou_threshold", "iou_kind", "score_threshold", "num_frames",
+    "results": {range_name: {level: {"total", "lidar_detected", "ldr", "tp", "fp", "recall",
+    "ap_r40"}}}} (+ "extras"). Counts are numbers of vehicles (tp, fp: predictions); ldr,
+    recall and ap_r40 are fractions in [0, 1], None where their denominator is 0.
+    """
+    iou_threshold = _check_threshold(iou_threshold, "iou_threshold", low_open=True)
+    score_threshold = float(score_threshold)
+    if not math.isfinite(score_threshold):
+        raise ValueError(f"score_threshold must be a finite number, got {score_threshold!r}")
+    if iou_kind not in IOU_KINDS:
+        raise ValueError(f"unknown iou_kind {iou_kind!r}; use one of {', '.join(IOU_KINDS)}")
+    extra_list = _parse_extras(extras, iou_kind, iou_threshold)
+    t = {"prepare": 0.0, "iou": 0.0, "match": 0.0, "ap": 0.0}
+
+    t0 = time.perf_counter()
+    frame_list = _as_eval_frames(frames)
+    prep = _prepare(frame_list, score_threshold)
+    t["prepare"] += time.perf_counter() - t0
+
+    pair_range = np.array([RANGE_NAMES.index(r) for r, _ in PAIRS], dtype=np.int64)
+    iou_cache: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def run(kind: str, thr: float) -> dict:
+        t1 = time.perf_counter()
+        if kind not in iou_cache:
+            iou_cache[kind] = _iou_blocks(prep, kind, progress)
+        flat, iou_off = iou_cache[kind]
+        t2 = time.perf_counter()
+        flags = _match_kernel(flat, iou_off, prep.pred_off, prep.gt_off, prep.gt_eval,
+                              prep.pred_in_range, pair_range, thr - IOU_EPS)
+        t3 = time.perf_counter()
+        res = _results(prep, flags)
+        t4 = time.perf_counter()
+        t["iou"] += t2 - t1
+        t["match"] += t3 - t2
+        t["ap"] += t4 - t3
+        return res
+
+    report = {
+        "iou_threshold": iou_threshold,
+        "iou_kind": iou_kind,
+        "score_threshold": score_threshold,
+        "num_frames": prep.num_frames,
+        "results": run(iou_kind, iou_threshold),
+    }
+    if extra_list:
+        report["extras"] = {
+            extra_key(kind, thr): {"iou_kind": kind, "iou_threshold": thr, "results": run(kind, thr)}
+            for kind, thr in extra_list
+        }
+    if timings is not None:
+        timings.update(t)
+    return report
+
+
+# --------------------------------------------------------------------------------------------
+# Datasets and prediction files
+# --------------------------------------------------------------------------------------------
+
+LIDAR_BOTTOM_LIFT = 0.05  # metres; the paper's LiDAR-detected rule (Section IV)
+
+
+def eval_frame_from_frame(frame, predictions: Predictions | tuple | None) -> EvalFrame:
+    """EvalFrame of a `detbench.data.Frame` (boxes, lanes, points) and its predictions.
+
+    The point counts follow the LiDAR-detected rule: points inside each box with its bottom
+    raised LIDAR_BOTTOM_LIFT = 0.05 m. `predictions` is (boxes (M, 7), scores (M,)) or None.
+    """
+    from detbench.ops import points_in_boxes
+
+    boxes = np.asarray(frame.boxes)
+    if len(boxes):
+        counts, _ = points_in_boxes(np.asarray(frame.points), boxes, bottom_lift=LIDAR_BOTTOM_LIFT)
+    else:
+        counts = np.zeros(0, dtype=np.int64)
+    if predictions is None:
+        pb, ps = np.zeros((0, 7)), np.zeros(0)
+    else:
+        pb, ps = predictions
+    return EvalFrame(boxes, np.asarray(counts), np.asarray(frame.lanes), pb, ps, frame_id=frame.frame_id)
+
+
+def evaluate_predictions(
+    dataset,
+    predictions_by_frame_id: Mapping[str, Predictions | tuple],
+    iou_threshold: float = 0.7,
+    score_threshold: float = 0.1,
+    iou_kind: str = "3d",
+    extras: bool | Sequence[tuple[str, float]] = True,
+    progress: bool = True,
+) -> dict:
+    """Evaluate predictions against a dataset's frames (the path shared by --pred and --ckpt).
+
+    dataset: a sequence of `detbench.data.Frame` (e.g. `Height3Dataset(root, height, split)`):
+        `len(dataset)` and `dataset[i]`.
+    predictions_by_frame_id: frame_id -> (boxes (M, 7), scores (M,)); a frame without an entry
+        has no predictions. An id that is not a frame of `dataset` is an error.
+    Other arguments as in `evaluate`. Returns the `evaluate` report.
+    """
+    n = len(dataset)
+    ids = getattr(dataset, "frame_ids", None)
+    if ids is not None:
+        unknown = sorted(set(predictions_by_frame_id) - set(ids))
+        if unknown:
+            raise KeyError(f"predictions for {len(unknown)} frame id(s) not in the dataset, e.g. "
+                           f"{unknown[:3]}; check the split and the file names")
+    indices: Iterable[int] = range(n)
+    if progress:
+        from tqdm import tqdm
+
+        indices = tqdm(indices, desc="frames", unit="frame", leave=False)
+    frames = []
+    seen = set()
+    for i in indices:
+        frame = dataset[i]
+        seen.add(frame.frame_id)
+        frames.append(eval_frame_from_frame(frame, predictions_by_frame_id.get(frame.frame_id)))
+    if ids is None:
+        unknown = sorted(set(predictions_by_frame_id) - seen)
+        if unknown:
+            raise KeyError(f"predictions for {len(unknown)} frame id(s) not in the dataset, e.g. "
+                           f"{unknown[:3]}; check the split and the file names")
+    return evaluate(frames, iou_threshold=iou_threshold, score_threshold=score_threshold,
+                    iou_kind=iou_kind, extras=extras, progress=progress)
+
+
+PREDICTION_SUFFIX = ".txt"
+
+
+def parse_prediction_file(path: str | Path) -> Predictions:
+    """Read one prediction file: one box per line, `x y z dx dy dz heading score [class]`.
+
+    Units: metres and radians in the ego ground frame (docs/evaluation.md). Blank lines are
+    skipped; an optional ninth field (a class name) is accepted and not used. An empty file
+    is a frame with no predictions. A malformed line raises ValueError naming file and line.
+    Returns Predictions(boxes (M, 7) float64, scores (M,) float64).
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text file; write one box per line as "
+                         f"'x y z dx dy dz heading score [class]'") from None
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) not in (8, 9):
+            raise ValueError(f"{path}:{lineno}: expected 8 numbers 'x y z dx dy dz heading score' and an "
+                             f"optional class name, got {len(fields)} field(s): {line.strip()!r}")
+        try:
+            values = [float(v) for v in fields[:8]]
+        except ValueError:
+            raise ValueError(f"{path}:{lineno}: not a number among the first 8 fields "
+                             f"'x y z dx dy dz heading score': {line.strip()!r}") from None
+        if not all(math.isfinite(v) for v in values):
+            raise ValueError(f"{path}:{lineno}: non-finite value in {line.strip()!r}; every field must "
+                             f"be a finite number")
+        if min(values[3:6]) < 0:
+            raise ValueError(f"{path}:{lineno}: negative box size dx, dy, dz = {values[3:6]} in "
+                             f"{line.strip()!r}; sizes are lengths in metres, >= 0")
+        rows.append(values)
+    arr = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    return Predictions(np.ascontiguousarray(arr[:, :7]), np.ascontiguousarray(arr[:, 7]))
+
+
+def read_prediction_dir(pred_dir: str | Path, frame_ids: Iterable[str],
+                        other_ids: Iterable[str] = ()) -> tuple[dict[str, Predictions], list[str]]:
+    """Read `<frame_id>.txt` files of a folder (one per frame; see `parse_prediction_file`).
+
+    frame_ids: ids of the frames being evaluated. other_ids: ids of the same dataset outside
+    the evaluated split; their files are skipped (returned in the second list) rather than
+    rejected. Any other file (unknown id, other extension) is an error naming the file; hidden
+    files (starting with '.') are ignored. Returns ({frame_id: Predictions}, skipped ids).
+    """
+    pred_dir = Path(pred_dir)
+    if not pred_dir.is_dir():
+        raise FileNotFoundError(f"{pred_dir}: prediction folder not found; give the folder holding "
+                                f"one <frame_id>{PREDICTION_SUFFIX} file per frame")
+    wanted = set(frame_ids)
+    others = set(other_ids) - wanted
+    out: dict[str, Predictions] = {}
+    skipped: list[str] = []
+    for path in sorted(pred_dir.iterdir()):
+        if path.name.startswith("."):
+            continue
+        if not path.is_file() or path.suffix != PREDICTION_SUFFIX:
+            raise ValueError(f"{path}: unexpected entry in the prediction folder; it must hold only "
+                             f"<frame_id>{PREDICTION_SUFFIX} files")
+        fid = path.stem
+        if fid in wanted:
+            out[fid] = parse_prediction_file(path)
+        elif fid in others:
+            skipped.append(fid)
+        else:
+            raise ValueError(f"{path}: unknown frame id {fid!r} (not a frame of the dataset); rename or "
+                             f"remove the file")
+    return out, skipped
+
+
+def format_prediction_lines(boxes: np.ndarray, scores: np.ndarray, class_name: str | None = None) -> str:
+    """Text of a prediction file for boxes (M, 7) and scores (M,), one box per line."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if len(boxes) != len(scores):
+        raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
+    tail = f" {class_name}" if class_name else ""
+    return "".join(" ".join(repr(float(v)) for v in (*b, s)) + tail + "\n" for b, s in zip(boxes, scores))
+
+
+__all__ = [
+    "EvalFrame", "Predictions", "evaluate", "evaluate_predictions", "eval_frame_from_frame",
+    "ap_r40", "ap_r40_ranked", "extra_key", "parse_prediction_file", "read_prediction_dir",
+    "format_prediction_lines", "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS",
+    "LIDAR_BOTTOM_LIFT", "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",
+]

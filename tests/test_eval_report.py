@@ -1,0 +1,145 @@
+"""Reports: Markdown (Table VII layout), CSV, combining models x heights, figures."""
+import csv
+import io
+
+import numpy as np
+import pytest
+
+from detbench.eval import EvalFrame, evaluate
+from detbench.eval.report import (
+    check_report,
+    combine_reports,
+    combined_csv,
+    combined_markdown,
+    plot_by_height,
+    plot_by_level,
+    plot_by_range,
+    report_rows,
+    report_to_csv,
+    report_to_markdown,
+    summary_lines,
+)
+
+
+def car(x, y=0.0):
+    return [x, y, 0.8, 4.0, 2.0, 1.6, 0.0]
+
+
+def make_report(model, height, found, extras=False):
+    """Vehicles at x = 10, 20, 30 (ego lane) and 60 (moderate); one undetected (x = 30).
+    The model finds the first `found` of the detected ones."""
+    gt = [car(10), car(20), car(30), car(60)]
+    pts = [5, 5, 0, 5]
+    detected = [g for g, p in zip(gt, pts) if p][:found]
+    rep = evaluate([EvalFrame(gt, pts, [0, 0, 0, 0], detected, [0.9] * len(detected))], extras=extras)
+    return {"model": model, "height": height, "split": "test", **rep}
+
+
+def test_markdown_single_report():
+    rep = make_report("SECOND", 1.8, 2, extras=True)
+    md = report_to_markdown(rep, title="T")
+    assert md.startswith("# T\n")
+    assert "model SECOND, height 1.8 m, split test, 1 frame." in md
+    # Small / All: total 3 (x=10, 20, 30), LiDAR detected 2, LDR 0.667, TP 2, recall 1, FP 0, AP 1
+    assert "| Small | All | 3 | 2 | 0.667 | 2 | 1.000 | 0 | 1.000 |" in md
+    # Small / Top3: only the nearest (x=10) -> total 1, detected 1, TP 1 (the x=20 hit is ignored)
+    assert "| Small | Top3 | 1 | 1 | 1.000 | 1 | 1.000 | 0 | 1.000 |" in md
+    # Moderate / All: 4 vehicles, 3 detected, 2 found
+    assert "| Moderate | All | 4 | 3 | 0.750 | 2 | 0.667 | 0 |" in md
+    assert md.count("| Range | Level |") == 4  # main + 3 extras
+    assert "## BEV IoU >= 0.7 (extra)" in md
+
+
+def test_markdown_nulls():
+    rep = evaluate([])
+    md = report_to_markdown(rep)
+    assert "| Small | All | 0 | 0 | n/a | 0 | n/a | 0 | n/a |" in md
+    assert "nan" not in md.lower()
+
+
+def test_csv_round_trip():
+    rep = make_report("A", 1.0, 1, extras=True)
+    rows = list(csv.DictReader(io.StringIO(report_to_csv(rep))))
+    assert len(rows) == 4 * 9
+    main = [r for r in rows if r["variant"] == "main"]
+    assert len(main) == 9
+    small_all = next(r for r in main if r["range"] == "small" and r["level"] == "all")
+    assert (small_all["model"], float(small_all["height_m"]), int(small_all["tp"])) == ("A", 1.0, 1)
+    assert float(small_all["recall"]) == pytest.approx(0.5)
+    empty = list(csv.DictReader(io.StringIO(report_to_csv(evaluate([])))))
+    assert empty[0]["recall"] == "" and empty[0]["model"] == ""
+    assert len(report_rows(rep)) == 36
+
+
+def test_summary_lines():
+    lines = summary_lines(make_report("A", 1.0, 1))
+    assert len(lines) == 4 and "model A" in lines[0] and "recall 0.500" in lines[1]
+
+
+def reports_grid():
+    out = []
+    for h, base in ((0.5, 1), (1.0, 1), (1.8, 2)):
+        for m, extra in (("PointRCNN", 0), ("CT3D", 1)):
+            out.append(make_report(m, h, min(base + extra, 3)))
+    return out
+
+
+def test_combine_and_table_vii_layout():
+    reps = reports_grid()
+    comb = combine_reports(reps)
+    assert comb["heights"] == [0.5, 1.0, 1.8] and comb["models"] == ["PointRCNN", "CT3D"]
+    assert len(comb["entries"]) == 6
+    md = combined_markdown(reps)
+    header = next(line for line in md.splitlines() if line.startswith("| Range"))
+    assert header.split(" | ")[4:7] == ["0.5 m LiDAR detected", "0.5 m PointRCNN", "0.5 m CT3D"]
+    # Small / All row: Total 3, then per height LiDAR detected 2 and TPs
+    assert "| Small | All | Number | 3 | 2 | 1 | 2 | 2 | 1 | 2 | 2 | 2 | 2 |" in md
+    assert "|  |  | LDR / Recall |  | 0.67 | 0.50 | 1.00 | 0.67 | 0.50 | 1.00 | 0.67 | 1.00 | 1.00 |" in md
+    rows = list(csv.DictReader(io.StringIO(combined_csv(reps))))
+    assert len(rows) == 6 * 9 and {r["model"] for r in rows} == {"PointRCNN", "CT3D"}
+
+
+def test_combine_rejects_inconsistent_reports():
+    reps = reports_grid()
+    with pytest.raises(ValueError, match="also in"):
+        combine_reports(reps + [reps[0]])
+    no_model = dict(reps[0], model=None)
+    with pytest.raises(ValueError, match="no 'model'"):
+        combine_reports([no_model])
+    no_height = {k: v for k, v in reps[0].items() if k != "height"}
+    with pytest.raises(ValueError, match="no 'height'"):
+        combine_reports([no_height], sources=["x/report.json"])
+    other_thr = dict(reps[1], iou_threshold=0.5)
+    with pytest.raises(ValueError, match="like with like"):
+        combine_reports([reps[0], other_thr])
+    # same height, different ground truth
+    other_gt = make_report("X", 0.5, 1)
+    other_gt["results"]["small"]["all"] = dict(other_gt["results"]["small"]["all"], lidar_detected=99)
+    with pytest.raises(ValueError, match="different data"):
+        combine_reports([reps[0], other_gt], sources=["a.json", "b.json"])
+    with pytest.raises(ValueError, match="no reports"):
+        combine_reports([])
+    with pytest.raises(ValueError, match="missing key"):
+        check_report({"results": {}})
+
+
+def test_figures(tmp_path):
+    reps = reports_grid()
+    paths = [
+        plot_by_height(reps, tmp_path / "fig8.png"),
+        plot_by_range(reps, tmp_path / "fig9.png"),
+        plot_by_level(reps, tmp_path / "fig10.png", metric="ap_r40"),
+    ]
+    for p in paths:
+        data = p.read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 10_000
+    assert not list(tmp_path.glob(".tmp-*"))
+    with pytest.raises(ValueError, match="metric"):
+        plot_by_range(reps, tmp_path / "x.png", metric="precision")
+    # reports with null recall (nothing evaluated) still plot
+    empty = [{"model": "M", "height": 1.0, **evaluate([])}]
+    assert plot_by_level(empty, tmp_path / "empty.png").exists()
+    # figures from a single-height report set
+    assert plot_by_height([make_report("M", 1.0, 1)], tmp_path / "one.png").exists()
+    np.testing.assert_equal(sorted(p.name for p in tmp_path.glob("*.png")),
+                            ["empty.png", "fig10.png", "fig8.png", "fig9.png", "one.png"])

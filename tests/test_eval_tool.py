@@ -1,0 +1,239 @@
+"""tools/eval.py and the prediction-file readers: parsing, file errors, end to end on a tiny dataset."""
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from detbench.eval import evaluate_predictions, parse_prediction_file, read_prediction_dir
+from detbench.eval.evaluate import format_prediction_lines
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_tool():
+    spec = importlib.util.spec_from_file_location("detbench_tools_eval", ROOT / "tools" / "eval.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ------------------------------------------------------------------ prediction files
+
+def test_parse_prediction_file(tmp_path):
+    p = tmp_path / "a.txt"
+    p.write_text("1 2 0.8 4 2 1.6 0.1 0.9 car\n\n  -3.5 0 1 4.5 1.9 1.5 -3.1 0.25\n")
+    boxes, scores = parse_prediction_file(p)
+    np.testing.assert_allclose(boxes, [[1, 2, 0.8, 4, 2, 1.6, 0.1], [-3.5, 0, 1, 4.5, 1.9, 1.5, -3.1]])
+    np.testing.assert_allclose(scores, [0.9, 0.25])
+    (tmp_path / "empty.txt").write_text("")
+    boxes, scores = parse_prediction_file(tmp_path / "empty.txt")
+    assert boxes.shape == (0, 7) and scores.shape == (0,)
+
+
+def test_format_and_parse_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    boxes, scores = rng.normal(size=(5, 7)), rng.random(5)
+    boxes[:, 3:6] = np.abs(boxes[:, 3:6])
+    (tmp_path / "x.txt").write_text(format_prediction_lines(boxes, scores, "car"))
+    b, s = parse_prediction_file(tmp_path / "x.txt")
+    np.testing.assert_array_equal(b, boxes)
+    np.testing.assert_array_equal(s, scores)
+
+
+@pytest.mark.parametrize("line, message", [
+    ("1 2 3 4 5 6 7", "expected 8 numbers"),
+    ("1 2 3 4 5 6 7 0.5 car extra", "expected 8 numbers"),
+    ("1 2 3 4 5 6 x 0.5", "not a number"),
+    ("1 2 3 4 5 6 7 nan", "non-finite"),
+    ("1 2 3 -4 5 6 7 0.5", "negative box size"),
+])
+def test_malformed_line_names_file_and_line(tmp_path, line, message):
+    p = tmp_path / "0001.txt"
+    p.write_text("1 2 0.8 4 2 1.6 0 0.9\n" + line + "\n")
+    with pytest.raises(ValueError, match=message) as e:
+        parse_prediction_file(p)
+    assert f"{p}:2:" in str(e.value)
+
+
+def test_read_prediction_dir(tmp_path):
+    d = tmp_path / "pred"
+    d.mkdir()
+    (d / "f1.txt").write_text("1 2 0.8 4 2 1.6 0 0.9\n")
+    (d / "f9.txt").write_text("1 2 0.8 4 2 1.6 0 0.9\n")
+    (d / ".hidden").write_text("ignored")
+    preds, skipped = read_prediction_dir(d, ["f1", "f2"], other_ids=["f9"])
+    assert list(preds) == ["f1"] and skipped == ["f9"]
+    with pytest.raises(ValueError, match=r"f9\.txt: unknown frame id 'f9'"):
+        read_prediction_dir(d, ["f1", "f2"])
+    (d / "notes.md").write_text("x")
+    with pytest.raises(ValueError, match=r"notes\.md: unexpected entry"):
+        read_prediction_dir(d, ["f1", "f2"], other_ids=["f9"])
+    with pytest.raises(FileNotFoundError, match="prediction folder not found"):
+        read_prediction_dir(tmp_path / "nope", ["f1"])
+
+
+# ------------------------------------------------------------------ CLI without data
+
+def test_help_runs_as_script():
+    out = subprocess.run([sys.executable, "tools/eval.py", "--help"], cwd=ROOT, capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0
+    for opt in ("--data", "--height", "--split", "--pred", "--ckpt", "--out", "--combine", "metres"):
+        assert opt in out.stdout
+
+
+def test_ckpt_says_no_model_yet(tmp_path, capsys):
+    tool = load_tool()
+    rc = tool.main(["--data", str(tmp_path), "--height", "1.8", "--ckpt", str(tmp_path / "m.pt"),
+                    "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "no detector is available yet" in err and "--pred" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_argument_errors(tmp_path, capsys):
+    tool = load_tool()
+    assert tool.main(["--height", "1.8", "--pred", str(tmp_path), "--out", str(tmp_path)]) == 2
+    assert "missing --data" in capsys.readouterr().err
+    assert tool.main(["--data", str(tmp_path), "--height", "1.8", "--out", str(tmp_path)]) == 2
+    assert "exactly one of --pred" in capsys.readouterr().err
+    assert tool.main(["--combine", str(tmp_path / "r.json")]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert tool.main(["--combine", str(tmp_path / "r.json"), "--out", str(tmp_path)]) == 2
+    assert "r.json: file not found" in capsys.readouterr().err
+
+
+def test_combine_cli(tmp_path, capsys):
+    from detbench.eval import EvalFrame, evaluate
+    from detbench.utils.io import atomic_write_json
+
+    car = [10, 0, 0.8, 4, 2, 1.6, 0]
+    paths = []
+    for model, found in (("A", 1), ("B", 0)):
+        for h in (0.5, 1.8):
+            rep = evaluate([EvalFrame([car], [3], [0], [car] * found, [0.9] * found)])
+            paths.append(atomic_write_json(tmp_path / model / str(h) / "report.json",
+                                           {"model": model, "height": h, "split": "test", **rep}))
+    tool = load_tool()
+    out = tmp_path / "comb"
+    assert tool.main(["--combine", *map(str, paths), "--out", str(out)]) == 0
+    assert "models A, B; heights 0.5 m, 1.8 m" in capsys.readouterr().out
+    for name in ("combined.json", "combined.md", "combined.csv", "fig8_by_height.png",
+                 "fig9_recall_by_range.png", "fig10_recall_by_level.png"):
+        assert (out / name).stat().st_size > 0, name
+    comb = json.loads((out / "combined.json").read_text())
+    assert comb["models"] == ["A", "B"] and comb["sources"] == list(map(str, paths))
+    # a report without a model name is refused with the fix
+    bad = json.loads(paths[0].read_text())
+    bad["model"] = None
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    assert tool.main(["--combine", str(tmp_path / "bad.json"), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.json: no 'model'" in err and "--model" in err
+
+
+# ------------------------------------------------------------------ end to end on a tiny dataset
+
+def car(x, y=0.0):
+    return [x, y, 0.8, 4.0, 2.0, 1.6, 0.0]
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    """3 scenes x 2 frames at 1.8 m. Every frame: vehicles at (10, 0) lane 0 and (20, 3.5) lane +1,
+    each with a point inside, and (30, -3.5) lane -1 whose only point is 0.03 m above the road
+    (below the 0.05 m lift -> not LiDAR-detected)."""
+    from detbench.data import DatasetWriter, Frame, Sensor
+
+    root = tmp_path_factory.mktemp("ds")
+    boxes = np.array([car(10), car(20, 3.5), car(30, -3.5)], dtype=np.float32)
+    points = np.array([[10, 0, 1.0, 0.5], [20, 3.5, 0.5, 0.5], [30, -3.5, 0.03, 0.5]], dtype=np.float32)
+    with DatasetWriter(root, [1.8], {"kind": "test fixture"}) as w:
+        for s in range(3):
+            for i in range(2):
+                w.add([Frame(f"{s:04d}_{i:03d}", f"{s:04d}", points, boxes, np.array(["car"] * 3),
+                             np.arange(3), np.array([0, 1, -1]), Sensor(1.8))])
+    return root
+
+
+def test_evaluate_predictions_on_dataset(tiny_dataset):
+    from detbench.data import Height3Dataset
+
+    ds = Height3Dataset(tiny_dataset, 1.8, "all")
+    ids = ds.frame_ids
+    preds = {ids[0]: (np.array([car(10), car(20.5, 3.5)]), np.array([0.9, 0.8])),
+             ids[1]: (np.array([car(30, -3.5), car(40)]), np.array([0.9, 0.05]))}
+    rep = evaluate_predictions(ds, preds, progress=False, extras=False)
+    c = rep["results"]["small"]["all"]
+    # 6 frames x 3 vehicles, 2 detected each; 2 TPs in frame 0; the hit on the undetected
+    # vehicle is ignored and the 0.05-score box dropped
+    assert (c["total"], c["lidar_detected"], c["tp"], c["fp"]) == (18, 12, 2, 0)
+    assert c["recall"] == pytest.approx(2 / 12)
+    assert "extras" not in rep
+    with pytest.raises(KeyError, match="not in the dataset"):
+        evaluate_predictions(ds, {"9999_999": preds[ids[0]]}, progress=False)
+
+
+def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
+    from detbench.data import Height3Dataset
+
+    test_ids = Height3Dataset(tiny_dataset, 1.8, "test").frame_ids
+    train_ids = Height3Dataset(tiny_dataset, 1.8, "train").frame_ids
+    pred = tmp_path / "pred"
+    pred.mkdir()
+    (pred / f"{test_ids[0]}.txt").write_text("10 0 0.8 4 2 1.6 0 0.9 car\n20.5 3.5 0.8 4 2 1.6 0 0.8\n"
+                                             "70 0 0.8 4 2 1.6 0 0.7\n")
+    (pred / f"{train_ids[0]}.txt").write_text("10 0 0.8 4 2 1.6 0 0.9\n")
+    out = tmp_path / "out"
+    tool = load_tool()
+    rc = tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--split", "test", "--pred", str(pred),
+                    "--out", str(out), "--model", "SECOND", "--no-progress"])
+    stdout = capsys.readouterr().out
+    assert rc == 0, stdout
+    assert "skipped 1 prediction file" in stdout and "recall" in stdout
+    rep = json.loads((out / "report.json").read_text())
+    assert (rep["model"], rep["height"], rep["split"], rep["num_frames"]) == ("SECOND", 1.8, "test", len(test_ids))
+    small, moderate = rep["results"]["small"]["all"], rep["results"]["moderate"]["all"]
+    n = len(test_ids)
+    assert (small["total"], small["lidar_detected"], small["tp"], small["fp"]) == (3 * n, 2 * n, 2, 0)
+    assert small["ldr"] == pytest.approx(2 / 3) and small["recall"] == pytest.approx(2 / (2 * n))
+    # the box at x = 70 is outside small (ignored) but an FP in moderate, ranked last
+    assert moderate["fp"] == 1 and moderate["ap_r40"] == pytest.approx(2 / (2 * n))
+    assert set(rep["extras"]) == {"bev_0.7", "3d_0.5", "bev_0.5"}
+    md = (out / "report.md").read_text()
+    assert "SECOND at 1.8 m (test split)" in md and "| Small | All |" in md
+    assert (out / "report.csv").read_text().startswith("model,height_m,split,variant")
+
+    # a file for an unknown frame id, and a malformed line: errors naming the file (and line)
+    (pred / "9999_999.txt").write_text("")
+    assert tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
+                      "--no-progress"]) == 2
+    assert "9999_999.txt: unknown frame id" in capsys.readouterr().err
+    (pred / "9999_999.txt").unlink()
+    (pred / f"{test_ids[-1]}.txt").write_text("1 2 3\n")
+    assert tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
+                      "--no-progress"]) == 2
+    assert f"{test_ids[-1]}.txt:1: expected 8 numbers" in capsys.readouterr().err
+    # a height the dataset does not hold
+    assert tool.main(["--data", str(tiny_dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
+                      "--no-progress"]) == 2
+    assert "0.5" in capsys.readouterr().err
+
+
+def test_bench_eval_small_run(tmp_path, capsys):
+    spec = importlib.util.spec_from_file_location("detbench_tools_bench_eval", ROOT / "tools" / "bench_eval.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(["--frames", "40", "--repeats", "1", "--out", str(tmp_path)]) == 0
+    assert "median" in capsys.readouterr().out
+    res = json.loads((tmp_path / "bench_eval.json").read_text())
+    assert res["frames"] == 40 and res["predictions_per_frame"] == 30 and res["seconds_median"] > 0
+    assert set(res["seconds_by_stage_median"]) == {"prepare", "iou", "match", "ap"}
+    # the synthetic load has TPs, FPs and undetected vehicles
+    la = res["large_all"]
+    assert la["tp"] > 0 and la["fp"] > 0 and la["lidar_detected"] < la["total"]
+    assert "| **total** |" in (tmp_path / "bench_eval.md").read_text()

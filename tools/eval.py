@@ -1,0 +1,252 @@
+"""Evaluate 3D detections the way the Height3 paper does (Section V; rules in docs/evaluation.md).
+
+Evaluate saved predictions of one height and split:
+
+    python tools/eval.py --data ROOT --height 1.8 --split test --pred PRED_DIR --out OUT_DIR [--model NAME]
+
+PRED_DIR holds one `<frame_id>.txt` per frame, one box per line, `x y z dx dy dz heading score
+[class]` (metres, radians, ego ground frame). A frame without a file has no predictions.
+Writes OUT_DIR/report.json, report.md (Table VII layout), report.csv and prints a summary.
+
+Combine several reports (models x heights) into one table and the paper's Fig. 8-10:
+
+    python tools/eval.py --combine A/report.json B/report.json ... --out DIR
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from detbench.eval.evaluate import (  # noqa: E402
+    evaluate_predictions,
+    read_prediction_dir,
+)
+from detbench.eval.report import (  # noqa: E402
+    combine_reports,
+    combined_csv,
+    combined_markdown,
+    plot_by_height,
+    plot_by_level,
+    plot_by_range,
+    report_to_csv,
+    report_to_markdown,
+    summary_lines,
+)
+from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
+
+SPLITS = ("train", "test", "all")
+
+
+class ToolError(Exception):
+    """A user-facing error: printed as one message, exit status 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line options (see --help)."""
+    p = argparse.ArgumentParser(
+        prog="tools/eval.py",
+        description="Recall and AP@R40 of 3D vehicle detections by range (small/moderate/large) and "
+                    "importance level (All/Top3/Top6), restricted to LiDAR-detected vehicles, as in the "
+                    "Height3 paper. Either evaluate one prediction folder (--data, --height, --pred) or "
+                    "combine finished reports (--combine).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    src = p.add_argument_group("evaluate one model at one height")
+    src.add_argument("--data", type=Path, help="dataset root in the Height3 layout (docs/data-format.md)")
+    src.add_argument("--height", type=float, help="LiDAR mounting height to evaluate, metres (e.g. 0.5, 1.0, 1.8)")
+    src.add_argument("--split", default="test", choices=SPLITS, help="dataset split whose frames are evaluated")
+    src.add_argument("--pred", type=Path,
+                     help="folder of predictions: one <frame_id>.txt per frame, lines 'x y z dx dy dz heading "
+                          "score [class]' in metres and radians (ego ground frame); a missing file means no "
+                          "predictions for that frame")
+    src.add_argument("--ckpt", type=Path,
+                     help="detector checkpoint to run instead of --pred (needs a registered detector in models/)")
+    src.add_argument("--model", default=None,
+                     help="model name stored in the report (needed later by --combine); default: the "
+                          "checkpoint's model when known, else none")
+    p.add_argument("--out", type=Path, required=False, help="output folder for JSON, Markdown, CSV (and figures)")
+    p.add_argument("--iou-threshold", type=float, default=0.7,
+                   help="IoU (fraction) a prediction needs with a vehicle to count as a TP")
+    p.add_argument("--iou-kind", default="3d", choices=("3d", "bev"),
+                   help="main IoU: rotated 3D boxes or bird's-eye view")
+    p.add_argument("--score-threshold", type=float, default=0.1,
+                   help="predictions with a score below this are dropped before matching")
+    p.add_argument("--no-extras", action="store_true",
+                   help="skip the extra variants (BEV IoU and IoU 0.5) in the report")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    comb = p.add_argument_group("combine reports")
+    comb.add_argument("--combine", nargs="+", type=Path, metavar="REPORT",
+                      help="report.json files (each with model and height) to merge into one table "
+                           "(combined.md/.csv/.json) and figures (fig8_by_height.png, "
+                           "fig9_recall_by_range.png, fig10_recall_by_level.png)")
+    comb.add_argument("--no-figures", action="store_true", help="with --combine: write no PNG figures")
+    comb.add_argument("--range", dest="range_name", default="large", choices=("small", "moderate", "large"),
+                      help="with --combine: range shown in the by-height and by-level figures")
+    return p
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate
+# --------------------------------------------------------------------------------------------
+
+def load_dataset(root: Path, height: float, split: str):
+    """(dataset of the split, frame ids of the other splits) of `Height3Dataset`."""
+    try:
+        from detbench.data import Height3Dataset, split_ids
+    except ImportError as e:
+        raise ToolError(f"the dataset reader detbench.data.Height3Dataset is not available ({e})") from None
+    if not Path(root).is_dir():
+        raise ToolError(f"{root}: dataset root not found; give --data the folder written by tools/simulate.py "
+                        f"or holding the Height3 data")
+    try:
+        dataset = Height3Dataset(root, height, split)
+        other: list[str] = []
+        if split != "all":
+            wanted = set(dataset.frame_ids)
+            other = [f for f in split_ids(root, "all") if f not in wanted]
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        raise ToolError(str(e)) from None
+    return dataset, other
+
+
+def detector_registry() -> dict:
+    """Detectors registered by models/ (name -> builder); empty until detectors land."""
+    import models
+
+    return dict(getattr(models, "REGISTRY", None) or {})
+
+
+def predictions_from_checkpoint(ckpt: Path, dataset):
+    """Run a detector checkpoint over `dataset` -> ({frame_id: Predictions}, model name).
+
+    No detector is registered in models/ yet, so this says so plainly. When detectors land,
+    this is the one function to fill: build the model from the checkpoint, run it on every
+    frame and return its boxes and scores; `evaluate_predictions` does the rest, exactly as
+    for --pred.
+    """
+    registry = detector_registry()
+    if not registry:
+        raise ToolError(f"--ckpt {ckpt}: no detector is available yet (models/ registers none), so a "
+                        f"checkpoint cannot be run; evaluate saved predictions with --pred PRED_DIR instead")
+    raise ToolError(f"--ckpt {ckpt}: detectors {sorted(registry)} are registered but tools/eval.py cannot "
+                    f"run checkpoints yet; write the model's predictions to a folder and pass --pred PRED_DIR")
+
+
+def write_report(report: dict, out: Path, title: str) -> list[Path]:
+    """Write report.json, report.md and report.csv into `out`; returns the paths."""
+    paths = [out / "report.json", out / "report.md", out / "report.csv"]
+    atomic_write_json(paths[0], report)
+    atomic_write_text(paths[1], report_to_markdown(report, title=title))
+    atomic_write_text(paths[2], report_to_csv(report))
+    return paths
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    """Evaluate one prediction folder (or checkpoint) at one height and split; exit status."""
+    missing = [name for name, v in (("--data", args.data), ("--height", args.height), ("--out", args.out)) if v is None]
+    if missing:
+        raise ToolError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H "
+                        f"(--pred DIR | --ckpt FILE) --out DIR")
+    if (args.pred is None) == (args.ckpt is None):
+        raise ToolError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
+    if args.ckpt is not None and not detector_registry():
+        # Say so before the possibly long dataset load.
+        predictions_from_checkpoint(args.ckpt, None)
+    t0 = time.perf_counter()
+    dataset, other_ids = load_dataset(args.data, args.height, args.split)
+    model = args.model
+    if args.pred is not None:
+        try:
+            preds, skipped = read_prediction_dir(args.pred, dataset.frame_ids, other_ids)
+        except (FileNotFoundError, ValueError) as e:
+            raise ToolError(str(e)) from None
+    else:
+        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset)
+        skipped = []
+        model = model or ckpt_model
+    try:
+        report = evaluate_predictions(
+            dataset, preds, iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
+            iou_kind=args.iou_kind, extras=not args.no_extras, progress=not args.no_progress)
+    except (ValueError, KeyError) as e:
+        raise ToolError(str(e)) from None
+    full = {
+        "model": model,
+        "height": float(args.height),
+        "split": args.split,
+        "data": str(args.data),
+        "predictions": str(args.pred if args.pred is not None else args.ckpt),
+        **report,
+    }
+    if args.pred is not None:
+        full["prediction_files"] = len(preds)
+        full["files_of_other_splits_skipped"] = len(skipped)
+    title = f"Detection results{' of ' + model if model else ''} at {args.height:g} m ({args.split} split)"
+    paths = write_report(full, args.out, title)
+    for line in summary_lines(full):
+        print(line)
+    if skipped:
+        print(f"  skipped {len(skipped)} prediction file(s) of frames outside the {args.split!r} split")
+    if args.pred is not None:
+        print(f"  {len(preds)} of {report['num_frames']} frames had a prediction file")
+    print(f"  {time.perf_counter() - t0:.1f} s")
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# combine
+# --------------------------------------------------------------------------------------------
+
+def run_combine(args: argparse.Namespace) -> int:
+    """Merge finished report.json files into combined.md/.csv/.json and figures; exit status."""
+    if args.out is None:
+        raise ToolError("--combine needs --out DIR for the combined table")
+    if any(v is not None for v in (args.data, args.height, args.pred, args.ckpt)):
+        raise ToolError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
+    reports, sources = [], []
+    for path in args.combine:
+        try:
+            reports.append(read_json(path))
+        except (FileNotFoundError, ValueError) as e:
+            raise ToolError(str(e)) from None
+        sources.append(str(path))
+    try:
+        comb = combine_reports(reports, sources)
+        md = combined_markdown(reports, sources=sources)
+        csv_text = combined_csv(reports, sources=sources)
+    except ValueError as e:
+        raise ToolError(str(e)) from None
+    comb["sources"] = sources
+    paths = [args.out / "combined.json", args.out / "combined.md", args.out / "combined.csv"]
+    atomic_write_json(paths[0], comb)
+    atomic_write_text(paths[1], md)
+    atomic_write_text(paths[2], csv_text)
+    if not args.no_figures:
+        paths.append(plot_by_height(reports, args.out / "fig8_by_height.png", range_name=args.range_name))
+        paths.append(plot_by_range(reports, args.out / "fig9_recall_by_range.png"))
+        paths.append(plot_by_level(reports, args.out / "fig10_recall_by_level.png", range_name=args.range_name))
+    print(f"combined {len(reports)} reports: models {', '.join(comb['models'])}; heights "
+          f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the tool with `argv` (default: sys.argv); returns 0, or 2 after a printed error."""
+    args = build_parser().parse_args(argv)
+    try:
+        if args.combine:
+            return run_combine(args)
+        return run_evaluate(args)
+    except ToolError as e:
+        print(f"tools/eval.py: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
