@@ -107,3 +107,10 @@ def test_sensor_roundtrip():
     assert Sensor.from_dict(s.to_dict()) == s
     with pytest.raises(ValueError, match="unknown sensor field"):
         Sensor.from_dict({**s.to_dict(), "colour": "red"})
+
+
+def test_atomic_write_uses_normal_file_mode(tmp_path):
+    target = io.atomic_write_text(tmp_path / "r.md", "x")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (target.stat().st_mode & 0o777) == (0o666 & ~mask)
