@@ -1,0 +1,274 @@
+"""Readers and formatters of the per-frame files, each validating what it reads.
+
+- points: `.npy` (N, 4) float32 or KITTI-style `.bin` (raw little-endian float32, `columns`
+  values a point, the first four x y z intensity);
+- labels: text, one vehicle a line `x y z dx dy dz heading class` (metres, radians);
+- meta: JSON side file with scene id, timestamp, ego state, track ids, lanes, sensors.
+
+Every problem raises `DatasetError` naming the file (and the 1-based line for labels),
+what is wrong and how to fix it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from detbench.data.errors import DatasetError, MissingFileError
+from detbench.data.frame import BOX_DIM, POINT_DIM, Sensor
+from detbench.data.transforms import wrap_heading
+
+LABEL_COLUMNS = ("x", "y", "z", "dx", "dy", "dz", "heading", "class")
+
+
+# --------------------------------------------------------------------------- points
+
+def read_points(path: str | os.PathLike, columns: int = POINT_DIM) -> np.ndarray:
+    """Read one point cloud: `.npy` or `.bin` -> (N, 4) float32 x, y, z, intensity.
+
+    `.npy` must hold a 2-D float32 array with 4 columns. `.bin` is a raw float32 file with
+    `columns` values a point (KITTI: 4); only the first four are kept. Points are checked to
+    be finite. Raises MissingFileError / DatasetError naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError(f"points file not found; re-create the frame or remove its id from ImageSets",
+                               path=path)
+    ext = path.suffix.lower()
+    if ext == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except ValueError as e:
+            raise DatasetError(f"cannot read as .npy ({e}); save points with np.save(path, "
+                               f"points.astype(np.float32))", path=path) from None
+        except OSError as e:
+            raise DatasetError(f"cannot read as .npy ({e}); the file is truncated or not a numpy file; "
+                               f"re-create it", path=path) from None
+        if arr.ndim != 2 or arr.shape[1] != POINT_DIM:
+            raise DatasetError(f"points array has shape {arr.shape}, expected (N, {POINT_DIM}) "
+                               f"(x, y, z, intensity); save a 2-D array with 4 columns", path=path)
+        if arr.dtype != np.float32:
+            raise DatasetError(f"points array has dtype {arr.dtype}, expected float32; save "
+                               f"points.astype(np.float32)", path=path)
+    elif ext == ".bin":
+        if columns < POINT_DIM:
+            raise ValueError(f"columns must be >= {POINT_DIM}, got {columns}")
+        size = path.stat().st_size
+        if size % (4 * columns):
+            raise DatasetError(f"file size {size} bytes is not a multiple of {4 * columns} "
+                               f"({columns} float32 values a point); the file is truncated or has "
+                               f"another column count (set bin_columns in dataset.json)", path=path)
+        arr = np.fromfile(path, dtype="<f4").reshape(-1, columns)
+        arr = np.ascontiguousarray(arr[:, :POINT_DIM]) if columns != POINT_DIM else arr
+        arr = arr.astype(np.float32, copy=False)
+    else:
+        raise DatasetError(f"unknown points extension {ext!r}; use .npy or .bin", path=path)
+    finite = np.isfinite(arr)
+    if not finite.all():
+        bad_rows = np.flatnonzero(~finite.all(axis=1))
+        raise DatasetError(f"{bad_rows.size} point(s) have NaN or inf values (first at row {int(bad_rows[0])}); "
+                           f"drop them (points[np.isfinite(points).all(1)]) and save again", path=path)
+    return arr
+
+
+# --------------------------------------------------------------------------- labels
+
+def parse_labels(text: str, path: str | os.PathLike = "<labels>", classes=None) -> tuple[np.ndarray, np.ndarray]:
+    """Parse label text -> (boxes (M, 7) float32, classes (M,) str).
+
+    One vehicle a line: `x y z dx dy dz heading class` (whitespace separated; metres and
+    radians; ground frame, z the box centre). Blank lines and lines starting with '#' are
+    skipped. Headings beyond +-pi (by more than float32 rounding) are wrapped into
+    [-pi, pi). If `classes` is given, every class must
+    be one of them.
+    """
+    rows: list[list[float]] = []
+    names: list[str] = []
+    known = None if classes is None else set(classes)
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.split()
+        if len(parts) != len(LABEL_COLUMNS):
+            raise DatasetError(f"{len(parts)} columns, expected {len(LABEL_COLUMNS)}: "
+                               f"{' '.join(LABEL_COLUMNS)} (got {s!r})", path=path, line=lineno)
+        vals = []
+        for col, tok in zip(LABEL_COLUMNS[:7], parts[:7]):
+            try:
+                v = float(tok)
+            except ValueError:
+                raise DatasetError(f"column {col!r} is {tok!r}, not a number; write a decimal number "
+                                   f"(metres or radians)", path=path, line=lineno) from None
+            if not math.isfinite(v):
+                raise DatasetError(f"column {col!r} is {tok}; label values must be finite", path=path,
+                                   line=lineno)
+            vals.append(v)
+        for col, v in zip(("dx", "dy", "dz"), vals[3:6]):
+            if v < 0:
+                raise DatasetError(f"size {col} is {v:g}; box sizes must be >= 0 metres (dx length, dy width, "
+                                   f"dz height)", path=path, line=lineno)
+        name = parts[7]
+        try:
+            float(name)
+            is_number = True
+        except ValueError:
+            is_number = False
+        if is_number:
+            raise DatasetError(f"class is {name!r}, a number; the 8th column is the class name "
+                               f"(e.g. car); check the column order x y z dx dy dz heading class",
+                               path=path, line=lineno)
+        if known is not None and name not in known:
+            raise DatasetError(f"class {name!r} is not in the dataset's classes {sorted(known)}; add it to "
+                               f"'classes' in dataset.json or fix the label", path=path, line=lineno)
+        rows.append(vals)
+        names.append(name)
+    boxes = np.asarray(rows, dtype=np.float64).reshape(-1, BOX_DIM)
+    if len(boxes):
+        h = boxes[:, 6]
+        # wrap only headings beyond +-pi by more than float32 rounding, so labels round-trip bit-exactly
+        lim = float(np.float32(math.pi))
+        out = (h < -lim) | (h > lim)
+        if out.any():
+            h[out] = wrap_heading(h[out])
+    return boxes.astype(np.float32), np.asarray(names, dtype=str).reshape(-1)
+
+
+def read_labels(path: str | os.PathLike, classes=None) -> tuple[np.ndarray, np.ndarray]:
+    """Read ROOT/labels/<id>.txt -> (boxes (M, 7) float32, classes (M,) str); see `parse_labels`."""
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError("label file not found; every frame id in ImageSets needs labels/<id>.txt "
+                               "(an empty file when there are no vehicles)", path=path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError("not UTF-8 text; labels are plain text lines 'x y z dx dy dz heading class'",
+                           path=path) from None
+    return parse_labels(text, path, classes)
+
+
+def _fmt(v) -> str:
+    return str(v)  # numpy float32 prints the shortest text that reads back to the same float32
+
+
+def format_labels(boxes: np.ndarray, classes) -> str:
+    """Label text for (M, 7) float32 boxes and (M,) class names; reads back bit-exactly."""
+    b = np.asarray(boxes, dtype=np.float32).reshape(-1, BOX_DIM)
+    names = list(classes)
+    if len(names) != len(b):
+        raise ValueError(f"{len(names)} class names for {len(b)} boxes")
+    lines = []
+    for row, name in zip(b, names):
+        name = str(name)
+        if not name or any(c.isspace() for c in name):
+            raise ValueError(f"class name {name!r} must be non-empty without spaces")
+        lines.append(" ".join(_fmt(v) for v in row) + " " + name)
+    return "\n".join(lines) + ("\n" if lines else "")
+
+
+# --------------------------------------------------------------------------- meta
+
+def _int_list(d: dict, key: str, m: int, path: Path) -> np.ndarray:
+    val = d.get(key)
+    if not isinstance(val, list):
+        raise DatasetError(f"{key!r} must be a list of {m} integers (one per label line)", path=path)
+    if len(val) != m:
+        raise DatasetError(f"{key!r} has {len(val)} entries but the label file has {m} boxes; "
+                           f"the meta and label files are from different frames - re-create them", path=path)
+    if not all(isinstance(v, int) and not isinstance(v, bool) for v in val):
+        bad = next(v for v in val if not isinstance(v, int) or isinstance(v, bool))
+        raise DatasetError(f"{key!r} holds {bad!r}; entries must be integers", path=path)
+    return np.asarray(val, dtype=np.int64).reshape(-1)
+
+
+def read_meta(path: str | os.PathLike, frame_id: str, num_boxes: int) -> dict:
+    """Read ROOT/meta/<id>.json, validated against the frame id and the label count.
+
+    Returns a dict with scene_id (str), timestamp (float, seconds), ego (dict), track_ids
+    (M,) int64, lanes (M,) int64 and sensors (dict height key -> Sensor, may be empty).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError("meta file not found; dataset.json says has_meta is true, so every frame "
+                               "needs meta/<id>.json (or set has_meta to false to derive lanes from y)",
+                               path=path)
+    try:
+        d = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        line = getattr(e, "lineno", None)
+        raise DatasetError(f"not valid JSON ({getattr(e, 'msg', e)}); re-create the file", path=path,
+                           line=line) from None
+    if not isinstance(d, dict):
+        raise DatasetError("meta must be a JSON object", path=path)
+    if d.get("frame_id", frame_id) != frame_id:
+        raise DatasetError(f"frame_id inside is {d.get('frame_id')!r} but the file is for {frame_id!r}; "
+                           f"the file was renamed or copied - re-create it", path=path)
+    scene_id = d.get("scene_id")
+    if not isinstance(scene_id, str) or not scene_id:
+        raise DatasetError("'scene_id' must be a non-empty string (the split is by scene)", path=path)
+    ts = d.get("timestamp", 0.0)
+    if not isinstance(ts, (int, float)) or isinstance(ts, bool) or not math.isfinite(ts):
+        raise DatasetError(f"'timestamp' must be a finite number of seconds, got {ts!r}", path=path)
+    ego = d.get("ego", {})
+    if not isinstance(ego, dict):
+        raise DatasetError("'ego' must be a JSON object", path=path)
+    sensors = {}
+    raw = d.get("sensors", {})
+    if not isinstance(raw, dict):
+        raise DatasetError("'sensors' must map height keys to sensor objects", path=path)
+    for k, sd in raw.items():
+        try:
+            sensors[k] = Sensor.from_dict(sd)
+        except (TypeError, ValueError) as e:
+            raise DatasetError(f"sensors.{k} is invalid: {e}", path=path) from None
+    return {
+        "scene_id": scene_id,
+        "timestamp": float(ts),
+        "ego": ego,
+        "track_ids": _int_list(d, "track_ids", num_boxes, path),
+        "lanes": _int_list(d, "lanes", num_boxes, path),
+        "sensors": sensors,
+    }
+
+
+def meta_dict(frame, sensors: dict | None = None) -> dict:
+    """The side-file content for a Frame (see read_meta); `sensors` maps height keys to Sensor."""
+    return {
+        "frame_id": frame.frame_id,
+        "scene_id": frame.scene_id,
+        "timestamp": float(frame.timestamp),
+        "ego": frame.ego,
+        "track_ids": [int(v) for v in np.asarray(frame.track_ids).reshape(-1)],
+        "lanes": [int(v) for v in np.asarray(frame.lanes).reshape(-1)],
+        "sensors": {k: s.to_dict() for k, s in (sensors or {}).items()},
+    }
+
+
+def read_imageset(path: str | os.PathLike) -> list[str]:
+    """Frame ids of ROOT/ImageSets/<split>.txt (one a line; blank lines skipped; duplicates rejected)."""
+    from detbench.data.layout import check_frame_id
+
+    path = Path(path)
+    if not path.is_file():
+        raise MissingFileError("split list not found; create ImageSets/train.txt and test.txt with one "
+                               "frame id a line (tools/simulate.py writes them)", path=path)
+    ids: list[str] = []
+    seen: dict[str, int] = {}
+    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        s = line.strip()
+        if not s:
+            continue
+        try:
+            check_frame_id(s)
+        except DatasetError as e:
+            raise DatasetError(e.reason, path=path, line=lineno) from None
+        if s in seen:
+            raise DatasetError(f"frame id {s!r} is listed twice (first at line {seen[s]}); remove the duplicate",
+                               path=path, line=lineno)
+        seen[s] = lineno
+        ids.append(s)
+    return ids

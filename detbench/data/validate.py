@@ -1,0 +1,147 @@
+"""Check a whole dataset and list every problem (not just the first).
+
+    python -m detbench.data.validate ROOT [--heights 0.5 1.8] [--max-errors 50]
+
+Exit status 0 when the dataset is clean, 1 otherwise. Each problem is printed as
+``PATH[:LINE]: what is wrong; how to fix it``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from detbench.data.errors import DatasetError
+from detbench.data.frame import height_key
+from detbench.data.layout import LABELS_DIR, read_info
+
+
+@dataclass
+class ValidationReport:
+    """Result of `validate_dataset`: `errors` (messages), `warnings`, and counts."""
+
+    root: str
+    num_frames: int = 0
+    heights: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    truncated: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return not self.errors
+
+    def to_dict(self) -> dict:
+        return {"root": self.root, "ok": self.ok, "num_frames": self.num_frames, "heights": self.heights,
+                "errors": self.errors, "warnings": self.warnings, "truncated": self.truncated}
+
+
+def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50, progress: bool = False
+                     ) -> ValidationReport:
+    """Read every listed frame at every height (or `heights`, metres) and collect the problems.
+
+    Checks dataset.json, ImageSets (duplicates, ids in both splits, a scene in both splits
+    under the by-scene rule), every label, meta and points file (format, values, counts),
+    and warns about label files no split lists. Stops collecting after `max_errors`.
+    """
+    from detbench.data.dataset import Height3Dataset, split_ids
+
+    root = Path(root)
+    rep = ValidationReport(root=str(root))
+
+    def err(e: Exception | str) -> bool:
+        rep.errors.append(str(e))
+        if len(rep.errors) >= max_errors:
+            rep.truncated = True
+            return True
+        return False
+
+    try:
+        info = read_info(root)
+    except (DatasetError, FileNotFoundError) as e:
+        err(e)
+        return rep
+    keys = list(info.heights) if heights is None else [height_key(float(h)) for h in heights]
+    rep.heights = keys
+    try:
+        ids = split_ids(root, "all")
+    except (DatasetError, FileNotFoundError) as e:
+        err(e)
+        return rep
+    rep.num_frames = len(ids)
+    if not ids:
+        rep.warnings.append(f"{root}: ImageSets list no frames")
+    listed = set(ids)
+    labels_dir = root / LABELS_DIR
+    if labels_dir.is_dir():
+        orphans = [p for p in labels_dir.glob("*.txt") if p.stem not in listed]
+        if orphans:
+            rep.warnings.append(f"{labels_dir}: {len(orphans)} label file(s) are in no split (e.g. {orphans[0].name}); "
+                                f"they are ignored")
+    datasets = {}
+    for k in keys:
+        try:
+            datasets[k] = Height3Dataset(root, k, "all", check_files=False)
+        except (DatasetError, FileNotFoundError, ValueError) as e:
+            if err(e):
+                return rep
+    if not datasets:
+        return rep
+    any_ds = next(iter(datasets.values()))
+    rule = info.split.get("rule", "by-scene")
+    if rule == "by-scene":
+        try:
+            train_ids = set(split_ids(root, "train"))
+            scenes = any_ds.scene_ids()
+            train_sc = {scenes[f] for f in ids if f in train_ids}
+            test_sc = {scenes[f] for f in ids if f not in train_ids}
+            both = sorted(train_sc & test_sc)
+            if both:
+                if err(DatasetError(f"scene(s) {both[:5]} have frames in both train.txt and test.txt; split by "
+                                    f"scene (frames of a scene are nearly identical)",
+                                    path=root / "ImageSets" / "test.txt")):
+                    return rep
+        except (DatasetError, FileNotFoundError) as e:
+            if err(e):
+                return rep
+    iterator = ids
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(ids, desc="validate", unit="frame")
+    for fid in iterator:
+        for k, ds in datasets.items():
+            try:
+                ds.load(fid)
+            except (DatasetError, FileNotFoundError, ValueError) as e:
+                if err(e):
+                    return rep
+                if isinstance(e, DatasetError) and e.path and Path(e.path).name.startswith(fid) \
+                        and Path(e.path).suffix in (".txt", ".json"):
+                    break  # a shared label/meta problem: reported once, not once per height
+    return rep
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m detbench.data.validate",
+                                 description="Check every file of a detbench dataset and list all problems.")
+    ap.add_argument("root", help="dataset folder (holds dataset.json)")
+    ap.add_argument("--heights", type=float, nargs="+", default=None,
+                    help="mounting heights to check, metres (default: all heights of the dataset)")
+    ap.add_argument("--max-errors", type=int, default=50, help="stop after this many problems (default 50)")
+    args = ap.parse_args(argv)
+    rep = validate_dataset(args.root, args.heights, args.max_errors, progress=True)
+    for w in rep.warnings:
+        print("warning:", w)
+    for e in rep.errors:
+        print("error:", e)
+    more = " (stopped early; fix these and run again)" if rep.truncated else ""
+    print(f"{args.root}: {rep.num_frames} frames x {len(rep.heights)} heights checked, "
+          f"{len(rep.errors)} problem(s){more}")
+    return 0 if rep.ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

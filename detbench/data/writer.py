@@ -1,0 +1,217 @@
+"""`DatasetWriter`: stream frames (one per height, same traffic) into the detbench layout.
+
+```python
+with DatasetWriter(root, heights=[0.5, 1.0, 1.8], source={"simulator": cfg, "seed": 0}) as w:
+    for frames in sim.run(n, lidars):
+        w.add(frames)          # points per height, shared labels, meta side file
+# leaving the block writes ImageSets/train.txt, test.txt (split by scene) and dataset.json
+```
+
+Every file is written atomically (detbench.utils.io); dataset.json is written last, so a
+folder without it is an unfinished dataset and readers say so.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from detbench.data.errors import DatasetError
+from detbench.data.frame import Frame, Sensor, height_key
+from detbench.data.layout import (
+    DEFAULT_CLASSES, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
+    assign_splits, check_frame_id, default_lane_width, imageset_path, label_path, meta_path, points_path,
+)
+from detbench.data.readers import format_labels, meta_dict
+from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text
+
+
+def _save_npy(arr: np.ndarray):
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            np.save(fh, arr, allow_pickle=False)
+    return write
+
+
+def _save_bin(arr: np.ndarray):
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:
+            fh.write(np.ascontiguousarray(arr, dtype="<f4").tobytes())
+    return write
+
+
+class DatasetWriter:
+    """Write a multi-height dataset in the detbench layout (docs/data-format.md).
+
+    Args:
+        root: output folder (created).
+        heights: mounting heights in metres, e.g. [0.5, 1.0, 1.8]; each `add` gets one frame
+            per height.
+        source: provenance stored in dataset.json, e.g. {"kind": "simulator", "preset": "paper",
+            "config": {...}, "seed": 0} or {"kind": "external", ...}.
+        test_fraction: share of scenes in the test split, in [0, 1) (default 1/3); see
+            `detbench.data.layout.split_scenes`.
+        overwrite: allow writing into a folder that already holds a dataset.json (it is
+            removed first; frame files of the old dataset that are not rewritten stay on disk
+            but are listed nowhere).
+        classes: allowed class names (default: car, suv, van, taxi, truck plus any new names
+            seen, appended in order of appearance).
+        points_ext: ".npy" (default) or ".bin" (KITTI-style raw float32).
+        lane_width: metres (default 3.5), stored for readers that must derive lanes from y.
+    """
+
+    def __init__(self, root: str | os.PathLike, heights: list[float], source: dict,
+                 test_fraction: float = 1 / 3, *, overwrite: bool = False, classes: list[str] | None = None,
+                 points_ext: str = ".npy", lane_width: float | None = None):
+        self.root = Path(root)
+        if not heights:
+            raise ValueError("heights is empty; give at least one mounting height in metres")
+        self.height_keys = [height_key(h) for h in heights]
+        if len(set(self.height_keys)) != len(self.height_keys):
+            raise ValueError(f"duplicate heights {self.height_keys}")
+        if not isinstance(source, dict):
+            raise TypeError(f"source must be a dict (provenance for dataset.json), got {type(source).__name__}")
+        if not 0.0 <= float(test_fraction) < 1.0:
+            raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
+        if points_ext not in POINT_EXTS:
+            raise ValueError(f"points_ext must be one of {POINT_EXTS}, got {points_ext!r}")
+        self.source = dict(source)
+        self.test_fraction = float(test_fraction)
+        self.overwrite = overwrite
+        self.points_ext = points_ext
+        self.lane_width = default_lane_width() if lane_width is None else float(lane_width)
+        self._fixed_classes = classes is not None
+        self.classes: list[str] = list(classes) if classes is not None else list(DEFAULT_CLASSES)
+        self.sensors: dict[str, Sensor] = {}
+        self._frame_ids: list[str] = []
+        self._scene_of: dict[str, str] = {}
+        self._open = False
+        self._closed = False
+
+    # ------------------------------------------------------------------ context manager
+    def __enter__(self) -> "DatasetWriter":
+        self.open()
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        # on error nothing is finalised: without dataset.json readers report an unfinished dataset
+
+    def open(self) -> "DatasetWriter":
+        """Create the folders (called by `with`); refuses to overwrite unless asked."""
+        info = self.root / INFO_FILE
+        if info.exists():
+            if not self.overwrite:
+                raise FileExistsError(f"{info}: a dataset already exists here; choose another output folder "
+                                      f"or pass overwrite=True")
+            info.unlink()
+            for split in ("train", "test"):
+                imageset_path(self.root, split).unlink(missing_ok=True)
+        for hk in self.height_keys:
+            (self.root / "points" / hk).mkdir(parents=True, exist_ok=True)
+        for sub in ("labels", "meta", "ImageSets"):
+            (self.root / sub).mkdir(parents=True, exist_ok=True)
+        self._open = True
+        return self
+
+    # ------------------------------------------------------------------ frames
+    @property
+    def frame_ids(self) -> list[str]:
+        """Ids added so far, in order."""
+        return list(self._frame_ids)
+
+    def __len__(self) -> int:
+        return len(self._frame_ids)
+
+    def add(self, frames: list[Frame] | Frame) -> None:
+        """Write one frame id at every height.
+
+        `frames`: one Frame per height of the writer (any order; matched by sensor height),
+        all with the same frame_id, scene_id and labels (boxes, classes, track ids, lanes),
+        as the simulator yields them. Points go to points/<h>/<id>, the shared labels to
+        labels/<id>.txt, the extras to meta/<id>.json.
+        """
+        if not self._open:
+            self.open()
+        if self._closed:
+            raise RuntimeError("this DatasetWriter is closed; open a new one")
+        if isinstance(frames, Frame):
+            frames = [frames]
+        frames = list(frames)
+        by_key: dict[str, Frame] = {}
+        for f in frames:
+            if not isinstance(f, Frame):
+                raise TypeError(f"add() takes Frame objects, got {type(f).__name__}")
+            hk = height_key(f.sensor.height)
+            if hk in by_key:
+                raise ValueError(f"frame {f.frame_id}: two frames for height {hk} m")
+            by_key[hk] = f
+        if set(by_key) != set(self.height_keys):
+            raise ValueError(f"frame {frames[0].frame_id if frames else '?'}: got heights {sorted(by_key)}, "
+                             f"the writer was opened for {self.height_keys}; pass one frame per height")
+        ref = by_key[self.height_keys[0]]
+        fid = check_frame_id(ref.frame_id)
+        if fid in self._scene_of:
+            raise ValueError(f"frame id {fid!r} was already added; frame ids must be unique")
+        if not isinstance(ref.scene_id, str) or not ref.scene_id:
+            raise ValueError(f"frame {fid}: scene_id must be a non-empty string (the split is by scene)")
+        for hk, f in by_key.items():
+            f.check(f"frame {fid} at {hk} m")
+            if f.frame_id != fid or f.scene_id != ref.scene_id:
+                raise ValueError(f"frames of one add() disagree: {f.frame_id}/{f.scene_id} at {hk} m vs "
+                                 f"{fid}/{ref.scene_id}; pass the frames of one instant")
+            if f is not ref and not (np.array_equal(f.boxes, ref.boxes)
+                                     and np.array_equal(np.asarray(f.classes), np.asarray(ref.classes))
+                                     and np.array_equal(f.track_ids, ref.track_ids)
+                                     and np.array_equal(f.lanes, ref.lanes)):
+                raise ValueError(f"frame {fid}: labels at {hk} m differ from those at {self.height_keys[0]} m; "
+                                 f"labels are in the ground frame and shared by all heights")
+        for name in np.asarray(ref.classes).tolist():
+            if name not in self.classes:
+                if self._fixed_classes:
+                    raise ValueError(f"frame {fid}: class {name!r} is not in classes {self.classes}")
+                self.classes.append(str(name))
+        for hk in self.height_keys:
+            if hk not in self.sensors:
+                self.sensors[hk] = by_key[hk].sensor
+
+        for hk in self.height_keys:
+            pts = np.ascontiguousarray(by_key[hk].points, dtype=np.float32)
+            saver = _save_npy(pts) if self.points_ext == ".npy" else _save_bin(pts)
+            atomic_save(points_path(self.root, hk, fid, self.points_ext), saver)
+        atomic_write_text(label_path(self.root, fid), format_labels(ref.boxes, ref.classes))
+        sensors = {hk: by_key[hk].sensor for hk in self.height_keys}
+        atomic_write_json(meta_path(self.root, fid), meta_dict(ref, sensors), indent=None)
+        self._frame_ids.append(fid)
+        self._scene_of[fid] = ref.scene_id
+
+    # ------------------------------------------------------------------ finish
+    def close(self) -> DatasetInfo:
+        """Write ImageSets (split by scene) and dataset.json; returns the DatasetInfo."""
+        if self._closed:
+            raise RuntimeError("DatasetWriter.close() called twice")
+        if not self._open:
+            self.open()
+        if not self._frame_ids:
+            warnings.warn(f"{self.root}: no frames were added; writing an empty dataset", UserWarning,
+                          stacklevel=2)
+        train, test, rule = assign_splits(self._frame_ids, self._scene_of, self.test_fraction)
+        atomic_write_text(imageset_path(self.root, "train"), "".join(f + "\n" for f in train))
+        atomic_write_text(imageset_path(self.root, "test"), "".join(f + "\n" for f in test))
+        heights = {}
+        for hk in self.height_keys:
+            sensor = self.sensors.get(hk) or Sensor(height=float(hk))
+            heights[hk] = HeightInfo(key=hk, sensor=sensor, points_frame="ground", points_ext=self.points_ext)
+        rule = dict(rule, num_train=len(train), num_test=len(test))
+        info = DatasetInfo(heights=heights, source=self.source, classes=self.classes, split=rule, has_meta=True,
+                           lane_width=self.lane_width, scene_rule=SceneRule("prefix", "_"),
+                           num_frames=len(self._frame_ids), format=FORMAT_NAME, version=FORMAT_VERSION)
+        atomic_write_json(self.root / INFO_FILE, info.to_dict())
+        self._closed = True
+        return info
+
+
+__all__ = ["DatasetWriter", "DatasetError"]

@@ -1,0 +1,428 @@
+"""LiDAR detection ability (the paper's Section IV): how many vehicles a LiDAR at each height hits.
+
+Definitions (exactly the paper's; ranges and levels live in detbench.eval.regions):
+- a vehicle is *LiDAR-detected* at a height when at least one point of that height's sweep
+  lies inside its box with the box bottom raised by 0.05 m (so road points under the car
+  do not count): `points_in_boxes(points, boxes, bottom_lift=0.05)[0] >= 1`;
+- ranges by the box centre: small 0<=x<=50, |y|<=5; moderate 0<=x<=100, |y|<=10;
+  large 0<=x<=150, |y|<=15 (metres, borders inclusive);
+- levels within a range: all; top3 = nearest vehicle in each of the ego, left and right
+  lanes; top6 = two nearest in each (a missing lane contributes nothing);
+- LDR = detected / total, summed over frames.
+
+Extras: the same counts for other minimum numbers of points (5 and 10 by default), LDR
+against the centre's distance along x (10 m bins, vehicles with |y| <= 15 m), the mean
+number of points on a detected vehicle, vehicles per frame.
+
+`AbilityStudy` is a streaming accumulator: feed it frames from disk or from the simulator
+(`.add(frame)` or `.add([frame per height])`) and ask for `.report()` (a JSON-ready dict)
+and `ability_markdown(report)` (tables laid out like the paper's Tables IV-VI).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from detbench.data.frame import LANE_UNKNOWN, Frame, height_key
+from detbench.eval.regions import (
+    DEFAULT_LANE_WIDTH, LEVELS, RANGE_NAMES, RANGES, lanes_from_lateral, region_masks,
+)
+
+BOTTOM_LIFT = 0.05  # metres: the paper's raised box bottom
+DEFAULT_THRESHOLDS = (1, 5, 10)  # minimum points inside a box to call it detected
+DEFAULT_BIN_M = 10.0
+LDR_DISTANCE_MAX_M = 150.0  # x extent of the large range
+LDR_DISTANCE_HALF_WIDTH_M = 15.0  # |y| bound of the large range
+PAPER_TABLE_IV = {  # Height3 paper, Table IV (8000 frames): total, then (detected, LDR) per height
+    "small": (17268, {"0.5": (12638, 0.73), "1.0": (12572, 0.73), "1.8": (14739, 0.85)}),
+    "moderate": (39455, {"0.5": (26407, 0.67), "1.0": (26216, 0.66), "1.8": (32074, 0.81)}),
+    "large": (54097, {"0.5": (34296, 0.63), "1.0": (34339, 0.63), "1.8": (42185, 0.78)}),
+}
+CELLS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)  # 9 (range, level)
+_LARGE_ALL = CELLS.index(("large", "all"))
+
+
+def ldr(detected: int, total: int) -> float:
+    """detected / total, NaN when total is 0 (written as null in JSON)."""
+    return float(detected) / float(total) if total else float("nan")
+
+
+def stacked_masks(boxes: np.ndarray, lanes: np.ndarray) -> np.ndarray:
+    """The nine (range, level) membership masks of one frame's boxes as a (9, M) bool array.
+
+    Rows follow `CELLS` (small/all, small/top3, small/top6, moderate/all, ...). boxes (M, >=2)
+    x, y in metres; lanes (M,) int64 relative lane ids.
+    """
+    m = len(boxes)
+    if m == 0:
+        return np.zeros((len(CELLS), 0), dtype=bool)
+    masks = region_masks(np.asarray(boxes)[:, :2], np.asarray(lanes))
+    return np.stack([masks[c] for c in CELLS])
+
+
+def detected_counts(frame: Frame, bottom_lift: float = BOTTOM_LIFT) -> np.ndarray:
+    """(M,) int64 number of the frame's points inside each box with the bottom raised by `bottom_lift` m."""
+    from detbench.ops import points_in_boxes
+
+    if frame.num_boxes == 0:
+        return np.zeros(0, dtype=np.int64)
+    counts, _ = points_in_boxes(frame.points, frame.boxes, bottom_lift=bottom_lift)
+    return np.asarray(counts, dtype=np.int64)
+
+
+def frame_lanes(frame: Frame, lane_width: float = DEFAULT_LANE_WIDTH) -> np.ndarray:
+    """The frame's lanes with LANE_UNKNOWN entries replaced by lanes from the lateral offset."""
+    lanes = np.asarray(frame.lanes, dtype=np.int64)
+    unknown = lanes == LANE_UNKNOWN
+    if unknown.any():
+        lanes = lanes.copy()
+        lanes[unknown] = lanes_from_lateral(np.asarray(frame.boxes)[unknown, 1], lane_width)
+    return lanes
+
+
+@dataclass
+class ExampleFrames:
+    """The frames of one instant kept for the bird's-eye figure: one Frame and its (M,) point counts per height."""
+
+    frame_id: str
+    frames: dict[str, Frame] = field(default_factory=dict)
+    counts: dict[str, np.ndarray] = field(default_factory=dict)
+    in_large: np.ndarray | None = None  # (M,) bool, boxes in the large range
+    score: float = -1.0
+
+
+class AbilityStudy:
+    """Accumulate total and LiDAR-detected vehicles per height, range and level.
+
+    Args:
+        thresholds: minimum numbers of points inside the (lifted) box for "detected"; the
+            first must be 1 (the paper's rule, reported under "heights"), the others go to
+            extras["min_points"].
+        distance_bin: width in metres of the x bins of LDR against distance.
+        bottom_lift: metres the box bottom is raised (0.05, the paper's value).
+        lane_width: metres, used only for boxes whose lane is LANE_UNKNOWN.
+        keep_example: keep the instant whose heights differ most in detected vehicles (large
+            range) for the bird's-eye figure; `example_frame_id` forces a given id instead.
+
+    Per frame the cost is one points_in_boxes call and a few vectorised numpy operations;
+    the nine masks are computed once per instant and reused across heights.
+    """
+
+    def __init__(self, thresholds: Sequence[int] = DEFAULT_THRESHOLDS, distance_bin: float = DEFAULT_BIN_M,
+                 bottom_lift: float = BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
+                 example_frame_id: str | None = None):
+        th = [int(t) for t in thresholds]
+        if not th or th[0] != 1 or any(t < 1 for t in th) or len(set(th)) != len(th):
+            raise ValueError(f"thresholds must start with 1 (the paper's rule) and hold distinct integers >= 1, "
+                             f"got {list(thresholds)}")
+        if not distance_bin > 0:
+            raise ValueError(f"distance_bin must be positive metres, got {distance_bin}")
+        self.thresholds = np.asarray(th, dtype=np.int64)
+        self.distance_bin = float(distance_bin)
+        self.bottom_lift = float(bottom_lift)
+        self.lane_width = float(lane_width)
+        self.num_bins = int(math.ceil(LDR_DISTANCE_MAX_M / self.distance_bin))
+        self.keep_example = keep_example
+        self.example_frame_id = example_frame_id
+        self._total: dict[str, np.ndarray] = {}  # (9,) per height
+        self._detected: dict[str, np.ndarray] = {}  # (T, 9)
+        self._points_sum: dict[str, np.ndarray] = {}  # (9,) points inside detected boxes
+        self._dist_total: dict[str, np.ndarray] = {}  # (B,)
+        self._dist_detected: dict[str, np.ndarray] = {}  # (B,)
+        self._frames: dict[str, int] = {}
+        self._frame_ids: set[str] = set()
+        self._cache_key = None
+        self._cache = None
+        self._group: ExampleFrames | None = None
+        self.example: ExampleFrames | None = None
+
+    # ------------------------------------------------------------------ feeding
+    def _geometry(self, frame: Frame):
+        """(9, M) masks and (M,) distance bin (-1 outside), cached across the heights of one instant."""
+        key = frame.frame_id
+        if self._cache_key == key and self._cache is not None:
+            boxes, lanes, masks, bins = self._cache
+            if boxes.shape == frame.boxes.shape and np.array_equal(boxes, frame.boxes) \
+                    and np.array_equal(lanes, frame.lanes):
+                return masks, bins
+        boxes = np.asarray(frame.boxes)
+        lanes = frame_lanes(frame, self.lane_width)
+        masks = stacked_masks(boxes, lanes)
+        x, y = boxes[:, 0].astype(np.float64), boxes[:, 1].astype(np.float64)
+        inside = (x >= 0) & (x <= LDR_DISTANCE_MAX_M) & (np.abs(y) <= LDR_DISTANCE_HALF_WIDTH_M)
+        bins = np.where(inside, np.minimum((np.maximum(x, 0) / self.distance_bin).astype(np.int64),
+                                           self.num_bins - 1), -1)
+        self._cache_key = key
+        self._cache = (boxes.copy(), np.asarray(frame.lanes).copy(), masks, bins)
+        return masks, bins
+
+    def add(self, frames: Frame | Iterable[Frame], counts: np.ndarray | Sequence[np.ndarray] | None = None) -> None:
+        """Count one frame, or the frames of one instant (one per height).
+
+        `counts` (optional): precomputed (M,) points-per-box counts (with the 0.05 m lift) for
+        each frame, e.g. from a simulator that counts while ray casting; by default they are
+        computed with points_in_boxes.
+        """
+        if isinstance(frames, Frame):
+            frames = [frames]
+            counts = None if counts is None else [counts]
+        frames = list(frames)
+        if counts is not None and len(counts) != len(frames):
+            raise ValueError(f"{len(counts)} count arrays for {len(frames)} frames")
+        for i, f in enumerate(frames):
+            self._add_one(f, None if counts is None else np.asarray(counts[i], dtype=np.int64))
+
+    def _add_one(self, frame: Frame, counts: np.ndarray | None) -> None:
+        if not isinstance(frame, Frame):
+            raise TypeError(f"AbilityStudy.add takes Frame objects, got {type(frame).__name__}")
+        hk = height_key(frame.sensor.height)
+        if counts is None:
+            counts = detected_counts(frame, self.bottom_lift)
+        elif counts.shape != (frame.num_boxes,):
+            raise ValueError(f"frame {frame.frame_id}: counts has shape {counts.shape}, expected ({frame.num_boxes},)")
+        masks, bins = self._geometry(frame)
+        if hk not in self._total:
+            c = len(CELLS)
+            self._total[hk] = np.zeros(c, np.int64)
+            self._detected[hk] = np.zeros((len(self.thresholds), c), np.int64)
+            self._points_sum[hk] = np.zeros(c, np.int64)
+            self._dist_total[hk] = np.zeros(self.num_bins, np.int64)
+            self._dist_detected[hk] = np.zeros(self.num_bins, np.int64)
+            self._frames[hk] = 0
+        self._frames[hk] += 1
+        self._frame_ids.add(frame.frame_id)
+        if frame.num_boxes:
+            mi = masks.astype(np.int64)  # (9, M)
+            det = (counts[None, :] >= self.thresholds[:, None]).astype(np.int64)  # (T, M)
+            self._total[hk] += mi.sum(axis=1)
+            self._detected[hk] += det @ mi.T
+            self._points_sum[hk] += mi @ (counts * det[0])
+            sel = bins >= 0
+            if sel.any():
+                self._dist_total[hk] += np.bincount(bins[sel], minlength=self.num_bins)
+                self._dist_detected[hk] += np.bincount(bins[sel], weights=det[0][sel],
+                                                       minlength=self.num_bins).astype(np.int64)
+        if self.keep_example:
+            self._track_example(frame, hk, counts, masks)
+
+    # ------------------------------------------------------------------ example for Fig. 5
+    def _track_example(self, frame: Frame, hk: str, counts: np.ndarray, masks: np.ndarray) -> None:
+        if self._group is None or self._group.frame_id != frame.frame_id:
+            self._close_group()
+            self._group = ExampleFrames(frame.frame_id, in_large=masks[_LARGE_ALL].copy())
+        self._group.frames[hk] = frame
+        self._group.counts[hk] = counts
+
+    def _close_group(self) -> None:
+        g = self._group
+        self._group = None
+        if g is None or not g.frames:
+            return
+        if self.example_frame_id is not None:
+            if g.frame_id == self.example_frame_id:
+                self.example = g
+            return
+        in_large = g.in_large
+        det = [int(((c >= 1) & in_large).sum()) for c in g.counts.values()]
+        # the instant whose heights differ most; ties go to the one with more vehicles in range
+        g.score = (max(det) - min(det)) * 1000 + int(in_large.sum()) if len(det) > 1 else int(in_large.sum())
+        if self.example is None or g.score > self.example.score:
+            self.example = g
+
+    def example_frames(self) -> ExampleFrames | None:
+        """The kept instant (frames and counts per height) for the bird's-eye figure, or None."""
+        self._close_group()
+        return self.example
+
+    # ------------------------------------------------------------------ results
+    @property
+    def heights(self) -> list[str]:
+        """Height keys seen so far, ascending."""
+        return sorted(self._total, key=float)
+
+    @property
+    def num_frames(self) -> int:
+        """Distinct frame ids seen (an instant at three heights counts once)."""
+        return len(self._frame_ids)
+
+    def cell(self, height: float | str, range_name: str, level: str, threshold: int = 1) -> dict:
+        """{"total", "detected", "ldr"} of one (height, range, level) for a minimum point count."""
+        hk = height if isinstance(height, str) else height_key(height)
+        i = CELLS.index((range_name, level))
+        t = int(np.flatnonzero(self.thresholds == threshold)[0])
+        tot, det = int(self._total[hk][i]), int(self._detected[hk][t, i])
+        return {"total": tot, "detected": det, "ldr": ldr(det, tot)}
+
+    def _table(self, t_index: int) -> dict:
+        out = {}
+        for hk in self.heights:
+            tot, det = self._total[hk], self._detected[hk][t_index]
+            out[hk] = {r: {lv: {"total": int(tot[CELLS.index((r, lv))]), "detected": int(det[CELLS.index((r, lv))]),
+                                "ldr": ldr(det[CELLS.index((r, lv))], tot[CELLS.index((r, lv))])}
+                           for lv in LEVELS} for r in RANGE_NAMES}
+        return out
+
+    def report(self, source: dict | None = None) -> dict:
+        """JSON-ready results.
+
+        {"num_frames": N, "heights": {"<h>": {"<range_name>": {"<level>": {"total", "detected",
+        "ldr"}}}}, "extras": {...}} with heights as decimal strings ("0.5", "1.0", "1.8"),
+        ldr NaN (null in JSON) where total is 0. Extras: definitions, min_points (per
+        threshold, same layout as "heights"), ldr_vs_distance, mean_points_per_detected,
+        vehicles_per_frame, frames_per_height, example_frame, source.
+        """
+        self._close_group()
+        heights = self.heights
+        edges = [round(i * self.distance_bin, 6) for i in range(self.num_bins)] + [LDR_DISTANCE_MAX_M]
+        per_frame = {}
+        if heights:
+            h0 = heights[0]
+            n0 = max(self._frames[h0], 1)
+            per_frame = {r: float(self._total[h0][CELLS.index((r, "all"))]) / n0 for r in RANGE_NAMES}
+        mean_pts = {}
+        for hk in heights:
+            det = self._detected[hk][0]
+            mean_pts[hk] = {r: (float(self._points_sum[hk][CELLS.index((r, "all"))]) / det[CELLS.index((r, "all"))]
+                                if det[CELLS.index((r, "all"))] else float("nan")) for r in RANGE_NAMES}
+        extras = {
+            "definitions": {
+                "detected": f"at least N points inside the box with its bottom raised by {self.bottom_lift} m "
+                            f"(N = 1 in 'heights')",
+                "bottom_lift_m": self.bottom_lift,
+                "ranges_m": {r: {"x": [x0, x1], "abs_y_max": ym} for r, (x0, x1, ym) in RANGES.items()},
+                "levels": {"all": "every vehicle in the range",
+                           "top3": "nearest vehicle (BEV centre distance) in each of the ego, left and right lanes",
+                           "top6": "two nearest vehicles in each of the ego, left and right lanes"},
+                "ldr": "detected / total over all frames (null when total is 0)",
+            },
+            "min_points": {str(int(t)): self._table(i) for i, t in enumerate(self.thresholds)},
+            "ldr_vs_distance": {
+                "bin_m": self.distance_bin,
+                "edges_m": edges,
+                "region": f"box centre 0 <= x <= {LDR_DISTANCE_MAX_M:g} m, |y| <= {LDR_DISTANCE_HALF_WIDTH_M:g} m; "
+                          f"binned by x",
+                "heights": {hk: {"total": self._dist_total[hk].tolist(), "detected": self._dist_detected[hk].tolist(),
+                                 "ldr": [ldr(d, t) for d, t in zip(self._dist_detected[hk], self._dist_total[hk])]}
+                            for hk in heights},
+            },
+            "mean_points_per_detected": mean_pts,
+            "vehicles_per_frame": per_frame,
+            "frames_per_height": {hk: self._frames[hk] for hk in heights},
+            "example_frame": None if self.example is None else self.example.frame_id,
+            "paper_table_iv": {r: {"total": tot, "heights": {h: {"detected": d, "ldr": l} for h, (d, l) in hs.items()}}
+                               for r, (tot, hs) in PAPER_TABLE_IV.items()},
+        }
+        if source is not None:
+            extras["source"] = source
+        return {"num_frames": self.num_frames, "heights": self._table(0), "extras": extras}
+
+
+# ---------------------------------------------------------------------------- Markdown
+
+def _fmt_ldr(v) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.2f}"
+
+
+def _table_md(rows: list[tuple[str, dict[str, dict]]], heights: list[str], row_title: str) -> list[str]:
+    """rows: (label, {height: {"total","detected","ldr"}}); one Total column when all heights agree."""
+    shared = all(len({c[h]["total"] for h in heights}) == 1 for _, c in rows)
+    if shared:
+        head = f"| {row_title} | Total | " + " | ".join(f"{h} m Number / LDR" for h in heights) + " |"
+    else:
+        head = f"| {row_title} | " + " | ".join(f"{h} m Number / Total / LDR" for h in heights) + " |"
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for label, cells in rows:
+        if shared:
+            vals = [f"{cells[h]['detected']} / {_fmt_ldr(cells[h]['ldr'])}" for h in heights]
+            lines.append(f"| {label} | {cells[heights[0]]['total']} | " + " | ".join(vals) + " |")
+        else:
+            vals = [f"{cells[h]['detected']} / {cells[h]['total']} / {_fmt_ldr(cells[h]['ldr'])}" for h in heights]
+            lines.append(f"| {label} | " + " | ".join(vals) + " |")
+    return lines
+
+
+def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> str:
+    """Markdown tables laid out like the paper's Tables IV-VI (rows ranges, per height "Number / LDR").
+
+    Also: a table by importance level per range, the min-points extras, LDR against distance
+    and, when the run has the paper's three heights, the paper's Table IV beside ours.
+    """
+    heights = list(report["heights"])
+    ex = report.get("extras", {})
+    out = [f"# {title}", ""]
+    src = ex.get("source")
+    if src:
+        def simple(v) -> bool:
+            return not isinstance(v, dict) and not (isinstance(v, list) and any(isinstance(e, dict) for e in v))
+
+        out += [f"Source: {', '.join(f'{k}={v}' for k, v in src.items() if simple(v))}", ""]
+    out += [f"{report['num_frames']} frames; heights {', '.join(h + ' m' for h in heights)}. A vehicle is "
+            f"LiDAR-detected when at least one point lies inside its box with the bottom raised by "
+            f"{ex.get('definitions', {}).get('bottom_lift_m', BOTTOM_LIFT)} m; LDR = detected / total. "
+            f"Number = detected vehicles summed over frames. Ranges by box centre (metres): small 0<=x<=50, |y|<=5; "
+            f"moderate 0<=x<=100, |y|<=10; large 0<=x<=150, |y|<=15.", ""]
+    if not heights:
+        return "\n".join(out + ["No frames were analysed.", ""])
+    names = {"all": ("Table IV", "all vehicles"), "top3": ("Table V", "Top3 vehicles"),
+             "top6": ("Table VI", "Top6 vehicles")}
+    for lv in LEVELS:
+        tab, what = names[lv]
+        out += [f"## LiDAR detection results of {what} (as the paper's {tab})", ""]
+        rows = [(r.capitalize(), {h: report["heights"][h][r][lv] for h in heights}) for r in RANGE_NAMES]
+        out += _table_md(rows, heights, "Range") + [""]
+    out += ["## By importance level", ""]
+    for r in RANGE_NAMES:
+        out += [f"{r.capitalize()} range:", ""]
+        rows = [(lv if lv == "all" else lv.capitalize(), {h: report["heights"][h][r][lv] for h in heights})
+                for lv in LEVELS]
+        out += _table_md(rows, heights, "Level") + [""]
+    mp = ex.get("min_points", {})
+    for t, tab in mp.items():
+        if t == "1":
+            continue
+        out += [f"## All vehicles with at least {t} points inside (extra)", ""]
+        rows = [(r.capitalize(), {h: tab[h][r]["all"] for h in heights}) for r in RANGE_NAMES]
+        out += _table_md(rows, heights, "Range") + [""]
+    dist = ex.get("ldr_vs_distance")
+    if dist:
+        edges = dist["edges_m"]
+        out += [f"## LDR against distance (extra; {dist['region']})", "",
+                "| x (m) | " + " | ".join(f"{h} m Number / Total / LDR" for h in heights) + " |",
+                "|" + "---|" * (len(heights) + 1)]
+        for b in range(len(edges) - 1):
+            vals = [f"{dist['heights'][h]['detected'][b]} / {dist['heights'][h]['total'][b]} / "
+                    f"{_fmt_ldr(dist['heights'][h]['ldr'][b])}" for h in heights]
+            out.append(f"| {edges[b]:g}-{edges[b + 1]:g} | " + " | ".join(vals) + " |")
+        out.append("")
+    vpf = ex.get("vehicles_per_frame")
+    mpd = ex.get("mean_points_per_detected", {})
+    if vpf:
+        out += ["## Vehicles per frame and points per detected vehicle (extra)", "",
+                "| Range | Vehicles per frame | " + " | ".join(f"{h} m mean points per detected vehicle"
+                                                         for h in heights) + " |",
+                "|" + "---|" * (len(heights) + 2)]
+        for r in RANGE_NAMES:
+            pts = [("-" if mpd.get(h, {}).get(r) is None or math.isnan(mpd[h][r]) else f"{mpd[h][r]:.0f}")
+                   for h in heights]
+            out.append(f"| {r.capitalize()} | {vpf[r]:.2f} | " + " | ".join(pts) + " |")
+        out.append("")
+    paper = ex.get("paper_table_iv")
+    if paper and set(heights) >= {"0.5", "1.0", "1.8"}:
+        out += ["## Against the paper's Table IV (8000 CARLA frames)", "",
+                "| Range | Vehicles per frame (paper) | Vehicles per frame (here) | "
+                + " | ".join(f"{h} m LDR paper / here" for h in ("0.5", "1.0", "1.8")) + " |",
+                "|" + "---|" * 6]
+        for r in RANGE_NAMES:
+            here = [f"{paper[r]['heights'][h]['ldr']:.2f} / {_fmt_ldr(report['heights'][h][r]['all']['ldr'])}"
+                    for h in ("0.5", "1.0", "1.8")]
+            out.append(f"| {r.capitalize()} | {paper[r]['total'] / 8000:.2f} | {vpf.get(r, float('nan')):.2f} | "
+                       + " | ".join(here) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "detected_counts", "stacked_masks", "frame_lanes",
+           "ldr", "CELLS", "BOTTOM_LIFT", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]

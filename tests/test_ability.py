@@ -1,0 +1,289 @@
+"""LiDAR detection-ability study: hand-made counting cases and the tools/analyze.py pipeline."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from detbench.data import DatasetWriter, Frame, Sensor
+from detbench.eval.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def analyze_main(argv):
+    """Run tools/analyze.py's main in this process (saves the interpreter and numba start-up)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("analyze_tool", ROOT / "tools" / "analyze.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.main([str(a) for a in argv])
+
+
+def car(x, y, heading=0.0, dz=1.5):
+    """A 4 x 2 m car standing on the road at (x, y)."""
+    return [x, y, dz / 2, 4.0, 2.0, dz, heading]
+
+
+def frame(boxes, points, lanes=None, height=1.8, fid="0000_000"):
+    boxes = np.asarray(boxes, np.float32).reshape(-1, 7)
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    pts = np.c_[pts, np.full(len(pts), 0.5, np.float32)].astype(np.float32)
+    m = len(boxes)
+    lanes = np.zeros(m, np.int64) if lanes is None else np.asarray(lanes, np.int64)
+    return Frame(fid, fid.split("_")[0], pts, boxes, np.array(["car"] * m), np.arange(m, dtype=np.int64), lanes,
+                 Sensor(height=height))
+
+
+def cell(rep, h, r, lv):
+    return rep["heights"][h][r][lv]
+
+
+# ----------------------------------------------------------------------------- the 0.05 m lift
+
+def test_bottom_lift_point_at_4cm_not_counted_6cm_counted():
+    boxes = [car(10, 0), car(20, 0)]
+    pts = [[10.0, 0.0, 0.04], [20.0, 0.0, 0.06]]
+    st = AbilityStudy()
+    st.add(frame(boxes, pts))
+    rep = st.report()
+    c = cell(rep, "1.8", "small", "all")
+    assert (c["total"], c["detected"], c["ldr"]) == (2, 1, 0.5)
+    # the box top is inclusive; above it nothing counts
+    st2 = AbilityStudy()
+    st2.add(frame([car(10, 0)], [[10.0, 0.0, 1.5], [10.0, 0.0, 1.51]]))
+    assert cell(st2.report(), "1.8", "small", "all")["detected"] == 1
+    st3 = AbilityStudy()
+    st3.add(frame([car(10, 0)], [[10.0, 0.0, 1.51], [10.0, 1.2, 0.5]]))  # above the roof; beside the car
+    assert cell(st3.report(), "1.8", "small", "all")["detected"] == 0
+
+
+def test_rotated_box_footprint():
+    # a car turned 90 degrees is 2 m long in x and 4 m wide in y
+    st = AbilityStudy()
+    st.add(frame([car(10, 0, heading=np.pi / 2)], [[11.5, 0.0, 0.5]]))
+    assert cell(st.report(), "1.8", "small", "all")["detected"] == 0
+    st = AbilityStudy()
+    st.add(frame([car(10, 0, heading=np.pi / 2)], [[10.0, 1.9, 0.5]]))
+    assert cell(st.report(), "1.8", "small", "all")["detected"] == 1
+
+
+# ----------------------------------------------------------------------------- ranges
+
+@pytest.mark.parametrize("x, y, small, moderate, large", [
+    (50.0, 0.0, True, True, True),
+    (50.01, 0.0, False, True, True),
+    (0.0, 5.0, True, True, True),
+    (10.0, -5.01, False, True, True),
+    (-0.01, 0.0, False, False, False),
+    (100.0, 10.0, False, True, True),
+    (100.01, 0.0, False, False, True),
+    (150.0, -15.0, False, False, True),
+    (150.01, 0.0, False, False, False),
+    (20.0, 15.01, False, False, False),
+])
+def test_range_borders(x, y, small, moderate, large):
+    st = AbilityStudy()
+    st.add(frame([car(x, y)], np.zeros((0, 3))))
+    rep = st.report()
+    got = [cell(rep, "1.8", r, "all")["total"] == 1 for r in ("small", "moderate", "large")]
+    assert got == [small, moderate, large]
+
+
+# ----------------------------------------------------------------------------- importance levels
+
+def test_top3_top6_with_missing_lane_and_other_lanes_excluded():
+    # lanes: ego lane 0 has three cars, left lane +1 one car, no right lane; lane 2 and the
+    # opposite carriageway (99) never count for Top3/Top6
+    boxes = [car(30, 0), car(10, 0), car(20, 0), car(15, 3.5), car(5, 7.0), car(8, -3.5)]
+    lanes = [0, 0, 0, 1, 2, 99]
+    pts = [[30, 0, 0.5], [15, 3.5, 0.5], [8, -3.5, 0.5]]  # hit: far ego car, the left car, the opposite car
+    st = AbilityStudy()
+    st.add(frame(boxes, pts, lanes))
+    rep = st.report()
+    assert cell(rep, "1.8", "large", "all")["total"] == 6
+    t3, t6 = cell(rep, "1.8", "large", "top3"), cell(rep, "1.8", "large", "top6")
+    assert (t3["total"], t3["detected"]) == (2, 1)  # car(10,0) not hit, car(15,3.5) hit
+    assert (t6["total"], t6["detected"]) == (3, 1)  # + car(20,0), not hit
+    m = stacked_masks(np.asarray(boxes, np.float32), np.asarray(lanes))
+    assert m[CELLS.index(("large", "top3"))].tolist() == [False, True, False, True, False, False]
+    assert m[CELLS.index(("large", "top6"))].tolist() == [False, True, True, True, False, False]
+
+
+def test_top3_ties_and_range_restriction():
+    # two cars in the ego lane at the same bird's-eye distance: the earlier box is the Top3 one
+    boxes = [car(12, 1.2), car(12, -1.2), car(60, 0)]
+    lanes = [0, 0, 0]
+    st = AbilityStudy()
+    st.add(frame(boxes, [[12, -1.2, 0.5]], lanes))  # only the second of the tied pair is hit
+    rep = st.report()
+    assert (cell(rep, "1.8", "small", "top3")["total"], cell(rep, "1.8", "small", "top3")["detected"]) == (1, 0)
+    assert cell(rep, "1.8", "small", "top6")["total"] == 2 and cell(rep, "1.8", "small", "top6")["detected"] == 1
+    # Top-k is chosen among the vehicles of the range: car(60, 0) is outside small but in moderate
+    assert cell(rep, "1.8", "small", "all")["total"] == 2
+    assert cell(rep, "1.8", "moderate", "top6")["total"] == 2
+    assert cell(rep, "1.8", "moderate", "all")["total"] == 3
+
+
+def test_unknown_lanes_come_from_lateral_offset():
+    from detbench.data.frame import LANE_UNKNOWN
+
+    boxes = [car(10, 0.3), car(12, 3.6), car(14, 3.4)]
+    st = AbilityStudy(lane_width=3.5)
+    st.add(frame(boxes, [], [LANE_UNKNOWN] * 3))
+    assert cell(st.report(), "1.8", "small", "top3")["total"] == 2  # lane 0 and lane +1
+
+
+# ----------------------------------------------------------------------------- accumulation, extras
+
+def test_accumulates_heights_thresholds_and_distance():
+    boxes = [car(10, 0), car(45, 2), car(149.9, 0), car(80, -9)]
+    rng = np.random.default_rng(0)
+    st = AbilityStudy(thresholds=(1, 5, 10))
+    for i in range(3):
+        fid = f"0000_{i:03d}"
+        # 1.8 m: 7 points on the first car, 1 on the second; 0.5 m: 12 on the first
+        p18 = np.r_[np.c_[10 + rng.uniform(-1, 1, 7), rng.uniform(-0.5, 0.5, 7), np.full(7, 1.0)], [[45, 2, 1.0]]]
+        p05 = np.c_[10 + rng.uniform(-1, 1, 12), rng.uniform(-0.5, 0.5, 12), np.full(12, 0.3)]
+        st.add([frame(boxes, p05, height=0.5, fid=fid), frame(boxes, p18, height=1.8, fid=fid)])
+    rep = st.report()
+    assert rep["num_frames"] == 3 and list(rep["heights"]) == ["0.5", "1.8"]
+    assert cell(rep, "0.5", "large", "all") == {"total": 12, "detected": 3, "ldr": 0.25}
+    assert cell(rep, "1.8", "large", "all") == {"total": 12, "detected": 6, "ldr": 0.5}
+    mp = rep["extras"]["min_points"]
+    assert mp["5"]["1.8"]["large"]["all"]["detected"] == 3 and mp["10"]["1.8"]["large"]["all"]["detected"] == 0
+    assert mp["10"]["0.5"]["large"]["all"]["detected"] == 3
+    assert mp["1"]["1.8"] == rep["heights"]["1.8"]
+    dist = rep["extras"]["ldr_vs_distance"]
+    assert dist["edges_m"][0] == 0 and dist["edges_m"][-1] == 150 and len(dist["edges_m"]) == 16
+    tot = dist["heights"]["1.8"]["total"]
+    assert tot[1] == 3 and tot[4] == 3 and tot[8] == 3 and tot[14] == 3 and sum(tot) == 12
+    assert dist["heights"]["1.8"]["detected"][4] == 3 and dist["heights"]["0.5"]["detected"][4] == 0
+    assert dist["heights"]["1.8"]["ldr"][0] != dist["heights"]["1.8"]["ldr"][0]  # empty bin -> NaN
+    assert rep["extras"]["mean_points_per_detected"]["1.8"]["small"] == pytest.approx(4.0)  # (7 + 1) / 2
+    assert rep["extras"]["vehicles_per_frame"]["small"] == pytest.approx(2.0)
+    ex = st.example_frames()
+    assert ex is not None and set(ex.frames) == {"0.5", "1.8"}
+    md = ability_markdown(rep)
+    assert "| Large | 12 | 3 / 0.25 | 6 / 0.50 |" in md
+
+
+def test_precomputed_counts_and_input_checks():
+    st = AbilityStudy()
+    f = frame([car(10, 0), car(20, 0)], [])
+    st.add(f, counts=np.array([3, 0]))
+    assert cell(st.report(), "1.8", "small", "all")["detected"] == 1
+    with pytest.raises(ValueError, match="counts has shape"):
+        st.add(f, counts=np.array([1]))
+    with pytest.raises(ValueError, match="thresholds must start with 1"):
+        AbilityStudy(thresholds=(5, 10))
+
+
+def test_empty_frames_and_json_nan():
+    from detbench.utils.io import to_json
+
+    st = AbilityStudy()
+    st.add(frame(np.zeros((0, 7)), [[1, 2, 3]]))
+    rep = st.report()
+    assert cell(rep, "1.8", "small", "top3") == {"total": 0, "detected": 0, "ldr": rep["heights"]["1.8"]["small"][
+        "top3"]["ldr"]}
+    assert json.loads(to_json(rep))["heights"]["1.8"]["small"]["all"]["ldr"] is None
+
+
+# ----------------------------------------------------------------------------- figures and the tool
+
+def _study_dataset(root, instants=4):
+    """A small dataset whose points hit some boxes: points on each box top, fewer at lower heights."""
+    rng = np.random.default_rng(1)
+    with DatasetWriter(root, [0.5, 1.8], {"kind": "test"}) as w:
+        for i in range(instants):
+            fid = f"{i // 2:04d}_{i % 2:03d}"
+            m = 12
+            boxes = np.array([car(x, y, rng.uniform(-0.2, 0.2)) for x, y in
+                              zip(rng.uniform(3, 140, m), rng.choice([-7.0, -3.5, 0.0, 3.5, 7.0], m))], np.float32)
+            lanes = np.round(boxes[:, 1] / 3.5).astype(np.int64)
+            frames = []
+            for h, share in ((0.5, 0.4), (1.8, 0.8)):
+                hit = rng.uniform(size=m) < share
+                pts = [np.c_[b[0] + rng.uniform(-1.5, 1.5, 20), b[1] + rng.uniform(-0.8, 0.8, 20), np.full(20, 1.0)]
+                       for b, k in zip(boxes, hit) if k]
+                road = np.c_[rng.uniform(0, 100, 2000), rng.uniform(-15, 15, 2000), np.zeros(2000)]
+                pts = np.vstack(pts + [road])
+                pts = np.c_[pts, rng.uniform(0, 1, len(pts))].astype(np.float32)
+                frames.append(Frame(fid, fid[:4], pts, boxes, np.array(["car"] * m), np.arange(m), lanes,
+                                    Sensor(height=h), {}, 0.5 * i))
+            w.add(frames)
+
+
+def test_analyze_tool_on_disk_dataset(tmp_path):
+    data = tmp_path / "ds"
+    _study_dataset(data)
+    out = tmp_path / "out"
+    assert analyze_main(["--data", data, "--out", out, "--no-progress"]) == 0
+    rep = json.loads((out / "ability.json").read_text())
+    assert rep["num_frames"] == 4 and list(rep["heights"]) == ["0.5", "1.8"]
+    for h in rep["heights"]:
+        assert set(rep["heights"][h]) == {"small", "moderate", "large"}
+        for r in rep["heights"][h].values():
+            assert set(r) == {"all", "top3", "top6"}
+            for c in r.values():
+                assert set(c) == {"total", "detected", "ldr"} and isinstance(c["total"], int)
+    assert cell(rep, "1.8", "large", "all")["detected"] > cell(rep, "0.5", "large", "all")["detected"]
+    assert {"min_points", "ldr_vs_distance", "source"} <= set(rep["extras"])
+    for name in ("ability.md", "ability_by_range.png", "ability_by_level.png", "ldr_vs_distance.png",
+                 "bev_example.png"):
+        p = out / name
+        assert p.is_file() and p.stat().st_size > 1000, name
+    assert (out / "bev_example.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "| Range | Total | 0.5 m Number / LDR | 1.8 m Number / LDR |" in (out / "ability.md").read_text()
+
+
+def test_analyze_tool_reports_bad_frame(tmp_path):
+    data = tmp_path / "ds"
+    _study_dataset(data)
+    np.save(data / "points" / "1.8" / "0001_000.npy", np.zeros((2, 3), np.float32))
+    argv = ["--data", data, "--out", tmp_path / "o", "--no-progress", "--no-figures"]
+    with pytest.raises(SystemExit, match=r"0001_000\.npy: points array has shape \(2, 3\)"):
+        analyze_main(argv)
+    assert analyze_main(argv + ["--skip-bad"]) == 0
+    rep = json.loads((tmp_path / "o" / "ability.json").read_text())
+    assert rep["num_frames"] == 3 and len(rep["extras"]["source"]["skipped"]) == 1
+
+
+def _sim_available():
+    try:
+        from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
+def test_analyze_tool_simulated_end_to_end(tmp_path):
+    out = tmp_path / "sim"
+    assert analyze_main(["--simulate", 6, "--heights", 0.5, 1.0, 1.8, "--seed", 3, "--out", out,
+                         "--json", tmp_path / "r.json", "--no-progress"]) == 0
+    rep = json.loads((tmp_path / "r.json").read_text())
+    assert rep["num_frames"] == 6 and list(rep["heights"]) == ["0.5", "1.0", "1.8"]
+    totals = {cell(rep, h, "large", "all")["total"] for h in rep["heights"]}
+    assert len(totals) == 1  # the same traffic at every height
+    for h in rep["heights"]:
+        c = cell(rep, h, "large", "all")
+        assert 0 <= c["detected"] <= c["total"]
+    for name in ("ability.md", "ability_by_range.png", "ability_by_level.png", "ldr_vs_distance.png",
+                 "bev_example.png"):
+        assert (out / name).is_file(), name
+
+
+@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
+def test_simulator_counts_match_points_in_boxes(tmp_path):
+    """The fast path (simulator hit counts, no points) and full clouds + points_in_boxes give the same report."""
+    common = ["--simulate", 3, "--heights", 0.5, 1.8, "--seed", 11, "--no-progress", "--no-figures"]
+    assert analyze_main(common + ["--out", tmp_path / "a"]) == 0
+    assert analyze_main(common + ["--out", tmp_path / "b", "--points"]) == 0
+    a = json.loads((tmp_path / "a" / "ability.json").read_text())
+    b = json.loads((tmp_path / "b" / "ability.json").read_text())
+    assert a["heights"] == b["heights"] and a["extras"]["min_points"] == b["extras"]["min_points"]
+    assert a["extras"]["ldr_vs_distance"] == b["extras"]["ldr_vs_distance"]
+    assert cell(a, "0.5", "large", "all")["total"] > 0
