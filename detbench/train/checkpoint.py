@@ -1,0 +1,278 @@
+"""Checkpoints: written atomically, the last N kept, validated on load (`weights_only=True`).
+
+A checkpoint is a dict of tensors, numbers, strings, lists and dicts only:
+
+```
+format "detbench-checkpoint", version 1
+model_name  str              the registered detector name, e.g. "second"
+config      dict             the full run config (after overrides)
+data        dict             where the training data came from, e.g. {"source": ..., "height": 1.8}
+state       dict             TrainState: epoch (completed), step_in_epoch, global_step, seed
+model       state_dict       weights (DDP wrapper removed)
+optimizer / scheduler / scaler   state_dicts (absent in weight-only exports)
+rng         list[dict]       per rank: python / numpy / torch / cuda generator states (detbench.train.seed)
+```
+
+File names in OUT/checkpoints/: `epoch_003.pt` after 3 complete epochs;
+`epoch_003_step_000120.pt` 120 batches into the 4th epoch (written on Ctrl-C or every
+`checkpoint_every_steps`). `CheckpointManager.latest()` is the newest of them.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import re
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import torch
+from torch import nn
+
+from detbench.utils.io import atomic_save
+
+__all__ = [
+    "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
+    "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "config_diff",
+]
+
+CKPT_FORMAT = "detbench-checkpoint"
+CKPT_VERSION = 1
+_NAME_RE = re.compile(r"^epoch_(\d+)(?:_step_(\d+))?\.pt$")
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be used; the message names the file and the fix."""
+
+
+@dataclass
+class TrainState:
+    """Where training is: `epoch` epochs complete plus `step_in_epoch` batches of the next one."""
+
+    epoch: int = 0
+    step_in_epoch: int = 0
+    global_step: int = 0
+    seed: int = 0  # seeds the sampler permutation (seed + epoch) and each sample's augmentation
+
+    def to_dict(self) -> dict:
+        return {k: int(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, d: Mapping) -> "TrainState":
+        return cls(**{k: int(d[k]) for k in ("epoch", "step_in_epoch", "global_step", "seed")})
+
+
+def unwrap_model(model: nn.Module) -> nn.Module:
+    """The module inside a DistributedDataParallel / DataParallel wrapper (or `model` itself)."""
+    return model.module if hasattr(model, "module") and isinstance(model.module, nn.Module) else model
+
+
+def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, state: TrainState, config: Mapping,
+                    data: Mapping, model_name: str, optimizer: torch.optim.Optimizer | None = None,
+                    scheduler: Any | None = None, scaler: Any | None = None, rng: Sequence[Mapping] | None = None) -> Path:
+    """Write a checkpoint atomically (temporary file + fsync + rename). Returns `path`.
+
+    `rng` is one `capture_rng_state()` dict per rank (rank order); everything stored is a
+    tensor, number, string, list or dict, so `torch.load(weights_only=True)` reads it back.
+    """
+    ckpt: dict[str, Any] = {
+        "format": CKPT_FORMAT,
+        "version": CKPT_VERSION,
+        "model_name": str(model_name),
+        "config": dict(config),
+        "data": dict(data),
+        "state": state.to_dict(),
+        "model": unwrap_model(model).state_dict(),
+    }
+    if optimizer is not None:
+        ckpt["optimizer"] = optimizer.state_dict()
+    if scheduler is not None:
+        ckpt["scheduler"] = scheduler.state_dict()
+    if scaler is not None:
+        ckpt["scaler"] = scaler.state_dict()
+    if rng is not None:
+        ckpt["rng"] = [dict(r) for r in rng]
+    return atomic_save(path, lambda tmp: torch.save(ckpt, tmp))
+
+
+def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping) and v:
+            out.update(_flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def config_diff(saved: Mapping, current: Mapping, ignore: Iterable[str] = ()) -> list[str]:
+    """Dotted keys whose values differ, as 'key: saved_value (checkpoint) vs current_value (now)'.
+
+    Keys equal to or under an entry of `ignore` (dotted) are skipped.
+    """
+    a, b = _flatten(saved), _flatten(current)
+    ignore = tuple(ignore)
+    lines = []
+    for k in sorted(set(a) | set(b)):
+        if any(k == i or k.startswith(i + ".") for i in ignore):
+            continue
+        va, vb = a.get(k, "<absent>"), b.get(k, "<absent>")
+        if va != vb:
+            lines.append(f"{k}: {va!r} (checkpoint) vs {vb!r} (now)")
+    return lines
+
+
+def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, config: Mapping | None = None,
+                    data: Mapping | None = None, ignore_keys: Iterable[str] = (),
+                    map_location: str | torch.device = "cpu") -> dict:
+    """Read and validate a checkpoint with `torch.load(weights_only=True)`.
+
+    Args:
+        path: the .pt file.
+        model_name / config / data: when given, must match what the checkpoint recorded
+            (config compared key by key, `ignore_keys` dotted keys excepted).
+        map_location: where tensors are loaded (default CPU; `load_state_dict` moves them).
+    Returns:
+        The checkpoint dict (see the module doc).
+    Raises:
+        CheckpointError naming the file and the fix: missing, damaged, not a detbench
+        checkpoint, another format version, or another model / config / data.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found; pass a file from a training run's "
+                              f"OUT/checkpoints/ folder (tools/train.py --out OUT)")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        if "weights_only" in str(e) or "Weights only" in str(e):
+            raise CheckpointError(
+                f"{path}: holds Python objects that safe loading (weights_only=True) refuses, so it was not "
+                f"written by detbench; pass a checkpoint from tools/train.py (OUT/checkpoints/*.pt)") from None
+        raise CheckpointError(_damaged(path, e)) from None
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError, IndexError) as e:
+        raise CheckpointError(_damaged(path, e)) from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != CKPT_FORMAT:
+        keys = sorted(map(str, ckpt))[:8] if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise CheckpointError(f"{path}: not a detbench checkpoint (found {keys}); pass a checkpoint written by "
+                              f"tools/train.py (OUT/checkpoints/*.pt), not a bare state_dict or another "
+                              f"project's file")
+    if ckpt.get("version") != CKPT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint format version {ckpt.get('version')!r}, this detbench reads "
+                              f"version {CKPT_VERSION}; re-train with this version or use the matching detbench")
+    missing = [k for k in ("model_name", "config", "data", "state", "model") if k not in ckpt]
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint lacks {missing}; it is incomplete, re-train or use another one")
+    if model_name is not None and ckpt["model_name"] != model_name:
+        raise CheckpointError(f"{path}: checkpoint is for model {ckpt['model_name']!r}, not {model_name!r}; "
+                              f"use --model {ckpt['model_name']} or a checkpoint of {model_name}, or start a new "
+                              f"run in another output folder")
+    if data is not None:
+        bad = config_diff(ckpt["data"], data)
+        if bad:
+            raise CheckpointError(f"{path}: checkpoint was trained on other data ({'; '.join(bad)}); resume with "
+                                  f"the same --data/--height, or start a new run in another output folder")
+    if config is not None:
+        bad = config_diff(ckpt["config"], config, ignore_keys)
+        if bad:
+            shown = "; ".join(bad[:6]) + (f"; and {len(bad) - 6} more" if len(bad) > 6 else "")
+            raise CheckpointError(f"{path}: checkpoint was written with another config ({shown}); resume with "
+                                  f"the same config file and --set options, or start a new run in another "
+                                  f"output folder")
+    return ckpt
+
+
+def _damaged(path: Path, e: BaseException) -> str:
+    older = [p.name for p in CheckpointManager(path.parent).list() if p != path]
+    hint = (f"delete it to resume from the previous one ({older[-1]}) or start a new run" if older
+            else "delete it and start a new run")
+    return (f"{path}: cannot read this checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
+            f"the file is damaged or truncated (e.g. a copy that stopped half-way); {hint}")
+
+
+def load_model_weights(model: nn.Module, ckpt: Mapping, path: str | os.PathLike = "<checkpoint>") -> None:
+    """`model.load_state_dict(ckpt["model"])` with an error naming the file if the weights do not fit."""
+    try:
+        unwrap_model(model).load_state_dict(ckpt["model"])
+    except RuntimeError as e:
+        raise CheckpointError(f"{path}: weights do not fit this model ({str(e).splitlines()[0]} ...); the checkpoint "
+                              f"was written by a model built with another config; build the model from the "
+                              f"checkpoint's config (ckpt['config'])") from None
+
+
+def restore_training(ckpt: Mapping, *, model: nn.Module, optimizer: torch.optim.Optimizer | None = None,
+                     scheduler: Any | None = None, scaler: Any | None = None,
+                     path: str | os.PathLike = "<checkpoint>", rank: int = 0) -> TrainState:
+    """Load weights and optimizer / scheduler / scaler / RNG states; return the saved TrainState.
+
+    The generators get the states saved by `rank` (rank 0's when the run had fewer ranks).
+    """
+    from detbench.train.seed import restore_rng_state
+
+    load_model_weights(model, ckpt, path)
+    for name, obj in (("optimizer", optimizer), ("scheduler", scheduler), ("scaler", scaler)):
+        if obj is None:
+            continue
+        if name == "scaler" and not ckpt.get(name):
+            continue  # saved by a run without mixed precision (CPU): the scaler starts fresh
+        if name not in ckpt:
+            raise CheckpointError(f"{path}: holds model weights only (no {name} state), so training cannot resume "
+                                  f"from it; start a new run, or resume from a checkpoint in OUT/checkpoints/")
+        try:
+            obj.load_state_dict(ckpt[name])
+        except (ValueError, KeyError, RuntimeError) as e:
+            raise CheckpointError(f"{path}: {name} state does not fit ({e}); resume with the same config, or start "
+                                  f"a new run in another output folder") from None
+    rng = ckpt.get("rng") or []
+    if rng:
+        restore_rng_state(rng[rank] if rank < len(rng) else rng[0])
+    return TrainState.from_dict(ckpt["state"])
+
+
+class CheckpointManager:
+    """The checkpoints of one run in `directory`; keeps the newest `keep_last` (0 or less keeps all)."""
+
+    def __init__(self, directory: str | os.PathLike, keep_last: int = 3):
+        self.directory = Path(directory)
+        self.keep_last = int(keep_last)
+
+    @staticmethod
+    def name_for(state: TrainState) -> str:
+        """'epoch_EEE.pt' at an epoch end, else 'epoch_EEE_step_SSSSSS.pt'."""
+        if state.step_in_epoch == 0:
+            return f"epoch_{state.epoch:03d}.pt"
+        return f"epoch_{state.epoch:03d}_step_{state.step_in_epoch:06d}.pt"
+
+    def list(self) -> list[Path]:
+        """Checkpoint files, oldest first (by epoch, then step)."""
+        if not self.directory.is_dir():
+            return []
+        found = []
+        for p in self.directory.iterdir():
+            m = _NAME_RE.match(p.name)
+            if m and p.is_file():
+                found.append(((int(m.group(1)), int(m.group(2) or 0)), p))
+        return [p for _, p in sorted(found)]
+
+    def latest(self) -> Path | None:
+        """The newest checkpoint, or None when there is none."""
+        files = self.list()
+        return files[-1] if files else None
+
+    def save(self, state: TrainState, **kwargs) -> Path:
+        """`save_checkpoint` into `directory/name_for(state)`, then delete all but the newest `keep_last`."""
+        path = save_checkpoint(self.directory / self.name_for(state), state=state, **kwargs)
+        self.prune()
+        return path
+
+    def prune(self) -> list[Path]:
+        """Delete all but the newest `keep_last` checkpoints; returns the deleted paths."""
+        if self.keep_last <= 0:
+            return []
+        files = self.list()
+        doomed = files[:-self.keep_last]
+        for p in doomed:
+            p.unlink(missing_ok=True)
+        return doomed

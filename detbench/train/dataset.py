@@ -1,0 +1,125 @@
+"""`TrainingSet`: frames -> training samples (LiDAR-detected ground truth, augmentation, crop).
+
+Per item, in order:
+1. ground truth = the frame's LiDAR-detected vehicles (>= 1 point inside the box with its
+   bottom raised 0.05 m), as the paper trains;
+2. when training: augmentation (detbench.data.augment) with a generator seeded from
+   (seed, epoch, index), pasted vehicles kept clear of every vehicle of the frame;
+3. crop points and boxes to the model's point-cloud range.
+
+Items are addressed as `ts[(epoch, index)]` (the training loop's batch sampler sends the
+epoch with each index, so persistent DataLoader workers need no epoch state) or as
+`ts[index]` for the epoch last given to `set_epoch`. Instances must be picklable (workers
+are spawned).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from torch.utils.data import Dataset
+
+from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range, crop_to_range
+from detbench.data.batch import Sample
+from detbench.data.frame import Frame, height_key
+from detbench.data.gt_database import (
+    DETECTED_BOTTOM_LIFT, GTDatabase, GTSampler, build_or_load_gt_database, detected_mask,
+)
+from detbench.train.seed import sample_rng
+
+__all__ = ["TrainingSet", "default_database_dir"]
+
+
+def default_database_dir(root: str | os.PathLike, height: float) -> Path:
+    """ROOT/gt_database/<height_key>: where `TrainingSet.from_dataset` keeps the ground-truth database."""
+    return Path(root) / "gt_database" / height_key(height)
+
+
+class TrainingSet(Dataset):
+    """A torch Dataset of `Sample`s over any sequence of Frames (e.g. a Height3Dataset split).
+
+    Args:
+        frames: `len()` and `[i] -> Frame` (Height3Dataset or a list of Frames).
+        point_cloud_range: [x_min, y_min, z_min, x_max, y_max, z_max] metres, the model's.
+        augment: augmentation config; None or `AugmentConfig.none()` for no augmentation.
+        gt_database: required when `augment.gt_sampling.enabled`.
+        seed: seeds each sample's augmentation with the epoch and index.
+        training: False disables augmentation (evaluation, previews).
+        min_points / bottom_lift: the LiDAR-detected rule (defaults: 1 point, 0.05 m).
+    """
+
+    def __init__(self, frames: Sequence[Frame], point_cloud_range: Sequence[float], *,
+                 augment: AugmentConfig | None = None, gt_database: GTDatabase | None = None, seed: int = 0,
+                 training: bool = True, min_points: int = 1, bottom_lift: float = DETECTED_BOTTOM_LIFT):
+        self.frames = frames
+        self.point_cloud_range = check_point_cloud_range(point_cloud_range)
+        self.augment = augment or AugmentConfig.none()
+        self.sampler = None
+        if self.augment.gt_sampling.enabled:
+            if gt_database is None:
+                raise ValueError("augment.gt_sampling.enabled is true but TrainingSet got no gt_database; pass one "
+                                 "(detbench.data.gt_database.build_or_load_gt_database) or use "
+                                 "TrainingSet.from_dataset, or set augment.gt_sampling.enabled=false")
+            self.sampler = GTSampler(gt_database, self.augment.gt_sampling)
+        self.seed = int(seed)
+        self.training = bool(training)
+        self.min_points = int(min_points)
+        self.bottom_lift = float(bottom_lift)
+        self.epoch = 0
+
+    @classmethod
+    def from_dataset(cls, root: str | os.PathLike, height: float, point_cloud_range: Sequence[float], *,
+                     augment: AugmentConfig | None = None, seed: int = 0, split: str = "train",
+                     database_dir: str | os.PathLike | None = None, progress: bool = True) -> "TrainingSet":
+        """`Height3Dataset(root, height, split)` with the ground-truth database built (once) if sampling is on.
+
+        The database comes from the *train* split only; it lives in `database_dir`, else
+        `augment.gt_sampling.database_dir`, else ROOT/gt_database/<height>. In a distributed
+        run call this inside `main_process_first(info)`.
+        """
+        from detbench.data import Height3Dataset
+
+        augment = augment or AugmentConfig.none()
+        frames = Height3Dataset(root, height, split)
+        db = None
+        if augment.gt_sampling.enabled and split != "test":
+            train_frames = frames if split == "train" else Height3Dataset(root, height, "train")
+            where = database_dir or augment.gt_sampling.database_dir or default_database_dir(root, height)
+            db = build_or_load_gt_database(train_frames, where, progress=progress,
+                                           source={"root": str(Path(root).resolve()), "height": float(height),
+                                                   "split": "train"})
+        if db is None and augment.gt_sampling.enabled:
+            augment = replace(augment, gt_sampling=replace(augment.gt_sampling, enabled=False))
+        return cls(frames, point_cloud_range, augment=augment, gt_database=db, seed=seed, training=split != "test")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def set_epoch(self, epoch: int) -> None:
+        """The epoch whose augmentation `__getitem__` reproduces (call before each pass)."""
+        self.epoch = int(epoch)
+
+    def __getitem__(self, key: int | tuple[int, int]) -> Sample:
+        """`ts[(epoch, index)]` or `ts[index]` (epoch from `set_epoch`); augmented when `training`."""
+        if isinstance(key, tuple):
+            epoch, index = key
+            return self.get(int(index), int(epoch), augment=self.training)
+        return self.get(int(key), self.epoch, augment=self.training)
+
+    def get(self, index: int, epoch: int = 0, augment: bool = True) -> Sample:
+        """Sample `index` as seen in `epoch`: (points (N, 4) float32, gt_boxes (M, 7) float32, frame_id)."""
+        if not 0 <= index < len(self.frames):
+            raise IndexError(f"index {index} out of range for {len(self.frames)} frames")
+        frame = self.frames[index]
+        points = np.asarray(frame.points, dtype=np.float32)
+        all_boxes = np.asarray(frame.boxes, dtype=np.float32).reshape(-1, 7)
+        gt = all_boxes[detected_mask(points, all_boxes, self.min_points, self.bottom_lift)]
+        if augment:
+            rng = sample_rng(self.seed, epoch, index)
+            points, gt = augment_frame(points, gt, rng, self.augment, self.sampler, avoid_boxes=all_boxes)
+        points, gt, _ = crop_to_range(points, gt, self.point_cloud_range)
+        return Sample(np.ascontiguousarray(points, dtype=np.float32), np.ascontiguousarray(gt, dtype=np.float32),
+                      frame.frame_id)

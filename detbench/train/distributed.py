@@ -1,0 +1,158 @@
+"""Multi-process training with PyTorch's own launcher: `torchrun --nproc_per_node=N tools/train.py ...`.
+
+torchrun sets RANK, WORLD_SIZE, LOCAL_RANK, MASTER_ADDR and MASTER_PORT; `init_distributed`
+reads them (no variables -> one process, nothing to initialise), picks the backend (nccl
+for CUDA, gloo for CPU) and the device (cuda:LOCAL_RANK). Each process then wraps the model
+in DistributedDataParallel and reads its share of the data through a DistributedSampler.
+Only rank 0 writes logs and checkpoints; loss figures are averaged over ranks for logging.
+"""
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import timedelta
+from typing import Iterator, Mapping
+
+import torch
+import torch.distributed as dist
+from torch import nn
+from torch.nn.parallel import DistributedDataParallel
+
+__all__ = ["DistInfo", "init_distributed", "wrap_model", "reduce_mean", "reduce_max_flag", "sync_buffers",
+           "barrier", "main_process_first", "cleanup"]
+
+
+@dataclass(frozen=True)
+class DistInfo:
+    """This process's place in the job."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def is_main(self) -> bool:
+        """True on the process that writes logs and checkpoints (rank 0)."""
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+
+def _resolve_device(device: str, local_rank: int) -> torch.device:
+    if device not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
+    if device == "auto":
+        device = "cuda" if torch.cuda.is_available() else "cpu"
+    if device == "cuda":
+        if not torch.cuda.is_available():
+            raise RuntimeError("--device cuda was asked for but torch sees no CUDA device "
+                               "(CPU-only torch build or no GPU); use --device cpu")
+        n = torch.cuda.device_count()
+        if local_rank >= n:
+            raise RuntimeError(f"LOCAL_RANK={local_rank} but only {n} CUDA device(s) are visible; "
+                               f"use torchrun --nproc_per_node<={n}")
+        torch.cuda.set_device(local_rank)
+        return torch.device("cuda", local_rank)
+    return torch.device("cpu")
+
+
+def init_distributed(device: str = "auto", timeout_minutes: float = 60.0) -> DistInfo:
+    """Join the process group torchrun describes in the environment, or run as a single process.
+
+    Args:
+        device: "auto" (CUDA when available), "cpu" or "cuda".
+        timeout_minutes: how long collectives wait for a slow rank (rank 0 evaluates and
+            writes checkpoints while the others wait).
+    Returns:
+        DistInfo(rank, world_size, local_rank, device).
+    """
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    dev = _resolve_device(device, local_rank if world > 1 else 0)
+    if world > 1 and not dist.is_initialized():
+        missing = [k for k in ("MASTER_ADDR", "MASTER_PORT") if k not in os.environ]
+        if missing:
+            raise RuntimeError(f"WORLD_SIZE={world} but {missing} not set; start multi-process runs with "
+                               f"torchrun --nproc_per_node=N tools/train.py ...")
+        backend = "nccl" if dev.type == "cuda" else "gloo"
+        dist.init_process_group(backend=backend, rank=rank, world_size=world,
+                                timeout=timedelta(minutes=timeout_minutes))
+    return DistInfo(rank=rank, world_size=world, local_rank=local_rank, device=dev)
+
+
+def wrap_model(model: nn.Module, info: DistInfo, find_unused_parameters: bool = False) -> nn.Module:
+    """DistributedDataParallel around `model` (already on `info.device`) when there are several ranks."""
+    if not info.distributed:
+        return model
+    if info.device.type == "cuda":
+        return DistributedDataParallel(model, device_ids=[info.device.index], output_device=info.device.index,
+                                       find_unused_parameters=find_unused_parameters)
+    return DistributedDataParallel(model, find_unused_parameters=find_unused_parameters)
+
+
+def reduce_mean(values: Mapping[str, float], info: DistInfo) -> dict[str, float]:
+    """Average scalar figures over ranks (every rank must pass the same keys, in any order)."""
+    keys = sorted(values)
+    if not info.distributed or not keys:
+        return {k: float(values[k]) for k in keys}
+    t = torch.tensor([float(values[k]) for k in keys], dtype=torch.float64, device=info.device)
+    dist.all_reduce(t, op=dist.ReduceOp.SUM)
+    t /= info.world_size
+    return {k: float(v) for k, v in zip(keys, t.tolist())}
+
+
+def reduce_max_flag(flag: bool, info: DistInfo) -> bool:
+    """True on every rank when `flag` is True on any rank (e.g. 'stop requested')."""
+    if not info.distributed:
+        return bool(flag)
+    t = torch.tensor([1 if flag else 0], dtype=torch.int32, device=info.device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
+def sync_buffers(model: nn.Module, info: DistInfo) -> None:
+    """Average floating-point buffers (BatchNorm running statistics) over ranks; copy rank 0's others.
+
+    DDP copies rank 0's buffers into every rank at each forward, but each rank then updates
+    them from its own batch, so after the last step they differ. The loop calls this at each
+    epoch end, before the checkpoint, so every rank holds the same (all-data) statistics.
+    """
+    if not info.distributed:
+        return
+    with torch.no_grad():
+        for buf in model.buffers():
+            if buf.is_floating_point():
+                dist.all_reduce(buf, op=dist.ReduceOp.SUM)
+                buf /= info.world_size
+            else:
+                dist.broadcast(buf, src=0)
+
+
+def barrier(info: DistInfo) -> None:
+    """Wait for every rank (no-op in a single process)."""
+    if info.distributed:
+        if info.device.type == "cuda":
+            dist.barrier(device_ids=[info.device.index])
+        else:
+            dist.barrier()
+
+
+@contextmanager
+def main_process_first(info: DistInfo) -> Iterator[None]:
+    """Run the block on rank 0 first, then on the others (e.g. build a cache once, then read it)."""
+    if not info.is_main:
+        barrier(info)
+    yield
+    if info.is_main:
+        barrier(info)
+
+
+def cleanup(info: DistInfo) -> None:
+    """Leave the process group (call once at the end of a run)."""
+    if info.distributed and dist.is_initialized():
+        dist.destroy_process_group()

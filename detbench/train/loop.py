@@ -1,0 +1,439 @@
+"""The training loop: `train(model, train_set, cfg, out_dir, ...)`, readable top to bottom.
+
+One call trains (or resumes) a detector that follows the contract in detbench/train/__init__.py:
+AdamW + one-cycle LR stepped per batch, gradient clipping, mixed precision on CUDA only,
+seeded data order and augmentation, a checkpoint at every epoch end (and on Ctrl-C),
+TensorBoard + history.json + a console line per epoch, an optional evaluation callback, and
+DistributedDataParallel when launched by torchrun.
+
+Outputs in `out_dir`: checkpoints/epoch_EEE.pt (last `keep_checkpoints` kept),
+tensorboard/ (event files), history.json (one record per epoch).
+"""
+from __future__ import annotations
+
+import math
+import signal
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Mapping
+
+import torch
+from torch import nn
+from torch.utils.data import DataLoader, Sampler
+from torch.utils.data.distributed import DistributedSampler
+from tqdm import tqdm
+
+from detbench.config import ConfigError, validate
+from detbench.data.batch import Batch, Sample, collate
+from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
+from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buffers, wrap_model
+from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
+from detbench.train.optim import build_optimizer, build_scheduler
+from detbench.train.seed import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
+from detbench.utils.io import read_json
+
+__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "TrainConfig", "TrainResult", "train"]
+
+TRAIN_DEFAULTS: dict[str, Any] = {
+    "epochs": 20,
+    "batch_size": 4,  # frames per process per step
+    "workers": 2,  # DataLoader worker processes (0 = load in the main process)
+    "seed": 0,
+    "lr": 0.003,  # peak of the one-cycle schedule
+    "weight_decay": 0.01,
+    "betas": [0.9, 0.99],
+    "pct_start": 0.4,  # share of steps with rising lr
+    "div_factor": 10.0,  # start lr = lr / div_factor
+    "final_div_factor": 10000.0,  # end lr = start lr / final_div_factor
+    "momentum_range": [0.85, 0.95],  # Adam beta1, cycled opposite to the lr
+    "grad_clip": 10.0,  # max global gradient L2 norm; 0 = off
+    "amp": True,  # mixed precision, CUDA only (always off on CPU)
+    "keep_checkpoints": 3,  # newest N kept; 0 = all
+    "checkpoint_every_steps": 0,  # extra mid-epoch checkpoints; 0 = epoch ends only
+    "eval_every": 1,  # epochs between evaluation callbacks (the last epoch is always evaluated)
+    "log_every": 10,  # steps between TensorBoard loss points
+    "drop_last": False,  # drop a last partial batch
+    "find_unused_parameters": False,  # DDP option for models with conditionally used parameters
+    "tensorboard": True,
+    "bev_image": True,  # bird's-eye image of predictions vs ground truth per epoch in TensorBoard
+}
+# train.* keys that may change between an interrupted run and its resume (they do not change results)
+RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
+                    "checkpoint_every_steps")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Typed view of the `train` config section (TRAIN_DEFAULTS documents each key and its unit)."""
+
+    epochs: int = 20
+    batch_size: int = 4
+    workers: int = 2
+    seed: int = 0
+    lr: float = 0.003
+    weight_decay: float = 0.01
+    betas: tuple[float, float] = (0.9, 0.99)
+    pct_start: float = 0.4
+    div_factor: float = 10.0
+    final_div_factor: float = 10000.0
+    momentum_range: tuple[float, float] = (0.85, 0.95)
+    grad_clip: float = 10.0
+    amp: bool = True
+    keep_checkpoints: int = 3
+    checkpoint_every_steps: int = 0
+    eval_every: int = 1
+    log_every: int = 10
+    drop_last: bool = False
+    find_unused_parameters: bool = False
+    tensorboard: bool = True
+    bev_image: bool = True
+
+    @classmethod
+    def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
+        """Parse the `train` section (missing keys: TRAIN_DEFAULTS); ConfigError on unknown keys or bad values."""
+        d = dict(d or {})
+        validate(d, TRAIN_DEFAULTS, where=where)
+        v = {**TRAIN_DEFAULTS, **d}
+        try:
+            cfg = cls(epochs=int(v["epochs"]), batch_size=int(v["batch_size"]), workers=int(v["workers"]),
+                      seed=int(v["seed"]), lr=float(v["lr"]), weight_decay=float(v["weight_decay"]),
+                      betas=(float(v["betas"][0]), float(v["betas"][1])), pct_start=float(v["pct_start"]),
+                      div_factor=float(v["div_factor"]), final_div_factor=float(v["final_div_factor"]),
+                      momentum_range=(float(v["momentum_range"][0]), float(v["momentum_range"][1])),
+                      grad_clip=float(v["grad_clip"]), amp=bool(v["amp"]),
+                      keep_checkpoints=int(v["keep_checkpoints"]),
+                      checkpoint_every_steps=int(v["checkpoint_every_steps"]), eval_every=int(v["eval_every"]),
+                      log_every=int(v["log_every"]), drop_last=bool(v["drop_last"]),
+                      find_unused_parameters=bool(v["find_unused_parameters"]), tensorboard=bool(v["tensorboard"]),
+                      bev_image=bool(v["bev_image"]))
+        except (TypeError, ValueError, IndexError) as e:
+            raise ConfigError(f"{where}: a value has the wrong type ({e}); see TRAIN_DEFAULTS in "
+                              f"detbench/train/loop.py for each key's type") from None
+        checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
+                  ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
+                  ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
+                  ("pct_start", 0 < cfg.pct_start < 1, "in (0, 1)"), ("div_factor", cfg.div_factor > 0, "> 0"),
+                  ("final_div_factor", cfg.final_div_factor > 0, "> 0"), ("grad_clip", cfg.grad_clip >= 0, ">= 0"),
+                  ("eval_every", cfg.eval_every >= 1, ">= 1"), ("log_every", cfg.log_every >= 1, ">= 1"),
+                  ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0")]
+        for key, ok, need in checks:
+            if not ok:
+                raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
+        return cfg
+
+
+@dataclass
+class TrainResult:
+    """What `train` did."""
+
+    out_dir: Path
+    epochs_completed: int
+    global_step: int
+    last_checkpoint: Path | None  # newest checkpoint written or resumed from (None on ranks > 0)
+    interrupted: bool  # stopped by Ctrl-C / SIGTERM; resume with resume=True
+    history: list[dict] = field(default_factory=list)  # one record per completed epoch (rank 0)
+
+
+class _EpochBatches(Sampler):
+    """Batches of (epoch, index) pairs in the sampler's order for `epoch`, skipping the first `skip` batches.
+
+    The epoch travels with each index, so persistent DataLoader workers augment for the
+    right epoch without being re-created; `skip` serves a mid-epoch resume.
+    """
+
+    def __init__(self, sampler: DistributedSampler, batch_size: int, drop_last: bool):
+        self.sampler, self.batch_size, self.drop_last = sampler, batch_size, drop_last
+        self.epoch = 0
+        self.skip = 0
+
+    def set_epoch(self, epoch: int, skip: int = 0) -> None:
+        self.epoch, self.skip = int(epoch), int(skip)
+        self.sampler.set_epoch(self.epoch)
+
+    def full_length(self) -> int:
+        n = len(self.sampler)
+        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
+
+    def __len__(self) -> int:
+        return max(0, self.full_length() - self.skip)
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        order = list(self.sampler)
+        for k in range(self.skip, self.full_length()):
+            yield [(self.epoch, i) for i in order[k * self.batch_size:(k + 1) * self.batch_size]]
+
+
+class _StopRequest:
+    """Turns the first Ctrl-C / SIGTERM into a flag checked between steps; a second Ctrl-C aborts at once."""
+
+    def __init__(self, announce: bool):
+        self.requested = False
+        self.announce = announce
+        self._first = 0.0
+        self._old: dict[int, Any] = {}
+
+    def _handler(self, signum, frame):
+        now = time.monotonic()
+        if self.requested:
+            # a second Ctrl-C aborts; one within 2 s of the first is the same keypress forwarded
+            # again (torchrun passes the terminal's SIGINT on to its workers, which got it already)
+            if signum == signal.SIGINT and now - self._first > 2.0:
+                raise KeyboardInterrupt
+            return
+        self.requested, self._first = True, now
+        if self.announce:
+            tqdm.write(f"\n{signal.Signals(signum).name} received: finishing this step and saving a checkpoint "
+                       f"(press Ctrl-C again to abort without saving)")
+
+    def __enter__(self) -> "_StopRequest":
+        if threading.current_thread() is threading.main_thread():
+            for s in (signal.SIGINT, signal.SIGTERM):
+                self._old[s] = signal.signal(s, self._handler)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, old in self._old.items():
+            signal.signal(s, old)
+
+    def start_iter(self, loader: DataLoader) -> Iterator:
+        """`iter(loader)` with SIGINT ignored while worker processes start, so they inherit the
+        ignored disposition and a Ctrl-C (sent to the whole process group) reaches only this process."""
+        if signal.SIGINT not in self._old:
+            return iter(loader)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            return iter(loader)
+        finally:
+            signal.signal(signal.SIGINT, self._handler)
+
+
+def _gather_rng(info: DistInfo) -> list[dict]:
+    """Every rank's generator states (rank order); a single entry without distribution."""
+    state = capture_rng_state()
+    if not info.distributed:
+        return [state]
+    import torch.distributed as dist
+
+    out: list = [None] * info.world_size
+    dist.all_gather_object(out, state)
+    return out
+
+
+def _any_rank(flags: list[bool], info: DistInfo) -> list[bool]:
+    if not info.distributed:
+        return flags
+    import torch.distributed as dist
+
+    t = torch.tensor([int(f) for f in flags], dtype=torch.int32, device=info.device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return [bool(x) for x in t.tolist()]
+
+
+def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *, model_name: str,
+          run_config: Mapping, data_info: Mapping, dist_info: DistInfo | None = None, resume: bool = False,
+          eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None = None, preview: Sample | None = None,
+          resume_ignore_keys: Iterable[str] = tuple(f"train.{k}" for k in RESUME_SAFE_KEYS),
+          resume_hint: str = "run the same command again with --resume", progress: bool = True) -> TrainResult:
+    """Train `model` on `train_set`, or resume the run in `out_dir`.
+
+    Args:
+        model: a detector (see detbench/train/__init__.py): forward(Batch), loss(outputs, Batch),
+            predict(outputs, Batch). Built by the caller after `seed_everything(cfg.seed)`;
+            moved to the device here.
+        train_set: a torch Dataset of `Sample`s indexed by (epoch, index) pairs (a `TrainingSet`)
+            and, for the preview image, `point_cloud_range` and `get(i, epoch, augment)`.
+        cfg: the parsed `train` section.
+        out_dir: the run folder (checkpoints/, tensorboard/, history.json).
+        model_name / run_config / data_info: stored in every checkpoint and checked on resume
+            (data_info e.g. {"source": "/data/h3 or a simulator description", "height": 1.8}).
+        dist_info: from `init_distributed` (default: one CPU process).
+        resume: continue from the newest checkpoint in out_dir/checkpoints (a fresh start when
+            there is none).
+        eval_fn: `eval_fn(model, epoch) -> {metric: value}` run on rank 0, in eval mode under
+            no_grad, every `cfg.eval_every` epochs and after the last one; the figures go to
+            TensorBoard (eval/*), history.json and the console.
+        preview: the frame drawn in the per-epoch bird's-eye image (default: the first training
+            frame without augmentation).
+        resume_ignore_keys: dotted config keys allowed to differ on resume.
+        resume_hint: how the user resumes, printed after Ctrl-C.
+        progress: show tqdm bars (rank 0 only).
+    Returns:
+        TrainResult. After Ctrl-C / SIGTERM it returns `interrupted=True` once a checkpoint of
+        the last completed step is written (resume replays the rest exactly on CPU).
+    """
+    info = dist_info or DistInfo()
+    device = info.device
+    out_dir = Path(out_dir)
+    ckpts = CheckpointManager(out_dir / "checkpoints", keep_last=cfg.keep_checkpoints)
+    if not resume and ckpts.latest() is not None:
+        raise CheckpointError(f"{ckpts.directory} already holds checkpoints of an earlier run ({ckpts.latest().name}); "
+                              f"add --resume to continue it, or choose another --out folder (or delete that one)")
+
+    # ---- model, data, optimizer, schedule -------------------------------------------------
+    seed_everything(cfg.seed)
+    core = model.to(device)
+    sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
+                                 seed=cfg.seed, drop_last=False)
+    batches = _EpochBatches(sampler, cfg.batch_size, cfg.drop_last)
+    steps_per_epoch = batches.full_length()
+    if steps_per_epoch == 0:
+        raise ValueError(f"the training set has {len(train_set)} frames, too few for one batch of {cfg.batch_size} "
+                         f"per process with drop_last; lower train.batch_size or set train.drop_last=false")
+    loader_gen = torch.Generator()
+    # Workers are spawned, not forked: numba's OpenMP kernels (and CUDA) already running in this
+    # process make a forked child abort. They persist across epochs, so the start-up is paid once.
+    loader = DataLoader(train_set, batch_sampler=batches, num_workers=cfg.workers, collate_fn=collate,
+                        worker_init_fn=worker_init_fn, generator=loader_gen, pin_memory=device.type == "cuda",
+                        multiprocessing_context="spawn" if cfg.workers > 0 else None,
+                        persistent_workers=cfg.workers > 0)
+    optimizer = build_optimizer(core, cfg.lr, cfg.weight_decay, cfg.betas)
+    scheduler = build_scheduler(optimizer, cfg.lr, cfg.epochs * steps_per_epoch, cfg.pct_start, cfg.div_factor,
+                                cfg.final_div_factor, cfg.momentum_range)
+    use_amp = cfg.amp and device.type == "cuda"
+    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+
+    # ---- resume ---------------------------------------------------------------------------
+    state = TrainState(seed=cfg.seed)
+    last_ckpt: Path | None = None
+    history: list[dict] = []
+    if resume and ckpts.latest() is not None:
+        last_ckpt = ckpts.latest()
+        ckpt = load_checkpoint(last_ckpt, model_name=model_name, config=run_config, data=data_info,
+                               ignore_keys=resume_ignore_keys)
+        state = restore_training(ckpt, model=core, optimizer=optimizer, scheduler=scheduler, scaler=scaler,
+                                 path=last_ckpt, rank=info.rank)
+        if (out_dir / "history.json").is_file():
+            history = [r for r in read_json(out_dir / "history.json").get("epochs", []) if r["epoch"] <= state.epoch]
+        if info.is_main:
+            done = " - already complete, nothing to do" if state.epoch >= cfg.epochs else ""
+            tqdm.write(f"resuming from {last_ckpt} ({state.epoch} epochs + {state.step_in_epoch} batches done){done}")
+    elif resume and info.is_main:
+        tqdm.write(f"--resume: no checkpoint in {ckpts.directory}; starting a new run")
+
+    ddp_model = wrap_model(core, info, cfg.find_unused_parameters)
+    logger = TrainLogger(out_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
+                         purge_step=state.global_step + 1 if last_ckpt is not None else None)
+    logger.set_history(history)
+    if preview is None and len(train_set) > 0 and hasattr(train_set, "get"):
+        preview = train_set.get(0, 0, augment=False)
+
+    def save(st: TrainState) -> Path | None:
+        rng_ranks = _gather_rng(info)  # every rank takes part; each resumes its own generators
+        path = None
+        if info.is_main:
+            path = ckpts.save(st, model=core, optimizer=optimizer, scheduler=scheduler, scaler=scaler,
+                              config=run_config, data=data_info, model_name=model_name, rng=rng_ranks)
+        barrier(info)
+        return path
+
+    # ---- epochs ---------------------------------------------------------------------------
+    interrupted = False
+    with _StopRequest(announce=info.is_main) as stop:
+        for epoch in range(state.epoch, cfg.epochs):
+            batches.set_epoch(epoch, skip=state.step_in_epoch if epoch == state.epoch else 0)
+            loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
+            core.train()
+            sums: dict[str, float] = {}
+            n_steps, n_frames, t0 = 0, 0, time.perf_counter()
+            bar = tqdm(stop.start_iter(loader), total=len(batches), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
+                       disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
+            for batch in bar:
+                batch: Batch = batch.to(device, non_blocking=True)
+                with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
+                    outputs = ddp_model(batch)
+                    loss, parts = core.loss(outputs, batch)
+                optimizer.zero_grad(set_to_none=True)
+                scaler.scale(loss).backward()
+                if cfg.grad_clip > 0:
+                    scaler.unscale_(optimizer)
+                    torch.nn.utils.clip_grad_norm_(core.parameters(), cfg.grad_clip)
+                lr = optimizer.param_groups[0]["lr"]  # the rate this step used
+                scaler.step(optimizer)
+                scaler.update()
+                scheduler.step()
+
+                state = TrainState(epoch, state.step_in_epoch + 1, state.global_step + 1, cfg.seed)
+                n_steps += 1
+                n_frames += batch.batch_size
+                loss_value = float(loss.detach())
+                values = {"loss": loss_value, **{k: float(v) for k, v in parts.items()}}
+                for k, v in values.items():
+                    sums[k] = sums.get(k, 0.0) + v
+                if info.is_main and state.global_step % cfg.log_every == 0:
+                    logger.scalars({**values, "lr": lr}, state.global_step, prefix="train/")
+                bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{lr:.2e}", refresh=False)
+
+                stop_now, nonfinite = _any_rank([stop.requested, not math.isfinite(loss_value) and not use_amp], info)
+                if nonfinite:
+                    raise FloatingPointError(
+                        f"loss is not finite at epoch {epoch + 1}, step {state.step_in_epoch} (frames "
+                        f"{batch.frame_ids}; parts {values}); the last good checkpoint is {ckpts.latest()}. Lower "
+                        f"train.lr or train.grad_clip, or check those frames")
+                at_epoch_end = state.step_in_epoch == steps_per_epoch
+                if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
+                                                      and state.global_step % cfg.checkpoint_every_steps == 0)):
+                    last_ckpt = save(state) or last_ckpt
+                    if stop_now:
+                        interrupted = True
+                        break
+            bar.close()
+            if interrupted:
+                break
+
+            # ---- epoch end: checkpoint, evaluation, logs ---------------------------------
+            state = TrainState(epoch + 1, 0, state.global_step, cfg.seed)
+            losses = reduce_mean({k: v / max(n_steps, 1) for k, v in sums.items()}, info)
+            seconds = time.perf_counter() - t0
+            frames_all = int(reduce_mean({"f": n_frames}, info)["f"] * info.world_size)
+            sync_buffers(core, info)  # every rank ends the epoch with the same BatchNorm statistics
+            last_ckpt = save(state) or last_ckpt
+            metrics: dict[str, float] = {}
+            if info.is_main:
+                rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
+                if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+                    core.eval()
+                    with torch.no_grad():
+                        metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
+                if cfg.bev_image and logger.writer is not None and preview is not None:
+                    _log_preview(core, preview, train_set, logger, epoch + 1, state.global_step, device)
+                restore_rng_state(rng_before)
+                core.train()
+                logger.scalars({**losses, "lr": lr, "seconds": seconds, "epoch": epoch + 1}, state.global_step,
+                               prefix="epoch/")
+                logger.scalars(metrics, state.global_step, prefix="eval/")
+                logger.add_epoch({"epoch": epoch + 1, "global_step": state.global_step, "lr": lr,
+                                  "seconds": round(seconds, 3), "frames": frames_all, "losses": losses,
+                                  "metrics": metrics, "checkpoint": last_ckpt.name if last_ckpt else None})
+                tqdm.write(format_epoch_summary(epoch + 1, cfg.epochs, losses, lr, seconds, frames_all, metrics))
+            barrier(info)
+            if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
+                interrupted = True
+                break
+
+    if interrupted and info.is_main:
+        tqdm.write(f"Interrupted after {state.epoch} epoch(s) + {state.step_in_epoch} batch(es); checkpoint saved to "
+                   f"{last_ckpt}. To resume: {resume_hint}")
+    logger.close()
+    return TrainResult(out_dir=out_dir, epochs_completed=state.epoch, global_step=state.global_step,
+                       last_checkpoint=last_ckpt if info.is_main else None, interrupted=interrupted,
+                       history=list(logger.history))
+
+
+def _log_preview(model: nn.Module, preview: Sample, train_set, logger: TrainLogger, epoch: int, step: int,
+                 device: torch.device) -> None:
+    """Run the model on the preview frame and log the bird's-eye image (ground truth vs predictions)."""
+    model.eval()
+    with torch.no_grad():
+        batch = collate([preview]).to(device)
+        dets = model.predict(model(batch), batch)[0]
+    boxes, scores, _ = dets.numpy()
+    pc_range = getattr(train_set, "point_cloud_range", None)
+    if pc_range is None:
+        pts = preview.points
+        pc_range = [pts[:, 0].min(), pts[:, 1].min(), 0.0, pts[:, 0].max() + 1e-3, pts[:, 1].max() + 1e-3, 1.0] \
+            if len(pts) else [0.0, -1.0, 0.0, 1.0, 1.0, 1.0]
+    fig = bev_figure(preview.points, preview.gt_boxes, boxes, scores, pc_range,
+                     title=f"frame {preview.frame_id}, epoch {epoch}: ground truth (green) vs predictions (red)")
+    logger.figure("bev/predictions_vs_ground_truth", fig, step)

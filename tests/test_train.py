@@ -1,0 +1,343 @@
+"""Training infrastructure with a tiny test-only detector on synthetic frames built here.
+
+The detector pools per-point MLP features per frame and regresses one box (the frame's first
+ground-truth box) plus a "has a vehicle" logit: small, honest and finite on empty frames.
+"""
+import math
+import os
+import pickle
+import signal
+import socket
+from typing import NamedTuple
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from detbench.config import ConfigError
+from detbench.data.augment import AugmentConfig
+from detbench.data.batch import Batch, Detections, Sample, collate
+from detbench.data.frame import Frame, Sensor
+from detbench.data.gt_database import build_gt_database
+from detbench.train import (
+    CheckpointError, CheckpointManager, TrainConfig, TrainingSet, cleanup, init_distributed, load_checkpoint,
+    main_process_first, seed_everything, train,
+)
+
+PC_RANGE = [0.0, -20.0, -2.0, 80.0, 20.0, 4.0]
+SCALE = torch.tensor([80.0, 20.0, 2.0, 5.0, 2.0, 2.0, 1.0])
+
+
+# ---------------------------------------------------------------- synthetic data
+def make_frame(seed: int, frame_id: str) -> Frame:
+    """Road points, 1-2 vehicles with points, one vehicle without points (not LiDAR-detected)."""
+    rng = np.random.default_rng(seed)
+    boxes, pts = [], []
+    for y in rng.permutation([-3.5, 0.0, 3.5])[: int(rng.integers(1, 3))]:
+        dims = (rng.uniform(4, 5), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.7))
+        box = [rng.uniform(10, 60), y, dims[2] / 2, *dims, float(rng.uniform(-0.1, 0.1))]
+        boxes.append(box)
+        local = rng.uniform(-0.45, 0.45, size=(40, 3)) * np.array(dims)
+        c, s = math.cos(box[6]), math.sin(box[6])
+        pts.append(np.stack([box[0] + c * local[:, 0] - s * local[:, 1], box[1] + s * local[:, 0] + c * local[:, 1],
+                             box[2] + np.abs(local[:, 2]), rng.uniform(0, 1, 40)], axis=1))
+    boxes.append([75.0, -10.5, 0.8, 4.5, 1.8, 1.6, 0.0])
+    pts.append(np.stack([rng.uniform(0, 80, 150), rng.uniform(-20, 20, 150), np.zeros(150),
+                         rng.uniform(0, 1, 150)], axis=1))
+    m = len(boxes)
+    return Frame(frame_id, frame_id[:4], np.concatenate(pts).astype(np.float32), np.asarray(boxes, np.float32),
+                 np.array(["car"] * m), np.arange(m, dtype=np.int64), np.zeros(m, dtype=np.int64),
+                 Sensor(height=1.8)).check()
+
+
+FRAMES = [make_frame(s, f"{s // 4:04d}_{s % 4:03d}") for s in range(8)]
+
+
+def make_set(tmp_path, gt_sampling=True, seed=0) -> TrainingSet:
+    aug = AugmentConfig.from_dict({"gt_sampling": {"enabled": gt_sampling, "sample_count": 4,
+                                                   "filter_by_min_points": 5}})
+    db = build_gt_database(FRAMES, tmp_path / "db", progress=False) if gt_sampling else None
+    return TrainingSet(FRAMES, PC_RANGE, augment=aug, gt_database=db, seed=seed)
+
+
+# ---------------------------------------------------------------- the test-only detector
+class TinyOut(NamedTuple):
+    boxes: torch.Tensor  # (B, 7) normalised box
+    logits: torch.Tensor  # (B,)
+
+
+class TinyDetector(nn.Module):
+    def __init__(self, hidden: int = 32, interrupt_at: int | None = None, crash_at: int | None = None):
+        super().__init__()
+        self.mlp = nn.Sequential(nn.Linear(4, hidden), nn.ReLU(), nn.Dropout(0.1), nn.Linear(hidden, hidden), nn.ReLU())
+        self.norm = nn.BatchNorm1d(hidden)
+        self.head = nn.Linear(hidden, 8)
+        self.interrupt_at, self.crash_at, self.train_calls = interrupt_at, crash_at, 0
+
+    def forward(self, batch: Batch) -> TinyOut:
+        if self.training:
+            self.train_calls += 1
+            if self.train_calls == self.interrupt_at:
+                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of a step
+            if self.train_calls == self.crash_at:
+                raise RuntimeError("simulated crash")
+        p = batch.points
+        feats = self.mlp(p[:, 1:5] / torch.tensor([80.0, 20.0, 2.0, 1.0], device=p.device))
+        idx = p[:, 0].long()
+        pooled = torch.zeros(batch.batch_size, feats.shape[1], device=p.device).index_add_(0, idx, feats)
+        pooled = pooled / torch.bincount(idx, minlength=batch.batch_size).clamp(min=1)[:, None]
+        out = self.head(self.norm(pooled))
+        return TinyOut(out[:, :7], out[:, 7])
+
+    def loss(self, out: TinyOut, batch: Batch):
+        has = batch.gt_mask.any(dim=1) if batch.gt_mask.shape[1] else torch.zeros(batch.batch_size, dtype=torch.bool)
+        if batch.gt_mask.shape[1] and has.any():
+            target = batch.gt_boxes[:, 0] / SCALE.to(out.boxes.device)
+            box = F.smooth_l1_loss(out.boxes[has], target[has])
+        else:
+            box = out.boxes.sum() * 0.0
+        cls = F.binary_cross_entropy_with_logits(out.logits, has.float())
+        total = box + cls
+        return total, {"box": float(box.detach()), "cls": float(cls.detach())}
+
+    def predict(self, out: TinyOut, batch: Batch) -> list[Detections]:
+        boxes = out.boxes * SCALE.to(out.boxes.device)
+        return [Detections(boxes[i:i + 1], torch.sigmoid(out.logits[i:i + 1]),
+                           torch.zeros(1, dtype=torch.int64, device=boxes.device)) for i in range(batch.batch_size)]
+
+
+RUN_CONFIG = {"model": {"name": "tiny"}, "train": {"epochs": 2, "batch_size": 2, "workers": 0, "lr": 0.01}}
+DATA = {"source": "synthetic", "height": 1.8}
+
+
+def run(tmp_path, out, epochs=2, resume=False, model_kw=None, **over):
+    """Seed, build a TinyDetector(**model_kw) and train it in tmp_path/out; returns (model, TrainResult)."""
+    cfg = TrainConfig.from_dict({**RUN_CONFIG["train"], "epochs": epochs, "tensorboard": False, "bev_image": False,
+                                 **over})
+    seed_everything(cfg.seed)
+    model = TinyDetector(**(model_kw or {}))
+    rc = {**RUN_CONFIG, "train": {**RUN_CONFIG["train"], "epochs": epochs, **over}}
+    res = train(model, make_set(tmp_path), cfg, tmp_path / out, model_name="tiny", run_config=rc, data_info=DATA,
+                resume=resume, progress=False)
+    return model, res
+
+
+def same_weights(a: nn.Module, b: nn.Module) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+# ---------------------------------------------------------------- data hand-offs
+def test_collate_pads_boxes_and_tags_points():
+    s0 = Sample(np.ones((3, 4), np.float32), np.ones((2, 7), np.float32), "a")
+    s1 = Sample(np.zeros((0, 4), np.float32), np.zeros((0, 7), np.float32), "b")
+    b = collate([s0, s1])
+    assert b.points.shape == (3, 5) and b.points[:, 0].tolist() == [0, 0, 0]
+    assert b.gt_boxes.shape == (2, 2, 7) and b.gt_mask.tolist() == [[True, True], [False, False]]
+    assert b.boxes_of(1).shape == (0, 7) and b.points_of(0).shape == (3, 4) and b.frame_ids == ["a", "b"]
+    empty = collate([s1])
+    assert empty.gt_boxes.shape == (1, 0, 7) and empty.to("cpu").batch_size == 1
+    with pytest.raises(ValueError, match="points must be"):
+        collate([Sample(np.ones((3, 3), np.float32), np.zeros((0, 7), np.float32), "c")])
+
+
+def test_training_set_uses_detected_vehicles_and_replays_augmentation(tmp_path):
+    ts = make_set(tmp_path, gt_sampling=False)
+    plain = ts.get(0, 0, augment=False)
+    assert len(plain.gt_boxes) == len(FRAMES[0].boxes) - 1  # the vehicle without points is not ground truth
+    a, b, c = ts.get(3, epoch=1), ts.get(3, epoch=1), ts.get(3, epoch=2)
+    assert np.array_equal(a.points, b.points) and np.array_equal(a.gt_boxes, b.gt_boxes)
+    assert not np.array_equal(a.gt_boxes, c.gt_boxes)
+    ts.set_epoch(1)
+    assert np.array_equal(ts[3].points, a.points)
+
+
+def test_training_set_from_dataset_builds_the_database_once(tmp_path):
+    from detbench.data import DatasetWriter
+
+    root = tmp_path / "data"
+    with DatasetWriter(root, heights=[1.8], source={"kind": "test"}, test_fraction=0.25) as w:
+        for f in FRAMES:
+            w.add([f])
+    aug = AugmentConfig.from_dict({"gt_sampling": {"sample_count": 4, "filter_by_min_points": 5}})
+    ts = TrainingSet.from_dataset(root, 1.8, PC_RANGE, augment=aug, seed=3, progress=False)
+    index = root / "gt_database" / "1.8" / "gt_database.json"
+    stamp = index.stat().st_mtime_ns
+    train_ids = set(ts.frames.frame_ids)
+    assert 0 < len(ts) < len(FRAMES) and ts.sampler is not None
+    assert set(ts.sampler.db.frame_ids) <= train_ids  # the database never sees test frames
+    s = ts[(1, 0)]
+    assert s.points.dtype == np.float32 and s.gt_boxes.shape[1] == 7 and s.frame_id in train_ids
+    again = TrainingSet.from_dataset(root, 1.8, PC_RANGE, augment=aug, seed=3, progress=False)
+    assert index.stat().st_mtime_ns == stamp and np.array_equal(again[(1, 0)].points, s.points)
+    assert np.array_equal(pickle.loads(pickle.dumps(ts))[(1, 0)].points, s.points)  # spawned workers get a copy
+    test_set = TrainingSet.from_dataset(root, 1.8, PC_RANGE, augment=aug, split="test", progress=False)
+    assert not test_set.training and not set(test_set.frames.frame_ids) & train_ids
+
+
+def test_train_config_validation():
+    with pytest.raises(ConfigError, match="'epochs'"):
+        TrainConfig.from_dict({"epoch": 3})
+    with pytest.raises(ConfigError, match="pct_start"):
+        TrainConfig.from_dict({"pct_start": 1.5})
+
+
+# ---------------------------------------------------------------- the loop
+def test_loss_decreases_and_logs(tmp_path):
+    seed_everything(0)
+    model = TinyDetector()
+    cfg = TrainConfig.from_dict({"epochs": 8, "batch_size": 4, "workers": 0, "lr": 0.05, "log_every": 1})
+    ts = make_set(tmp_path)
+    seen = []
+
+    def eval_fn(m, epoch):
+        assert not m.training
+        seen.append(epoch)
+        b = collate([ts.get(i, 0, augment=False) for i in range(len(ts))])
+        dets = m.predict(m(b), b)
+        err = [float((d.boxes[0, :2] - b.boxes_of(i)[0, :2]).abs().mean()) for i, d in enumerate(dets)]
+        return {"centre_error_m": float(np.mean(err))}
+
+    res = train(model, ts, cfg, tmp_path / "run", model_name="tiny", run_config={"train": {}}, data_info=DATA,
+                eval_fn=eval_fn, progress=False)
+    losses = [r["losses"]["loss"] for r in res.history]
+    assert all(math.isfinite(v) for v in losses)
+    assert losses[-1] < 0.6 * losses[0], losses
+    assert seen == list(range(1, 9)) and res.history[-1]["metrics"]["centre_error_m"] < res.history[0]["metrics"][
+        "centre_error_m"]
+    assert not res.interrupted and res.epochs_completed == 8 and res.global_step == 16
+    assert (tmp_path / "run" / "history.json").is_file()
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    ea = EventAccumulator(str(tmp_path / "run" / "tensorboard"))
+    ea.Reload()
+    tags = ea.Tags()
+    assert "bev/predictions_vs_ground_truth" in tags["images"]
+    assert {"train/loss", "train/lr", "epoch/loss", "eval/centre_error_m"} <= set(tags["scalars"])
+    assert len(ea.Scalars("train/lr")) == 16
+
+
+def test_resume_after_crash_equals_uninterrupted_run(tmp_path):
+    straight, _ = run(tmp_path, "straight", epochs=2)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run(tmp_path, "crashed", epochs=2, model_kw={"crash_at": 6})  # 4 steps per epoch: dies in epoch 2
+    assert [p.name for p in CheckpointManager(tmp_path / "crashed" / "checkpoints").list()] == ["epoch_001.pt"]
+    resumed, res = run(tmp_path, "crashed", epochs=2, resume=True)
+    assert res.epochs_completed == 2 and res.global_step == 8
+    assert same_weights(straight, resumed)
+
+
+def test_ctrl_c_mid_epoch_saves_and_resume_equals_uninterrupted_run(tmp_path, capsys):
+    straight, _ = run(tmp_path, "straight", epochs=2)
+    _, res = run(tmp_path, "stopped", epochs=2, model_kw={"interrupt_at": 6})
+    assert res.interrupted and res.epochs_completed == 1 and res.global_step == 6
+    assert res.last_checkpoint.name == "epoch_001_step_000002.pt"
+    assert "--resume" in capsys.readouterr().out
+    resumed, res2 = run(tmp_path, "stopped", epochs=2, resume=True)
+    assert not res2.interrupted and res2.global_step == 8
+    assert same_weights(straight, resumed)
+
+
+def test_worker_processes_give_the_same_result(tmp_path):
+    a, _ = run(tmp_path, "w0", epochs=2, workers=0)
+    b, _ = run(tmp_path, "w1", epochs=2, workers=1)  # spawned, persistent across the two epochs
+    assert same_weights(a, b)
+
+
+def test_keep_last_n_and_fresh_run_refuses_old_checkpoints(tmp_path):
+    _, res = run(tmp_path, "keep", epochs=4, keep_checkpoints=2)
+    assert [p.name for p in CheckpointManager(tmp_path / "keep" / "checkpoints").list()] == ["epoch_003.pt",
+                                                                                             "epoch_004.pt"]
+    with pytest.raises(CheckpointError, match="--resume"):
+        run(tmp_path, "keep", epochs=4, keep_checkpoints=2)
+    model, res = run(tmp_path, "keep", epochs=4, keep_checkpoints=2, resume=True)  # already complete: no-op
+    assert res.epochs_completed == 4 and res.global_step == 16
+
+
+# ---------------------------------------------------------------- checkpoint errors
+def test_checkpoint_errors_name_the_file_and_fix(tmp_path):
+    _, res = run(tmp_path, "ck", epochs=1)
+    good = res.last_checkpoint
+    ckpt = load_checkpoint(good, model_name="tiny", data=DATA)
+    assert ckpt["state"]["epoch"] == 1 and ckpt["config"]["train"]["epochs"] == 1
+
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(CheckpointError, match=r"truncated\.pt: cannot read.*damaged"):
+        load_checkpoint(truncated)
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"\x00\x01 not a checkpoint at all")
+    with pytest.raises(CheckpointError, match=r"garbage\.pt"):
+        load_checkpoint(garbage)
+    bare = tmp_path / "bare.pt"
+    torch.save(TinyDetector().state_dict(), bare)
+    with pytest.raises(CheckpointError, match=r"bare\.pt: not a detbench checkpoint"):
+        load_checkpoint(bare)
+    unsafe = tmp_path / "unsafe.pt"
+    torch.save({"format": "detbench-checkpoint", "obj": ValueError("x")}, unsafe)
+    with pytest.raises(CheckpointError, match=r"unsafe\.pt: holds Python objects"):
+        load_checkpoint(unsafe)
+    with pytest.raises(CheckpointError, match=r"for model 'tiny', not 'second'"):
+        load_checkpoint(good, model_name="second")
+    with pytest.raises(CheckpointError, match=r"another config \(train\.lr: 0\.01 \(checkpoint\) vs 0\.02"):
+        load_checkpoint(good, config={**RUN_CONFIG, "train": {**RUN_CONFIG["train"], "epochs": 1, "lr": 0.02}})
+    with pytest.raises(CheckpointError, match=r"other data \(height"):
+        load_checkpoint(good, data={**DATA, "height": 0.5})
+    with pytest.raises(CheckpointError, match="not found"):
+        load_checkpoint(tmp_path / "nope.pt")
+    # resuming a run whose newest checkpoint is damaged names it and the older one to fall back to
+    _, res = run(tmp_path, "ck2", epochs=2, keep_checkpoints=0)
+    res.last_checkpoint.write_bytes(b"broken")
+    with pytest.raises(CheckpointError, match=r"epoch_002\.pt.*previous one \(epoch_001\.pt\)"):
+        run(tmp_path, "ck2", epochs=2, keep_checkpoints=0, resume=True)
+    with pytest.raises(CheckpointError, match=r"another config"):
+        run(tmp_path, "ck", epochs=1, lr=0.5, resume=True)
+    assert pickle.dumps(ckpt["rng"])  # plain data
+
+
+# ---------------------------------------------------------------- two processes
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _ddp_worker(rank: int, world: int, port: int, out: str) -> None:
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    torch.set_num_threads(1)
+    info = init_distributed("cpu")
+    from pathlib import Path
+
+    cfg = TrainConfig.from_dict({"epochs": 2, "batch_size": 2, "workers": 0, "lr": 0.01, "tensorboard": False,
+                                 "bev_image": False})
+    seed_everything(cfg.seed + rank)  # different initial weights per rank: DDP must broadcast rank 0's
+    model = TinyDetector()
+    with main_process_first(info):
+        db = build_gt_database(FRAMES, Path(out) / "db", progress=False) if rank == 0 else None
+    if db is None:
+        from detbench.data.gt_database import load_gt_database
+        db = load_gt_database(Path(out) / "db")
+    aug = AugmentConfig.from_dict({"gt_sampling": {"sample_count": 4, "filter_by_min_points": 5}})
+    ts = TrainingSet(FRAMES, PC_RANGE, augment=aug, gt_database=db)
+    res = train(model, ts, cfg, Path(out) / "run", model_name="tiny", run_config={"train": {}}, data_info=DATA,
+                dist_info=info, progress=False)
+    torch.save({k: v for k, v in model.state_dict().items()}, Path(out) / f"rank{rank}.pt")
+    if rank == 0:
+        torch.save({"frames": [r["frames"] for r in res.history], "steps": res.global_step}, Path(out) / "meta.pt")
+    cleanup(info)
+
+
+def test_two_process_distributed_run_ends_with_identical_weights(tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_ddp_worker, args=(2, _free_port(), str(tmp_path)), nprocs=2, join=True)
+    w0 = torch.load(tmp_path / "rank0.pt", weights_only=True)
+    w1 = torch.load(tmp_path / "rank1.pt", weights_only=True)
+    assert all(torch.equal(w0[k], w1[k]) for k in w0)
+    meta = torch.load(tmp_path / "meta.pt", weights_only=True)
+    assert meta["frames"] == [8, 8] and meta["steps"] == 4  # 8 frames split over 2 ranks, 2 per batch
+    ckpt = load_checkpoint(CheckpointManager(tmp_path / "run" / "checkpoints").latest())
+    assert all(torch.equal(ckpt["model"][k], w0[k]) for k in w0) and len(ckpt["rng"]) == 2
