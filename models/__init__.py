@@ -1,0 +1,64 @@
+"""Detectors, one file each, built from the shared stages in models/stages.
+
+`REGISTRY` maps a model name to its class; `build_model(name, model_cfg)` builds one from
+the `model:` section of its config (configs/<name>.yaml). A class may define
+`prepare_config(model_cfg, train_boxes) -> model_cfg` to fill data-derived values (SECOND
+sizes its anchors from the training boxes); tools/train.py calls it once before building,
+and the result is stored in the checkpoint so evaluation rebuilds the same model.
+"""
+from __future__ import annotations
+
+import difflib
+
+import numpy as np
+import torch.nn as nn
+
+from .second import SECOND
+
+REGISTRY: dict[str, type[nn.Module]] = {
+    "second": SECOND,
+}
+
+
+def get_model_class(name: str) -> type[nn.Module]:
+    if name not in REGISTRY:
+        close = difflib.get_close_matches(name, list(REGISTRY), n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else ""
+        raise ValueError(f"unknown model {name!r}{hint} (registered: {', '.join(sorted(REGISTRY))})")
+    return REGISTRY[name]
+
+
+def prepare_model_config(name: str, model_cfg: dict, train_boxes: np.ndarray) -> dict:
+    """Fill data-derived values of `model_cfg` (a copy is returned)."""
+    cls = get_model_class(name)
+    prep = getattr(cls, "prepare_config", None)
+    return prep(model_cfg, train_boxes) if prep is not None else dict(model_cfg)
+
+
+def build_model(name: str, model_cfg: dict) -> nn.Module:
+    return get_model_class(name)(model_cfg)
+
+
+__all__ = ["REGISTRY", "build_model", "get_model_class", "prepare_model_config"]
+
+
+def load_from_checkpoint(path, device="cpu"):
+    """(model in eval mode on `device`, checkpoint dict) from a tools/train.py checkpoint.
+
+    The model is rebuilt from the config stored in the checkpoint (weights_only loading),
+    so nothing else is needed; errors name the file and the fix.
+    """
+    from detbench.train.checkpoint import CheckpointError, load_checkpoint, load_model_weights
+
+    ckpt = load_checkpoint(path)
+    name = ckpt["model_name"]
+    try:
+        model = build_model(name, ckpt["config"]["model"])
+    except (KeyError, ValueError, TypeError) as e:
+        raise CheckpointError(f"{path}: cannot rebuild model {name!r} from the checkpoint's config ({e}); "
+                              f"was it written by another detbench version?") from None
+    load_model_weights(model, ckpt, path)
+    return model.to(device).eval(), ckpt
+
+
+__all__.append("load_from_checkpoint")

@@ -23,6 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.eval.evaluate import (  # noqa: E402
     evaluate_predictions,
+    format_prediction_lines,
     read_prediction_dir,
 )
 from detbench.eval.report import (  # noqa: E402
@@ -64,7 +65,13 @@ def build_parser() -> argparse.ArgumentParser:
                           "score [class]' in metres and radians (ego ground frame); a missing file means no "
                           "predictions for that frame")
     src.add_argument("--ckpt", type=Path,
-                     help="detector checkpoint to run instead of --pred (needs a registered detector in models/)")
+                     help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt) to run instead of --pred; "
+                          "--data and --height default to what it was trained on; its predictions are written "
+                          "to OUT/pred/ in the --pred format")
+    src.add_argument("--test-height", type=float, default=None,
+                     help="with --ckpt: evaluate at this height instead of the training height (cross-height)")
+    src.add_argument("--device", default="cpu", help="with --ckpt: cpu, cuda or cuda:N")
+    src.add_argument("--batch-size", type=int, default=4, help="with --ckpt: frames per forward pass")
     src.add_argument("--model", default=None,
                      help="model name stored in the report (needed later by --combine); default: the "
                           "checkpoint's model when known, else none")
@@ -113,27 +120,47 @@ def load_dataset(root: Path, height: float, split: str):
     return dataset, other
 
 
-def detector_registry() -> dict:
-    """Detectors registered by models/ (name -> builder); empty until detectors land."""
+def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_size: int = 4,
+                                progress: bool = True):
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
     import models
+    from detbench.train.checkpoint import CheckpointError
+    from detbench.train.inference import predict_frames
 
-    return dict(getattr(models, "REGISTRY", None) or {})
+    try:
+        model, ck = models.load_from_checkpoint(ckpt, device)
+    except CheckpointError as e:
+        raise ToolError(str(e)) from None
+    preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
+                           batch_size=batch_size, progress=progress)
+    return preds, ck["model_name"]
 
 
-def predictions_from_checkpoint(ckpt: Path, dataset):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: Predictions}, model name).
+def checkpoint_defaults(args: argparse.Namespace) -> None:
+    """Fill --data and --height from the checkpoint when not given; resolve --test-height and --out."""
+    from detbench.train.checkpoint import CheckpointError, load_checkpoint
 
-    No detector is registered in models/ yet, so this says so plainly. When detectors land,
-    this is the one function to fill: build the model from the checkpoint, run it on every
-    frame and return its boxes and scores; `evaluate_predictions` does the rest, exactly as
-    for --pred.
-    """
-    registry = detector_registry()
-    if not registry:
-        raise ToolError(f"--ckpt {ckpt}: no detector is available yet (models/ registers none), so a "
-                        f"checkpoint cannot be run; evaluate saved predictions with --pred PRED_DIR instead")
-    raise ToolError(f"--ckpt {ckpt}: detectors {sorted(registry)} are registered but tools/eval.py cannot "
-                    f"run checkpoints yet; write the model's predictions to a folder and pass --pred PRED_DIR")
+    try:
+        ck = load_checkpoint(args.ckpt)
+    except CheckpointError as e:
+        raise ToolError(str(e)) from None
+    trained_h = float(ck["data"].get("height", float("nan")))
+    if args.height is None:
+        args.height = trained_h
+    elif abs(args.height - trained_h) > 1e-6:
+        raise ToolError(f"--ckpt {args.ckpt} was trained at {trained_h:g} m, not --height {args.height:g}; to test "
+                        f"it at another height keep --height {trained_h:g} (or leave it out) and add "
+                        f"--test-height {args.height:g}")
+    if args.data is None:
+        args.data = Path(ck["data"]["source"])
+    args.trained_height = trained_h
+    if args.test_height is not None:
+        args.height = args.test_height
+    if args.out is None:
+        from detbench.data.frame import height_key
+
+        run_dir = Path(args.ckpt).resolve().parent.parent
+        args.out = run_dir / f"eval_h{height_key(args.height)}_{args.split}"
 
 
 def write_report(report: dict, out: Path, title: str) -> list[Path]:
@@ -147,15 +174,17 @@ def write_report(report: dict, out: Path, title: str) -> list[Path]:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     """Evaluate one prediction folder (or checkpoint) at one height and split; exit status."""
+    if args.test_height is not None and args.ckpt is None:
+        raise ToolError("--test-height goes with --ckpt (test a model trained at one height on another)")
+    if args.ckpt is not None:
+        checkpoint_defaults(args)
     missing = [name for name, v in (("--data", args.data), ("--height", args.height), ("--out", args.out)) if v is None]
+    # (with --ckpt these were filled from the checkpoint above)
     if missing:
         raise ToolError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H "
                         f"(--pred DIR | --ckpt FILE) --out DIR")
     if (args.pred is None) == (args.ckpt is None):
         raise ToolError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
-    if args.ckpt is not None and not detector_registry():
-        # Say so before the possibly long dataset load.
-        predictions_from_checkpoint(args.ckpt, None)
     t0 = time.perf_counter()
     dataset, other_ids = load_dataset(args.data, args.height, args.split)
     model = args.model
@@ -165,9 +194,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
         except (FileNotFoundError, ValueError) as e:
             raise ToolError(str(e)) from None
     else:
-        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset)
+        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, args.device, args.batch_size,
+                                                        not args.no_progress)
         skipped = []
         model = model or ckpt_model
+        pred_dir = args.out / "pred"
+        for fid, (boxes, scores) in preds.items():
+            atomic_write_text(pred_dir / f"{fid}.txt", format_prediction_lines(boxes, scores))
     try:
         report = evaluate_predictions(
             dataset, preds, iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
@@ -182,6 +215,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
         "predictions": str(args.pred if args.pred is not None else args.ckpt),
         **report,
     }
+    if args.ckpt is not None:
+        full["trained_height"] = args.trained_height
+        full["predictions_dir"] = str(args.out / "pred")
     if args.pred is not None:
         full["prediction_files"] = len(preds)
         full["files_of_other_splits_skipped"] = len(skipped)

@@ -1,0 +1,94 @@
+"""SECOND (Yan, Mao and Li, "SECOND: Sparsely Embedded Convolutional Detection", 2018).
+
+The model is the composition of shared stages, read top to bottom:
+
+  points (P, 5) --MeanVFE--> sparse voxels --SparseBackbone8x--> sparse 8x
+  --HeightCompression--> BEV (B, C*D, H, W) --BEVBackbone--> BEV features
+  --AnchorHead--> class / box / direction logits --> loss | Detections
+
+Configuration: configs/second.yaml (`model:` section). Anchor sizes come from the data
+(`anchor_sizes: auto` is resolved by tools/train.py from the training split before the
+model is built, and the resolved sizes are stored in the checkpoint's config).
+"""
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from detbench.data.batch import Batch, Detections
+
+from .stages import AnchorHead, AnchorHeadOutput, BEVBackbone, HeightCompression, MeanVFE, SparseBackbone8x, VoxelGrid
+
+
+class SECOND(nn.Module):
+    name = "second"
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        self.cfg = cfg
+        self.grid = VoxelGrid(tuple(cfg["point_cloud_range"]), tuple(cfg["voxel_size"]))
+        b3, b2, head = cfg["backbone3d"], cfg["backbone2d"], cfg["head"]
+        self.vfe = MeanVFE(self.grid)
+        self.backbone3d = SparseBackbone8x(self.vfe.out_channels, self.grid.spatial_shape, b3["channels"],
+                                           b3["blocks"], b3["out_channels"])
+        # the BEV backbone returns to its input resolution, so the head works at the 3D
+        # backbone's stride; the grid must also divide by the 2D blocks' strides
+        stride = self.backbone3d.bev_stride
+        self.grid.check_divisible(stride * _prod(b2["layer_strides"]), "SECOND")
+        self.to_bev = HeightCompression()
+        self.backbone2d = BEVBackbone(self.backbone3d.bev_channels, b2["layer_nums"], b2["layer_strides"],
+                                      b2["num_filters"], b2["upsample_strides"], b2["num_upsample_filters"])
+        sizes = head["anchor_sizes"]
+        if isinstance(sizes, str):
+            raise ValueError("SECOND: head.anchor_sizes is still 'auto'; resolve it from the training data "
+                             "(tools/train.py does) or give [[length, width, height], ...] in metres")
+        self.head = AnchorHead(self.backbone2d.out_channels, self.grid, stride, sizes,
+                               head["rotations"], head["pos_iou"], head["neg_iou"], post=cfg["post"])
+
+    @staticmethod
+    def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
+        """Resolve `head.anchor_sizes: auto` from the training boxes (N, 7), metres.
+
+        One size: the mean (length, width, height). k sizes (`head.num_anchor_sizes`):
+        k-means (scikit-learn) cluster centres of the sizes, sorted by length.
+        """
+        cfg = copy.deepcopy(model_cfg)
+        head = cfg["head"]
+        if head.get("anchor_sizes", "auto") != "auto":
+            return cfg
+        sizes = np.asarray(train_boxes, dtype=np.float64).reshape(-1, 7)[:, 3:6]
+        if len(sizes) == 0:
+            raise ValueError("SECOND: head.anchor_sizes is 'auto' but the training split has no LiDAR-detected "
+                             "vehicles to size them from; give head.anchor_sizes explicitly")
+        k = int(head.get("num_anchor_sizes", 1))
+        if k <= 1 or len(sizes) < k:
+            centres = sizes.mean(axis=0, keepdims=True)
+        else:
+            from sklearn.cluster import KMeans
+
+            centres = KMeans(n_clusters=k, n_init=10, random_state=0).fit(sizes).cluster_centers_
+            centres = centres[np.argsort(centres[:, 0])]
+        head["anchor_sizes"] = [[round(float(v), 3) for v in c] for c in centres]
+        return cfg
+
+    def forward(self, batch: Batch) -> AnchorHeadOutput:
+        voxels = self.vfe(batch.points, batch.batch_size)
+        sparse = self.backbone3d(voxels)
+        bev = self.backbone2d(self.to_bev(sparse))
+        return self.head(bev)
+
+    def loss(self, out: AnchorHeadOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
+        return self.head.loss(out, batch.gt_boxes, batch.gt_mask)
+
+    def predict(self, out: AnchorHeadOutput, batch: Batch) -> list[Detections]:
+        return self.head.predict(out)
+
+
+def _prod(xs) -> int:
+    p = 1
+    for x in xs:
+        p *= int(x)
+    return p

@@ -1,0 +1,60 @@
+"""The 2D BEV backbone of SECOND (and of PointPillars-style detectors).
+
+Blocks of 3x3 convolutions at decreasing resolution; each block's output is brought back to
+a common resolution by a transposed convolution and the results are concatenated. With
+`layer_strides=(1, 2)` and `upsample_strides=(1, 2)` the output has the input's resolution
+and `sum(num_upsample_filters)` channels.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+import torch.nn as nn
+
+
+def _cbr(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
+    return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
+            nn.BatchNorm2d(cout, eps=1e-3, momentum=0.01), nn.ReLU()]
+
+
+class BEVBackbone(nn.Module):
+    def __init__(self, in_channels: int, layer_nums: Sequence[int] = (5, 5), layer_strides: Sequence[int] = (1, 2),
+                 num_filters: Sequence[int] = (128, 256), upsample_strides: Sequence[int] = (1, 2),
+                 num_upsample_filters: Sequence[int] = (256, 256)):
+        super().__init__()
+        n = len(layer_nums)
+        if not (len(layer_strides) == len(num_filters) == len(upsample_strides) == len(num_upsample_filters) == n):
+            raise ValueError("BEVBackbone: layer_nums, layer_strides, num_filters, upsample_strides and "
+                             "num_upsample_filters must have the same length")
+        total = 1
+        for s, u in zip(layer_strides, upsample_strides):
+            total *= s
+            if total != u:
+                raise ValueError(f"BEVBackbone: upsample stride {u} must equal the block's cumulative stride "
+                                 f"{total} so all blocks return to the input resolution")
+        self.blocks = nn.ModuleList()
+        self.deblocks = nn.ModuleList()
+        cin = in_channels
+        for nl, s, nf, us, nuf in zip(layer_nums, layer_strides, num_filters, upsample_strides, num_upsample_filters):
+            layers = _cbr(cin, nf, s)
+            for _ in range(nl):
+                layers += _cbr(nf, nf)
+            self.blocks.append(nn.Sequential(*layers))
+            if us == 1:
+                de = nn.Conv2d(nf, nuf, 1, bias=False)
+            else:
+                de = nn.ConvTranspose2d(nf, nuf, us, stride=us, bias=False)
+            self.deblocks.append(nn.Sequential(de, nn.BatchNorm2d(nuf, eps=1e-3, momentum=0.01), nn.ReLU()))
+            cin = nf
+        self.out_channels = int(sum(num_upsample_filters))
+        self.min_input_multiple = 1
+        for s in layer_strides:
+            self.min_input_multiple *= s
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        ups = []
+        for block, deblock in zip(self.blocks, self.deblocks):
+            x = block(x)
+            ups.append(deblock(x))
+        return torch.cat(ups, dim=1) if len(ups) > 1 else ups[0]

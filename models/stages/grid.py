@@ -1,0 +1,78 @@
+"""The voxel grid a detector works on: point-cloud range, voxel size and the derived shapes.
+
+Model only what the scene requires: the study looks at x in [0, 150] m and |y| <= 15 m
+ahead of the car, so grids cover that region plus a margin (stated in each config), not a
+360-degree disc. Sizes are checked at construction so a config whose range is not a whole
+number of voxels, or whose grid does not divide by the backbone's stride, fails at start-up
+with a message that says which numbers to change.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    point_cloud_range: tuple[float, float, float, float, float, float]  # x0, y0, z0, x1, y1, z1 (m)
+    voxel_size: tuple[float, float, float]  # vx, vy, vz (m)
+
+    def __post_init__(self):
+        r, v = tuple(map(float, self.point_cloud_range)), tuple(map(float, self.voxel_size))
+        if len(r) != 6 or len(v) != 3:
+            raise ValueError(f"point_cloud_range needs 6 numbers (x0 y0 z0 x1 y1 z1) and voxel_size 3 (vx vy vz); "
+                             f"got {list(r)} and {list(v)}")
+        if any(s <= 0 for s in v):
+            raise ValueError(f"voxel_size must be positive, got {list(v)}")
+        for axis, (lo, hi, s) in enumerate(zip(r[:3], r[3:], v)):
+            name = "xyz"[axis]
+            if hi <= lo:
+                raise ValueError(f"point_cloud_range: {name} max {hi} must exceed {name} min {lo}")
+            n = (hi - lo) / s
+            if abs(n - round(n)) > 1e-4:
+                raise ValueError(f"point_cloud_range {name} extent {hi - lo:g} m is not a whole number of voxels "
+                                 f"of {s:g} m ({n:.4f}); change the range or the voxel size")
+        object.__setattr__(self, "point_cloud_range", r)
+        object.__setattr__(self, "voxel_size", v)
+
+    @property
+    def grid_size(self) -> tuple[int, int, int]:
+        """(nx, ny, nz) voxels along x, y, z."""
+        r, v = self.point_cloud_range, self.voxel_size
+        return tuple(int(round((r[i + 3] - r[i]) / v[i])) for i in range(3))
+
+    @property
+    def spatial_shape(self) -> tuple[int, int, int]:
+        """(Z, Y, X) as sparse tensors index it."""
+        nx, ny, nz = self.grid_size
+        return nz, ny, nx
+
+    def check_divisible(self, stride_xy: int, where: str) -> None:
+        """Raise if the BEV grid does not divide by `stride_xy` (the network's total BEV stride)."""
+        nx, ny, _ = self.grid_size
+        if nx % stride_xy or ny % stride_xy:
+            vx, vy = self.voxel_size[:2]
+            step_x, step_y = stride_xy * vx, stride_xy * vy
+            raise ValueError(
+                f"{where}: the BEV grid {nx} x {ny} voxels must divide by the network stride {stride_xy}; make the "
+                f"x extent a multiple of {step_x:g} m and the y extent a multiple of {step_y:g} m "
+                f"(now {self.point_cloud_range[3] - self.point_cloud_range[0]:g} m and "
+                f"{self.point_cloud_range[4] - self.point_cloud_range[1]:g} m)")
+
+    def bev_cell(self, stride: int) -> tuple[float, float]:
+        """Size (m) of one cell of a BEV map at `stride` voxels."""
+        return self.voxel_size[0] * stride, self.voxel_size[1] * stride
+
+    def contains(self, xyz: torch.Tensor) -> torch.Tensor:
+        """Boolean mask of points (N, >=3) inside the range (lower bound inclusive, upper exclusive)."""
+        r = torch.as_tensor(self.point_cloud_range, dtype=xyz.dtype, device=xyz.device)
+        return ((xyz[:, :3] >= r[:3]) & (xyz[:, :3] < r[3:])).all(dim=1)
+
+
+def padded_extent(lo: float, hi: float, step: float) -> tuple[float, float]:
+    """Grow [lo, hi] symmetrically to a whole number of `step`s (a helper for writing configs)."""
+    n = math.ceil((hi - lo) / step - 1e-9)
+    extra = n * step - (hi - lo)
+    return lo - extra / 2, hi + extra / 2
