@@ -18,6 +18,7 @@ from collections import OrderedDict
 
 import torch
 from torch import nn
+import torch.nn.functional as F
 from torch.nn.modules.batchnorm import _BatchNorm
 
 from .functional import sparse_conv
@@ -226,7 +227,9 @@ class SparseSequential(nn.Sequential):
     `SparseModule` children receive the whole `SparseConvTensor`; other modules (BatchNorm1d,
     ReLU, Dropout, Linear, ...) are applied to its (N, C) features. Once a child returns a
     plain tensor (e.g. `ToDense`), later children get that tensor. With no active sites the
-    features stay empty (BatchNorm is skipped: it has no statistics to take).
+    features stay empty (BatchNorm is skipped: it has no statistics to take); with a single
+    active site in training, BatchNorm normalises with its running statistics (one value per
+    channel has no variance) and leaves them unchanged.
     """
 
     def __init__(self, *args, **kwargs):
@@ -239,7 +242,11 @@ class SparseSequential(nn.Sequential):
     def forward(self, x):
         for module in self:
             if isinstance(x, SparseConvTensor) and not isinstance(module, (SparseModule, SparseSequential)):
-                if x.features.shape[0] == 0 and isinstance(module, _BatchNorm):
+                if isinstance(module, _BatchNorm) and x.features.shape[0] <= 1:
+                    if x.features.shape[0] == 0:
+                        continue
+                    x = x.replace_feature(F.batch_norm(x.features, module.running_mean, module.running_var,
+                                                       module.weight, module.bias, False, 0.0, module.eps))
                     continue
                 x = x.replace_feature(module(x.features))
             else:

@@ -1,0 +1,183 @@
+"""SECOND and its stages: anchors, target assignment, box coding, losses, empty inputs, configs."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import models
+from detbench.config import ConfigError
+from detbench.data.batch import Batch
+from detbench.ops import ResidualBoxCoder, boxes_iou_bev
+from detbench.train.run_config import load_run_config
+from models.stages import AnchorGenerator, AnchorHeadOutput, VoxelGrid, assign_targets
+
+GRID = VoxelGrid((0.0, -3.2, -0.6, 12.8, 3.2, 4.2), (0.2, 0.2, 0.15))
+TINY = {
+    "name": "second", "point_cloud_range": list(GRID.point_cloud_range), "voxel_size": list(GRID.voxel_size),
+    "backbone3d": {"channels": [4, 8, 8, 8], "blocks": [1, 1, 1, 1], "out_channels": 8},
+    "backbone2d": {"layer_nums": [1, 1], "layer_strides": [1, 2], "num_filters": [8, 16],
+                   "upsample_strides": [1, 2], "num_upsample_filters": [8, 8]},
+    "head": {"anchor_sizes": [[4.5, 1.9, 1.6]], "num_anchor_sizes": 1, "rotations": [0.0, math.pi / 2],
+             "pos_iou": 0.6, "neg_iou": 0.45},
+    "post": {"score_threshold": 0.1, "pre_nms_top_k": 100, "nms_threshold": 0.1, "post_nms_top_k": 20},
+}
+
+
+def batch_of(points_list, boxes_list):
+    pts = [torch.cat([torch.full((len(p), 1), float(i)), torch.as_tensor(p, dtype=torch.float32).reshape(-1, 4)], 1)
+           for i, p in enumerate(points_list)]
+    m = max([len(b) for b in boxes_list] + [0])
+    gt = torch.zeros(len(boxes_list), m, 7)
+    mask = torch.zeros(len(boxes_list), m, dtype=torch.bool)
+    for i, b in enumerate(boxes_list):
+        gt[i, :len(b)] = torch.as_tensor(b, dtype=torch.float32).reshape(-1, 7)
+        mask[i, :len(b)] = True
+    return Batch(torch.cat(pts) if pts else torch.zeros(0, 5), gt, mask, [str(i) for i in range(len(boxes_list))],
+                 len(boxes_list))
+
+
+def box_points(box, n=300, seed=0):
+    """Points on the faces of a box (x, y, z, dx, dy, dz, heading), intensity 0.5."""
+    rng = np.random.default_rng(seed)
+    x, y, z, dx, dy, dz, h = box
+    local = rng.uniform(-0.5, 0.5, (n, 3)) * [dx, dy, dz]
+    face = rng.integers(0, 3, n)
+    local[np.arange(n), face] = np.sign(local[np.arange(n), face]) * np.array([dx, dy, dz])[face] / 2
+    c, s = math.cos(h), math.sin(h)
+    wx = x + c * local[:, 0] - s * local[:, 1]
+    wy = y + s * local[:, 0] + c * local[:, 1]
+    return np.stack([wx, wy, z + local[:, 2], np.full(n, 0.5)], 1).astype(np.float32)
+
+
+def test_anchor_layout():
+    gen = AnchorGenerator([[4.0, 2.0, 1.5]], rotations=(0.0, math.pi / 2))
+    anchors = gen(GRID, stride=8)
+    nx, ny, _ = GRID.grid_size
+    assert anchors.shape == ((nx // 8) * (ny // 8) * 2, 7)
+    first = anchors[:2]
+    assert torch.allclose(first[:, 0], torch.tensor([0.8, 0.8]))  # cell centre: 0 + 0.5 * 1.6 m
+    assert torch.allclose(first[:, 1], torch.tensor([-3.2 + 0.8] * 2))
+    assert torch.allclose(first[:, 2], torch.tensor([0.75, 0.75]))  # bottom on the road
+    assert torch.allclose(first[:, 6], torch.tensor([0.0, math.pi / 2]))
+    assert torch.allclose(anchors[2, :2], torch.tensor([0.8 + 1.6, -2.4]))  # next cell along x
+
+
+def test_assign_targets_thresholds_and_best_anchor():
+    anchors = torch.tensor([[10.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0],     # identical to gt 0 -> positive
+                            [10.6, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0],     # IoU 3.4/4.6 = 0.739 -> positive
+                            [11.6, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0],     # IoU 2.4/5.6 = 0.43 -> negative
+                            [11.2, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0],     # IoU 2.8/5.2 = 0.54 -> ignored
+                            [50.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0],     # far -> negative
+                            [30.9, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0]])    # only anchor near gt 1 (IoU 0.29)
+    gt = torch.tensor([[10.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0], [29.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.0]])
+    t = assign_targets(anchors, gt, 0.6, 0.45)
+    assert t.labels.tolist() == [1, 1, 0, -1, 0, 1]  # the last is gt 1's best anchor, forced positive
+    assert torch.equal(t.boxes[5], gt[1]) and torch.equal(t.boxes[1], gt[0])
+    empty = assign_targets(anchors, torch.zeros(0, 7))
+    assert empty.labels.tolist() == [0] * 6
+
+
+def test_box_coding_roundtrip():
+    g = torch.Generator().manual_seed(0)
+    anchors = torch.cat([torch.rand(50, 3, generator=g) * 20, torch.rand(50, 3, generator=g) + 1,
+                         (torch.rand(50, 1, generator=g) - 0.5) * 6], 1)
+    boxes = anchors + torch.randn(50, 7, generator=g) * 0.3
+    boxes[:, 3:6] = boxes[:, 3:6].abs() + 0.1
+    coder = ResidualBoxCoder()
+    assert torch.allclose(coder.decode(coder.encode(boxes, anchors), anchors), boxes, atol=1e-5)
+
+
+def test_direction_decoding_flips_backward_boxes():
+    head = models.build_model("second", TINY).head
+    n = head.anchors.shape[0]
+    deltas = torch.zeros(1, n, 7)
+    deltas[0, 0, 6] = math.pi  # anchor 0 (heading 0) regressed to heading pi: the sine loss cannot tell
+    dir_logits = torch.zeros(1, n, 2)
+    # bins (dir_offset pi/4): bin 0 holds headings in [pi/4, 5pi/4), bin 1 in [-3pi/4, pi/4)
+    dir_logits[0, 0] = torch.tensor([-5.0, 5.0])
+    boxes, scores = head.decode(AnchorHeadOutput(torch.zeros(1, n), deltas, dir_logits))
+    assert abs(float(boxes[0, 0, 6])) < 1e-5  # turned back to face +x
+    dir_logits[0, 0] = torch.tensor([5.0, -5.0])
+    boxes, _ = head.decode(AnchorHeadOutput(torch.zeros(1, n), deltas, dir_logits))
+    assert abs(abs(float(boxes[0, 0, 6])) - math.pi) < 1e-5
+    assert torch.allclose(scores, torch.full_like(scores, 0.5))
+    assert head._dir_targets(torch.tensor([0.0, math.pi, math.pi / 2, -math.pi / 2])).tolist() == [1, 0, 0, 1]
+
+
+def test_empty_and_one_point_frames():
+    torch.manual_seed(0)
+    model = models.build_model("second", TINY)
+    empty = batch_of([np.zeros((0, 4), np.float32)], [np.zeros((0, 7))])
+    out = model(empty)
+    loss, parts = model.loss(out, empty)
+    assert torch.isfinite(loss) and parts["num_pos"] == 0
+    loss.backward()
+    model.eval()
+    with torch.no_grad():
+        dets = model.predict(model(empty), empty)
+    assert len(dets) == 1 and dets[0].boxes.shape == (0, 7)
+    model.train()
+    one = batch_of([np.array([[5.0, 0.0, 0.5, 0.3]], np.float32)], [np.array([[5.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0]])])
+    loss, parts = model.loss(model(one), one)
+    assert torch.isfinite(loss) and parts["num_pos"] >= 1
+
+
+def test_overfit_two_frames_raises_score_on_the_cars():
+    torch.manual_seed(0)
+    cars = [np.array([[4.6, 1.0, 0.8, 4.5, 1.9, 1.6, 0.1], [9.0, -1.5, 0.8, 4.2, 1.8, 1.5, 1.4]]),
+            np.array([[6.0, -0.5, 0.9, 4.8, 2.0, 1.8, -0.2]])]
+    pts = [np.concatenate([box_points(b, seed=i) for i, b in enumerate(bs)]) for bs in cars]
+    batch = batch_of(pts, cars)
+    model = models.build_model("second", TINY)
+    opt = torch.optim.AdamW(model.parameters(), lr=0.01)
+    first = None
+    for _ in range(25):
+        loss, _ = model.loss(model(batch), batch)
+        first = first if first is not None else float(loss.detach())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss) < 0.1 * first
+    # train-mode BatchNorm (batch statistics): 25 steps are too few for the running statistics
+    # (momentum 0.01) to settle, and this test is about learning, not about BatchNorm
+    with torch.no_grad():
+        dets = model.predict(model(batch), batch)
+    for d, gt in zip(dets, cars):
+        assert len(d.boxes) >= 1
+        iou = boxes_iou_bev(d.boxes.double(), torch.as_tensor(gt))
+        assert float(iou.max(dim=0).values.min()) > 0.3  # every car is found roughly
+
+
+def test_prepare_config_sizes_anchors_from_data():
+    cfg = {**TINY, "head": {**TINY["head"], "anchor_sizes": "auto"}}
+    boxes = np.array([[0, 0, 0, 4.0, 2.0, 1.5, 0], [0, 0, 0, 5.0, 2.2, 1.7, 0]])
+    out = models.prepare_model_config("second", cfg, boxes)
+    assert out["head"]["anchor_sizes"] == [[4.5, 2.1, 1.6]]
+    assert cfg["head"]["anchor_sizes"] == "auto"  # the input is not modified
+    with pytest.raises(ValueError, match="no LiDAR-detected"):
+        models.prepare_model_config("second", cfg, np.zeros((0, 7)))
+    with pytest.raises(ValueError, match="still 'auto'"):
+        models.build_model("second", cfg)
+
+
+def test_grid_checks_are_clear():
+    with pytest.raises(ValueError, match="whole number of voxels"):
+        VoxelGrid((0, -16, -0.6, 153.65, 16, 4.2), (0.1, 0.1, 0.15))
+    cfg = {**TINY, "point_cloud_range": [0.0, -3.2, -0.6, 12.0, 3.2, 4.2]}  # 60 voxels: not a multiple of 16
+    with pytest.raises(ValueError, match="divide by the network stride 16"):
+        models.build_model("second", cfg)
+    with pytest.raises(ValueError, match="unknown model 'secnd'.*did you mean 'second'"):
+        models.build_model("secnd", TINY)
+
+
+def test_run_config_presets_and_unknown_keys():
+    cfg = load_run_config("second", "smoke")
+    assert cfg["model"]["name"] == "second" and cfg["train"]["epochs"] == 2
+    assert cfg["model"]["backbone3d"]["channels"] == [8, 16, 16, 16]  # the model's own smoke change
+    cfg = load_run_config("second", "cpu", overrides=["train.lr=1e-3"])
+    assert cfg["train"]["lr"] == pytest.approx(1e-3)
+    with pytest.raises(ConfigError, match="'train.lrr'.*did you mean 'lr'"):
+        load_run_config("second", "smoke", overrides=["train.lrr=1"])
+    with pytest.raises(ConfigError, match="unknown preset"):
+        load_run_config("second", "fast")
