@@ -13,10 +13,12 @@ import difflib
 import numpy as np
 import torch.nn as nn
 
+from .pillarnet import PillarNet
 from .second import SECOND
 
 REGISTRY: dict[str, type[nn.Module]] = {
     "second": SECOND,
+    "pillarnet": PillarNet,
 }
 
 

@@ -1,0 +1,99 @@
+"""PillarNet (Shi, Li and Ma, "PillarNet: Real-Time and High-Performance Pillar-based 3D Object
+Detection", 2022).
+
+The model is the composition of shared stages, read top to bottom:
+
+  points (P, 5) --DynamicPillarEncoder--> sparse pillars (Y, X)
+  --SparseResNet2d--> densified 8x map + dense 16x map
+  --SpatialSemanticNeck--> BEV (B, C, Y/8, X/8)
+  --CenterHead--> heat map, offset, z, log size, sin/cos heading, IoU maps --> loss | Detections
+
+Configuration: configs/pillarnet.yaml (`model:` section). `voxel_size` is the pillar size
+(its z is the whole z range); the pillar grid must divide by 16 (the dense stage's stride).
+A frame without a single point in the range gets no detections (there is nothing to see).
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn as nn
+
+from detbench.data.batch import Batch, Detections
+
+from .stages import VoxelGrid
+from .stages.center_head import CenterHead, CenterHeadOutput
+from .stages.pillar_encoder import DynamicPillarEncoder
+from .stages.pillarnet_neck import SpatialSemanticNeck
+from .stages.sparse_resnet2d import SparseResNet2d
+
+CONFIG_FILE = "configs/pillarnet.yaml"
+
+
+class PillarNetOutput(NamedTuple):
+    head: CenterHeadOutput  # raw head maps (B, *, Y/8, X/8)
+    pillars_per_frame: torch.Tensor  # (B,) int64 occupied pillars of each frame
+
+
+class PillarNet(nn.Module):
+    """PillarNet for one class (Vehicle). `cfg` is the `model:` section of configs/pillarnet.yaml.
+
+    Contract: `forward(batch) -> PillarNetOutput`, `loss(outputs, batch) -> (total, parts)`,
+    `predict(outputs, batch) -> list[Detections]` (one per frame, label 0 = Vehicle).
+    Stages: `vfe` (pillar encoder), `backbone` (sparse ResNet), `neck`, `head`.
+    """
+
+    name = "pillarnet"
+    # top-level children per stage, for tools/benchmark.py's latency split
+    STAGES = {"voxelize": ["vfe"], "backbone": ["backbone"], "neck": ["neck"], "head": ["head"]}
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        self.cfg = cfg
+        enc, neck, head, post = (_section(cfg, k) for k in ("encoder", "neck", "head", "post"))
+        self.grid = VoxelGrid(tuple(_key(cfg, "point_cloud_range", "model")), tuple(_key(cfg, "voxel_size", "model")))
+        self.grid.check_divisible(SparseResNet2d.stride16, f"PillarNet ({CONFIG_FILE}: model.voxel_size / "
+                                                           f"point_cloud_range)")
+        self.vfe = DynamicPillarEncoder(self.grid, _key(enc, "pillar_channels", "model.encoder"))
+        self.backbone = SparseResNet2d(self.vfe.out_channels, self.vfe.spatial_shape, _key(enc, "channels", "model.encoder"),
+                                       _key(enc, "blocks", "model.encoder"))
+        self.neck = SpatialSemanticNeck(self.backbone.channels8, self.backbone.channels16,
+                                        **{k: _key(neck, k, "model.neck") for k in
+                                           ("semantic_channels", "semantic_blocks", "up_channels", "out_channels",
+                                            "fuse_blocks")})
+        head_keys = ("shared_channels", "head_channels", "head_convs", "iou_branch", "min_radius", "min_overlap",
+                     "od_iou_distance", "code_weights", "loss_weights")
+        self.head = CenterHead(self.neck.out_channels, self.grid, SparseResNet2d.stride8,
+                               **{k: _key(head, k, "model.head") for k in head_keys}, post=dict(post))
+
+    def forward(self, batch: Batch) -> PillarNetOutput:
+        """Batch (points (P, 5) [batch_index, x, y, z, intensity]) -> head maps at 8x and pillars per frame."""
+        pillars = self.vfe(batch.points, batch.batch_size)
+        feats = self.backbone(pillars)
+        bev = self.neck(feats.x8, feats.x16)
+        counts = torch.bincount(pillars.indices[:, 0].long(), minlength=batch.batch_size)
+        return PillarNetOutput(self.head(bev), counts)
+
+    def loss(self, out: PillarNetOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
+        """(total scalar, parts {loss_hm, loss_reg, loss_od_iou, loss_iou, mean_iou, num_pos}) against
+        batch.gt_boxes (B, M, 7) / gt_mask (B, M); see CenterHead.loss."""
+        return self.head.loss(out.head, batch.gt_boxes, batch.gt_mask)
+
+    def predict(self, out: PillarNetOutput, batch: Batch) -> list[Detections]:
+        """One `Detections` per frame (boxes (K, 7), scores (K,) in [0, 1], labels 0); none for a frame
+        without points in the range."""
+        return self.head.predict(out.head, valid=out.pillars_per_frame > 0)
+
+
+def _section(cfg: dict, name: str) -> dict:
+    value = cfg.get(name)
+    if not isinstance(value, dict):
+        raise ValueError(f"PillarNet: the config needs a `model.{name}` mapping (see {CONFIG_FILE}), "
+                         f"got {type(value).__name__}")
+    return value
+
+
+def _key(section: dict, key: str, where: str):
+    if key not in section:
+        raise ValueError(f"PillarNet: `{where}.{key}` is missing from the config (see {CONFIG_FILE} for its default)")
+    return section[key]

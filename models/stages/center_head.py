@@ -1,0 +1,429 @@
+"""Center-based dense head (CenterPoint-style) with PillarNet's IoU-aware branch and OD-IoU loss.
+
+A vehicle is a peak of a class heat map on the BEV grid at `stride` pillars per cell; the
+other maps, read at the peak's cell, regress the box:
+
+  heatmap   (B, 1, H, W) logits of "a vehicle centre lies in this cell"
+  offset    (B, 2, H, W) centre - cell corner, in cells (x, y), in [0, 1) for the target
+  z         (B, 1, H, W) box centre z (m)
+  log_size  (B, 3, H, W) log(dx, dy, dz) (m)
+  rot       (B, 2, H, W) sin(heading), cos(heading)
+  iou       (B, 1, H, W) 2 * IoU - 1 of the decoded box with its target (IoU-aware branch)
+
+Pieces, each usable alone:
+- `gaussian_radius`: CenterNet's radius for a box of (length, width) cells: the largest
+  shift (or shrink or growth) of the box that keeps its IoU with itself >= `min_overlap`.
+- `draw_gaussian_heatmap`: Gaussian peaks, exactly 1 at each centre cell (sigma =
+  (2 r + 1) / 6, max where peaks overlap); `build_center_targets` does the whole encoding.
+- `centernet_focal_loss` (CenterNet's variant, with the (1 - y)^4 penalty reduction
+  around peaks), `od_iou_loss` (orientation-decoupled IoU regression loss).
+- `CenterHead`: the convolutions, `loss` and `predict` (local maxima by 3x3 max-pool or
+  rotated NMS, IoU-rectified scores score^(1-a) * iou^a, score threshold, top-k).
+
+One class (Vehicle, label 0): the Batch carries no class labels.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Sequence
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from detbench.data.batch import Detections
+from detbench.ops import boxes_iou3d_aligned
+
+from .grid import VoxelGrid
+from .postprocess import select_detections
+from .sparse_resnet2d import dense_bn
+
+REG_CHANNELS = 8  # offset x, offset y, z, log dx, log dy, log dz, sin h, cos h
+LOG_SIZE_RANGE = (-8.0, 6.0)  # clamp of log(size) when decoding: 3e-4 m .. 403 m
+
+
+# --------------------------------------------------------------------------------------
+# targets
+# --------------------------------------------------------------------------------------
+def gaussian_radius(length: torch.Tensor, width: torch.Tensor, min_overlap: float = 0.1) -> torch.Tensor:
+    """CenterNet's Gaussian radius (cells) for boxes of `length` x `width` cells (same shape, float).
+
+    The smallest of three radii r at which a box of the same size, moved by r in both
+    directions / shrunk by r on every side / grown by r on every side, still has IoU
+    `min_overlap` with the original. Each is the smaller (valid) root of a quadratic in r
+    (the corrected roots, not the widely copied ones that use the wrong denominator).
+    Returns a float tensor (>= 0) of the inputs' shape; callers floor it and apply a minimum.
+    """
+    if not 0.0 < min_overlap < 1.0:
+        raise ValueError(f"gaussian_radius: min_overlap must lie in (0, 1), got {min_overlap}")
+    h, w = length.clamp(min=0).double(), width.clamp(min=0).double()
+    o = float(min_overlap)
+    s, p = h + w, h * w
+    # moved by (r, r): (h - r)(w - r) (1 + o) = 2 o h w
+    r1 = (s - torch.sqrt((s * s - 4 * p * (1 - o) / (1 + o)).clamp(min=0))) / 2
+    # shrunk by r per side: (h - 2r)(w - 2r) = o h w
+    r2 = (2 * s - torch.sqrt((4 * s * s - 16 * (1 - o) * p).clamp(min=0))) / 8
+    # grown by r per side: h w = o (h + 2r)(w + 2r)
+    r3 = (-2 * o * s + torch.sqrt((4 * o * o * s * s + 16 * o * (1 - o) * p).clamp(min=0))) / (8 * o)
+    return torch.minimum(torch.minimum(r1, r2), r3).clamp(min=0).to(length.dtype)
+
+
+def draw_gaussian_heatmap(shape: tuple[int, int, int], batch_index: torch.Tensor, cx: torch.Tensor, cy: torch.Tensor,
+                          radius: torch.Tensor) -> torch.Tensor:
+    """Heat map (B, H, W) with a Gaussian peak per centre; `shape` = (B, H, W).
+
+    batch_index, cx, cy, radius: (K,) int64 frame, cell column, cell row and radius (cells)
+    of each peak; cells must lie inside the map. Peak k is exp(-d^2 / (2 sigma_k^2)) with
+    sigma_k = (2 r_k + 1) / 6 over the (2 r_k + 1)^2 window around its cell (exactly 1 at
+    the cell); overlapping peaks take the max. Vectorised over peaks (no Python loop).
+    """
+    b, h, w = shape
+    device = cx.device
+    out = torch.zeros(b * h * w, dtype=torch.float32, device=device)
+    if cx.numel() == 0:
+        return out.view(b, h, w)
+    radius = radius.long().clamp(min=0, max=max(h, w))
+    r_max = int(radius.max())
+    d = torch.arange(-r_max, r_max + 1, device=device)
+    dy, dx = torch.meshgrid(d, d, indexing="ij")  # (D, D)
+    dx, dy = dx.reshape(1, -1), dy.reshape(1, -1)
+    sigma = (2 * radius.float() + 1) / 6
+    value = torch.exp(-(dx * dx + dy * dy).float() / (2 * sigma[:, None] ** 2))  # (K, D*D)
+    x, y = cx[:, None] + dx, cy[:, None] + dy
+    keep = (dx.abs() <= radius[:, None]) & (dy.abs() <= radius[:, None]) & (x >= 0) & (x < w) & (y >= 0) & (y < h)
+    flat = (batch_index[:, None] * h + y) * w + x
+    out.scatter_reduce_(0, flat[keep], value[keep], "amax", include_self=True)
+    return out.view(b, h, w)
+
+
+class CenterTargets(NamedTuple):
+    """Encoded ground truth of a batch for a center head (M = padded box count)."""
+
+    heatmap: torch.Tensor  # (B, 1, H, W) float32 in [0, 1], 1 at centre cells
+    index: torch.Tensor  # (B, M) int64 flat cell index y * W + x of each box's centre (0 where masked)
+    mask: torch.Tensor  # (B, M) bool: a real box whose centre lies on the map
+    reg: torch.Tensor  # (B, M, 8) offset x, offset y (cells), z (m), log dx, log dy, log dz, sin h, cos h
+    boxes: torch.Tensor  # (B, M, 7) the ground-truth boxes (for IoU targets and OD-IoU)
+
+
+def build_center_targets(gt_boxes: torch.Tensor, gt_mask: torch.Tensor, grid: VoxelGrid, stride: int,
+                         min_radius: int = 2, min_overlap: float = 0.1) -> CenterTargets:
+    """Encode padded ground truth (B, M, 7) with mask (B, M) for the map at `stride` pillars per cell.
+
+    A box's centre cell is floor((x - x0) / cell_x), floor((y - y0) / cell_y); boxes whose
+    centre falls off the map (or whose row is not finite) are left out (mask False). The
+    heat-map radius is max(min_radius, floor(gaussian_radius(dx / cell_x, dy / cell_y))).
+    """
+    if gt_boxes.dim() != 3 or gt_boxes.shape[-1] < 7 or gt_mask.shape != gt_boxes.shape[:2]:
+        raise ValueError(f"build_center_targets: gt_boxes must be (B, M, 7) and gt_mask (B, M), got "
+                         f"{tuple(gt_boxes.shape)} and {tuple(gt_mask.shape)}")
+    device = gt_boxes.device
+    nx, ny, _ = grid.grid_size
+    if nx % stride or ny % stride:
+        raise ValueError(f"build_center_targets: the grid {nx} x {ny} does not divide by the stride {stride}")
+    w, h = nx // stride, ny // stride
+    b, m = gt_mask.shape
+    cell_x, cell_y = grid.bev_cell(stride)
+    x0, y0 = grid.point_cloud_range[0], grid.point_cloud_range[1]
+    boxes = gt_boxes[..., :7].float()
+    fx = (boxes[..., 0] - x0) / cell_x
+    fy = (boxes[..., 1] - y0) / cell_y
+    ix, iy = torch.floor(fx), torch.floor(fy)
+    finite = torch.isfinite(boxes).all(dim=-1)
+    mask = gt_mask.bool() & finite & (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+    ix = torch.where(mask, ix, torch.zeros_like(ix)).long()
+    iy = torch.where(mask, iy, torch.zeros_like(iy)).long()
+    index = iy * w + ix
+    size = boxes[..., 3:6].clamp(min=1e-3)
+    heading = boxes[..., 6]
+    reg = torch.stack([fx - ix, fy - iy, boxes[..., 2], *torch.log(size).unbind(-1), torch.sin(heading),
+                       torch.cos(heading)], dim=-1)
+    reg = torch.where(mask[..., None], reg, torch.zeros_like(reg))
+    radius = torch.floor(gaussian_radius(size[..., 0] / cell_x, size[..., 1] / cell_y, min_overlap)).long()
+    radius = radius.clamp(min=int(min_radius))
+    bi = torch.arange(b, device=device)[:, None].expand(b, m)
+    heat = draw_gaussian_heatmap((b, h, w), bi[mask], ix[mask], iy[mask], radius[mask])
+    return CenterTargets(heat[:, None], index, mask, reg, torch.where(mask[..., None], boxes, torch.zeros_like(boxes)))
+
+
+def decode_regression(reg: torch.Tensor, index: torch.Tensor, grid: VoxelGrid, stride: int) -> torch.Tensor:
+    """Boxes (..., 7) from regression values (..., 8) read at flat cell indices (...).
+
+    x = x0 + (column + offset_x) * cell_x (likewise y); z as regressed; sizes exp(log size)
+    (log clamped to LOG_SIZE_RANGE); heading atan2(sin, cos) in (-pi, pi].
+    """
+    nx = grid.grid_size[0]
+    w = nx // stride
+    cell_x, cell_y = grid.bev_cell(stride)
+    x0, y0 = grid.point_cloud_range[0], grid.point_cloud_range[1]
+    col = (index % w).to(reg.dtype)
+    row = torch.div(index, w, rounding_mode="floor").to(reg.dtype)
+    x = x0 + (col + reg[..., 0]) * cell_x
+    y = y0 + (row + reg[..., 1]) * cell_y
+    size = torch.exp(reg[..., 3:6].clamp(*LOG_SIZE_RANGE))
+    heading = torch.atan2(reg[..., 6], reg[..., 7])
+    return torch.cat([x[..., None], y[..., None], reg[..., 2:3], size, heading[..., None]], dim=-1)
+
+
+# --------------------------------------------------------------------------------------
+# losses
+# --------------------------------------------------------------------------------------
+def centernet_focal_loss(logits: torch.Tensor, target: torch.Tensor, alpha: float = 2.0,
+                         beta: float = 4.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """CenterNet's focal loss on a heat map; returns (summed loss (scalar), number of peaks (scalar)).
+
+    logits, target: same shape, target in [0, 1] with exactly 1 at the peaks. Peaks:
+    -(1 - p)^alpha log p; elsewhere -(1 - y)^beta p^alpha log(1 - p). log p and log(1 - p)
+    come from logsigmoid, so saturated logits stay finite. Divide by max(peaks, 1) to
+    normalise as CenterNet does.
+    """
+    logits, target = logits.float(), target.float()
+    pos = target >= 1.0
+    p = torch.sigmoid(logits)
+    pos_loss = -((1 - p).pow(alpha) * F.logsigmoid(logits))
+    neg_loss = -((1 - target).pow(beta) * p.pow(alpha) * F.logsigmoid(-logits))
+    loss = torch.where(pos, pos_loss, neg_loss).sum()
+    return loss, pos.sum()
+
+
+def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    """num / den, 0 where den <= 0 (and a finite gradient there)."""
+    ok = den > 0
+    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+
+
+def od_iou_loss(pred: torch.Tensor, target: torch.Tensor, distance: bool = True) -> torch.Tensor:
+    """Orientation-decoupled IoU loss (PillarNet) of matching rows; (N, 7), (N, 7) -> (N,).
+
+    The IoU is taken between the target and the predicted box turned to the target's
+    heading (the predicted heading is ignored: orientation is learnt by the sin/cos L1
+    loss alone, so the IoU gradient reaches only centre and size, and a box that is right
+    but for its heading is not pushed to shrink). With equal headings the 3D IoU is exact
+    and simple: in the target's frame both boxes are axis-aligned. With `distance` the
+    DIoU term |centre offset|^2 / |diagonal of the enclosing box|^2 is added, so boxes that
+    do not overlap still get a gradient. Loss = 1 - IoU (+ distance term), in [0, 2].
+    Finite, with finite gradients, for zero sizes and identical centres.
+    """
+    if pred.shape != target.shape or pred.dim() != 2 or pred.shape[-1] < 7:
+        raise ValueError(f"od_iou_loss: pred and target must both be (N, 7), got {tuple(pred.shape)} and "
+                         f"{tuple(target.shape)}")
+    pred, target = pred.float(), target.float()
+    if pred.shape[0] == 0:
+        return pred.new_zeros(0) + 0.0 * pred.sum()
+    c, s = torch.cos(target[:, 6]), torch.sin(target[:, 6])
+    dx, dy = pred[:, 0] - target[:, 0], pred[:, 1] - target[:, 1]
+    local = torch.stack([dx * c + dy * s, -dx * s + dy * c, pred[:, 2] - target[:, 2]], dim=1)  # (N, 3)
+    hp, hg = 0.5 * pred[:, 3:6].clamp(min=0), 0.5 * target[:, 3:6].clamp(min=0)
+    lo = torch.maximum(local - hp, -hg)
+    hi = torch.minimum(local + hp, hg)
+    inter = (hi - lo).clamp(min=0).prod(dim=1)
+    union = (2 * hp).prod(dim=1) + (2 * hg).prod(dim=1) - inter
+    loss = 1.0 - _safe_div(inter, union).clamp(max=1.0)
+    if distance:
+        enclose = torch.maximum(local + hp, hg) - torch.minimum(local - hp, -hg)
+        loss = loss + _safe_div((local * local).sum(dim=1), (enclose * enclose).sum(dim=1))
+    return loss
+
+
+# --------------------------------------------------------------------------------------
+# the head
+# --------------------------------------------------------------------------------------
+class CenterHeadOutput(NamedTuple):
+    """Raw maps of a `CenterHead` (see the module docstring for channels and units)."""
+
+    heatmap: torch.Tensor  # (B, 1, H, W) logits
+    offset: torch.Tensor  # (B, 2, H, W) cells
+    z: torch.Tensor  # (B, 1, H, W) m
+    log_size: torch.Tensor  # (B, 3, H, W) log m
+    rot: torch.Tensor  # (B, 2, H, W) sin, cos
+    iou: torch.Tensor | None  # (B, 1, H, W) 2 * IoU - 1, None without the IoU branch
+
+    def regression(self) -> torch.Tensor:
+        """(B, 8, H, W) offset, z, log_size, rot stacked in the REG_CHANNELS order."""
+        return torch.cat([self.offset, self.z, self.log_size, self.rot], dim=1)
+
+
+def _gather(maps: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """maps (B, C, H, W), flat cell index (B, M) -> (B, M, C)."""
+    b, c = maps.shape[:2]
+    flat = maps.reshape(b, c, -1)
+    return flat.gather(2, index[:, None, :].expand(b, c, index.shape[1])).permute(0, 2, 1)
+
+
+def _branch(cin: int, mid: int, cout: int, num_convs: int, final_bias: float | None = None) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for _ in range(num_convs - 1):
+        layers += [nn.Conv2d(cin, mid, 3, padding=1, bias=False), dense_bn(mid), nn.ReLU()]
+        cin = mid
+    last = nn.Conv2d(cin, cout, 3, padding=1, bias=True)
+    if final_bias is not None:
+        nn.init.constant_(last.bias, final_bias)
+    layers.append(last)
+    return nn.Sequential(*layers)
+
+
+DEFAULT_LOSS_WEIGHTS = {"hm": 1.0, "reg": 0.25, "iou": 1.0, "od_iou": 1.0}
+DEFAULT_POST = {"method": "nms", "score_threshold": 0.1, "pre_top_k": 1000, "nms_threshold": 0.1, "post_top_k": 100,
+                "iou_rectifier": 0.68}
+
+
+class CenterHead(nn.Module):
+    """Single-class center head on a BEV map (B, in_channels, H, W) at `stride` pillars per cell.
+
+    Args:
+        in_channels: width of the BEV map.
+        grid: the pillar grid (H = Y / stride, W = X / stride).
+        stride: pillars per map cell.
+        shared_channels: width of the shared 3x3 conv in front of the branches.
+        head_channels, head_convs: width and number (>= 1, the last is the output conv) of 3x3 convs per branch.
+        iou_branch: add the IoU-aware branch (its loss, and score rectification at inference).
+        min_radius, min_overlap: heat-map Gaussian radius rule (cells; IoU).
+        od_iou_distance: add the DIoU centre-distance term to the OD-IoU loss.
+        code_weights: 8 weights of the L1 regression terms (REG_CHANNELS order).
+        loss_weights: {"hm", "reg", "iou", "od_iou"} multipliers of the loss terms.
+        post: decoding settings: method "maxpool" (3x3 local maxima of the heat map, no NMS)
+            or "nms" (all cells, rotated BEV NMS at nms_threshold); score_threshold (on the
+            heat), pre_top_k, post_top_k, iou_rectifier a in [0, 1]
+            (score = heat^(1-a) * iou^a; 0 turns rectification off).
+    """
+
+    def __init__(self, in_channels: int, grid: VoxelGrid, stride: int, shared_channels: int = 64,
+                 head_channels: int = 64, head_convs: int = 2, iou_branch: bool = True, min_radius: int = 2,
+                 min_overlap: float = 0.1, od_iou_distance: bool = True, code_weights: Sequence[float] | None = None,
+                 loss_weights: dict | None = None, post: dict | None = None):
+        super().__init__()
+        if head_convs < 1 or shared_channels < 1 or head_channels < 1:
+            raise ValueError(f"CenterHead: head_convs, shared_channels and head_channels must be >= 1, got "
+                             f"{head_convs}, {shared_channels}, {head_channels} (model.head in the config)")
+        grid.check_divisible(int(stride), "CenterHead")
+        self.grid, self.stride = grid, int(stride)
+        nx, ny, _ = grid.grid_size
+        self.map_shape = (ny // self.stride, nx // self.stride)  # (H, W)
+        self.shared = nn.Sequential(nn.Conv2d(in_channels, shared_channels, 3, padding=1, bias=False),
+                                    dense_bn(shared_channels), nn.ReLU())
+        prior = 0.1
+        self.branches = nn.ModuleDict({
+            "heatmap": _branch(shared_channels, head_channels, 1, head_convs, -math.log((1 - prior) / prior)),
+            "offset": _branch(shared_channels, head_channels, 2, head_convs),
+            "z": _branch(shared_channels, head_channels, 1, head_convs),
+            "log_size": _branch(shared_channels, head_channels, 3, head_convs),
+            "rot": _branch(shared_channels, head_channels, 2, head_convs),
+        })
+        if iou_branch:
+            self.branches["iou"] = _branch(shared_channels, head_channels, 1, head_convs)
+        self.iou_branch = bool(iou_branch)
+        self.min_radius, self.min_overlap = int(min_radius), float(min_overlap)
+        self.od_iou_distance = bool(od_iou_distance)
+        cw = [1.0] * REG_CHANNELS if code_weights is None else [float(v) for v in code_weights]
+        if len(cw) != REG_CHANNELS:
+            raise ValueError(f"CenterHead: code_weights needs {REG_CHANNELS} numbers (offset x, offset y, z, log dx, "
+                             f"log dy, log dz, sin, cos), got {cw}")
+        self.register_buffer("code_weights", torch.tensor(cw, dtype=torch.float32), persistent=False)
+        unknown = set(loss_weights or {}) - set(DEFAULT_LOSS_WEIGHTS)
+        if unknown:
+            raise ValueError(f"CenterHead: unknown loss_weights {sorted(unknown)}; known: {sorted(DEFAULT_LOSS_WEIGHTS)}")
+        self.loss_weights = {**DEFAULT_LOSS_WEIGHTS, **(loss_weights or {})}
+        unknown = set(post or {}) - set(DEFAULT_POST)
+        if unknown:
+            raise ValueError(f"CenterHead: unknown post settings {sorted(unknown)}; known: {sorted(DEFAULT_POST)}")
+        self.post = {**DEFAULT_POST, **(post or {})}
+        if self.post["method"] not in ("maxpool", "nms"):
+            raise ValueError(f"CenterHead: post.method must be 'maxpool' or 'nms', got {self.post['method']!r}")
+        if not 0.0 <= float(self.post["iou_rectifier"]) <= 1.0:
+            raise ValueError(f"CenterHead: post.iou_rectifier must lie in [0, 1], got {self.post['iou_rectifier']}")
+
+    def forward(self, bev: torch.Tensor) -> CenterHeadOutput:
+        """BEV map (B, in_channels, H, W) -> CenterHeadOutput of raw maps."""
+        if tuple(bev.shape[-2:]) != self.map_shape:
+            raise ValueError(f"CenterHead: the BEV map is {tuple(bev.shape[-2:])} cells but the grid at stride "
+                             f"{self.stride} gives {self.map_shape}")
+        x = self.shared(bev)
+        out = {name: branch(x) for name, branch in self.branches.items()}
+        return CenterHeadOutput(out["heatmap"], out["offset"], out["z"], out["log_size"], out["rot"], out.get("iou"))
+
+    def targets(self, gt_boxes: torch.Tensor, gt_mask: torch.Tensor) -> CenterTargets:
+        """Encode padded ground truth (B, M, 7), mask (B, M) for this head's map."""
+        return build_center_targets(gt_boxes, gt_mask, self.grid, self.stride, self.min_radius, self.min_overlap)
+
+    def loss(self, out: CenterHeadOutput, gt_boxes: torch.Tensor, gt_mask: torch.Tensor) -> tuple[torch.Tensor, dict]:
+        """Total loss and its parts for padded ground truth (B, M, 7) with mask (B, M).
+
+        hm: CenterNet focal loss / number of boxes; reg: code-weighted L1 of the 8 regression
+        values at the boxes' centre cells / number of boxes; iou: L1 of the IoU branch against
+        2 * IoU3D(decoded box, target) - 1; od_iou: `od_iou_loss` of the decoded boxes.
+        Every term is normalised by max(1, boxes in the batch). A batch without boxes gives
+        only the heat-map term (the others are 0 but keep every branch in the graph).
+        """
+        t = self.targets(gt_boxes, gt_mask)
+        n = t.mask.sum().clamp(min=1).float()
+        hm_loss, _ = centernet_focal_loss(out.heatmap, t.heatmap)
+        hm_loss = hm_loss / n
+        reg = _gather(out.regression().float(), t.index)  # (B, M, 8)
+        m = t.mask[..., None].float()
+        reg_loss = ((reg - t.reg).abs() * self.code_weights * m).sum() / n
+        # decoded boxes with the heading detached: atan2 has no gradient at (0, 0), and the
+        # OD-IoU loss ignores the predicted heading anyway
+        dec = decode_regression(torch.cat([reg[..., :6], reg[..., 6:].detach()], dim=-1), t.index, self.grid,
+                                self.stride)
+        pred_boxes, gt = dec[t.mask], t.boxes[t.mask]
+        od_loss = od_iou_loss(pred_boxes, gt, self.od_iou_distance).sum() / n
+        w = self.loss_weights
+        total = w["hm"] * hm_loss + w["reg"] * reg_loss + w["od_iou"] * od_loss
+        parts = {"loss_hm": float(hm_loss.detach()), "loss_reg": float(reg_loss.detach()),
+                 "loss_od_iou": float(od_loss.detach())}
+        if self.iou_branch:
+            iou_pred = _gather(out.iou.float(), t.index)[..., 0][t.mask]
+            with torch.no_grad():
+                iou_t = boxes_iou3d_aligned(pred_boxes.detach(), gt).to(iou_pred.dtype) if gt.shape[0] else \
+                    iou_pred.new_zeros(0)
+            iou_loss = (iou_pred - (2 * iou_t - 1)).abs().sum() / n
+            total = total + w["iou"] * iou_loss
+            parts["loss_iou"] = float(iou_loss.detach())
+            parts["mean_iou"] = float(iou_t.mean()) if iou_t.numel() else 0.0
+        parts["num_pos"] = float(t.mask.sum()) / max(1, t.mask.shape[0])
+        return total, parts
+
+    @torch.no_grad()
+    def rectify(self, heat: torch.Tensor, iou_raw: torch.Tensor | None) -> torch.Tensor:
+        """Scores heat^(1-a) * iou^a in [0, 1] from heat (any shape) and the IoU branch's raw
+        values (same shape, 2 * IoU - 1); plain heat without the IoU branch or with a = 0."""
+        a = float(self.post["iou_rectifier"])
+        if iou_raw is None or a == 0.0:
+            return heat
+        iou = ((iou_raw.float() + 1) / 2).clamp(0, 1)
+        return heat.pow(1 - a) * iou.pow(a)
+
+    @torch.no_grad()
+    def predict(self, out: CenterHeadOutput, valid: torch.Tensor | None = None) -> list[Detections]:
+        """Detections per frame. `valid` (B,) bool: frames marked False (e.g. with no points) get none.
+
+        Candidates are the `pre_top_k` cells of highest heat (only 3x3 local maxima with
+        method maxpool) whose heat is >= score_threshold; their scores are IoU-rectified, then
+        rotated NMS (method nms) and the `post_top_k` best. The threshold is applied to the
+        heat, not to the rectified score: with a = 0.68 a cell of heat 0.001 and a predicted
+        IoU of 1 would otherwise score 0.11.
+        """
+        p = self.post
+        b = out.heatmap.shape[0]
+        heat = torch.sigmoid(out.heatmap.float())
+        if p["method"] == "maxpool":
+            peak = F.max_pool2d(heat, 3, stride=1, padding=1) == heat
+            heat = torch.where(peak, heat, torch.zeros_like(heat))
+            nms_threshold = 1.0  # a BEV IoU never exceeds 1: select_detections then only sorts and caps
+        else:
+            nms_threshold = float(p["nms_threshold"])
+        heat = heat.flatten(1)
+        k = min(int(p["pre_top_k"]), heat.shape[1])
+        top, index = heat.topk(k, dim=1)  # (B, K)
+        iou_raw = _gather(out.iou, index)[..., 0] if self.iou_branch else None
+        score = self.rectify(top, iou_raw)
+        boxes = decode_regression(_gather(out.regression().float(), index), index, self.grid, self.stride)
+        keep = top >= float(p["score_threshold"])
+        dets = []
+        for i in range(b):
+            if valid is not None and not bool(valid[i]):
+                dets.append(Detections.empty(out.heatmap.device))
+                continue
+            dets.append(select_detections(boxes[i][keep[i]], score[i][keep[i]], 0.0, k, nms_threshold,
+                                          int(p["post_top_k"])))
+        return dets
