@@ -25,6 +25,8 @@ from .stages import AnchorHead, AnchorHeadOutput, BEVBackbone, HeightCompression
 
 class SECOND(nn.Module):
     name = "second"
+    # top-level children per stage, for tools/benchmark.py's latency split
+    STAGES = {"voxelize": ["vfe"], "backbone3d": ["backbone3d"], "bev": ["to_bev", "backbone2d"], "head": ["head"]}
 
     def __init__(self, cfg: dict):
         super().__init__()

@@ -1,0 +1,237 @@
+#!/usr/bin/env python3
+"""What each detector costs: parameters, checkpoint size, peak memory and latency per frame.
+
+Latency is the median over --frames real (simulated or --data) frames after --warmup
+passes, split by stage (voxelize / backbone / head / post-processing; each model names its
+stages), on CPU and on CUDA when present. With --study DIR (a tools/study.py output) the
+models' trained checkpoints are used and each model's AP@R40 / recall is joined to its cost,
+like the paper's Table III next to its accuracy.
+
+Examples:
+  python tools/benchmark.py                         # every model, its cpu-preset size, CPU
+  python tools/benchmark.py --preset paper --device cuda
+  python tools/benchmark.py --study runs/study_cpu --height 1.8
+
+Writes OUT/benchmark.json and OUT/benchmark.md (default OUT = runs/benchmark).
+Units: milliseconds per frame, MB = 10^6 bytes (checkpoint), MiB = 2^20 bytes (memory).
+"""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import models  # noqa: E402
+from detbench.train.run_config import preset_names  # noqa: E402
+from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", nargs="+", default=None, help="detectors (default: all registered)")
+    ap.add_argument("--preset", default="cpu", choices=preset_names(),
+                    help="model size to build when no checkpoint is given (default cpu)")
+    ap.add_argument("--study", default=None, metavar="DIR",
+                    help="a tools/study.py output: use its trained checkpoints and join their reports")
+    ap.add_argument("--height", type=float, default=1.8, help="LiDAR height of the frames (and of --study runs)")
+    ap.add_argument("--data", default=None, metavar="ROOT", help="dataset for the frames (default: simulated smoke set)")
+    ap.add_argument("--frames", type=int, default=10, help="timed frames (default 10)")
+    ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
+    ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
+    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    ap.add_argument("--out", default="runs/benchmark", help="output folder (default runs/benchmark)")
+    ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: one model in a child process
+    return ap
+
+
+class StageTimer:
+    """Wall time of a model's top-level stages via forward hooks (CUDA synchronised)."""
+
+    def __init__(self, model, stages: dict[str, list[str]], device):
+        import torch
+
+        self.sync = (lambda: torch.cuda.synchronize(device)) if str(device).startswith("cuda") else (lambda: None)
+        self.times: dict[str, float] = {k: 0.0 for k in stages}
+        self._start: dict[str, float] = {}
+        owner = {child: stage for stage, children in stages.items() for child in children}
+        for name, module in model.named_children():
+            if name in owner:
+                module.register_forward_pre_hook(self._pre(name))
+                module.register_forward_hook(self._post(name, owner[name]))
+
+    def _pre(self, name):
+        def hook(module, inputs):
+            self.sync()
+            self._start[name] = time.perf_counter()
+        return hook
+
+    def _post(self, name, stage):
+        def hook(module, inputs, output):
+            self.sync()
+            self.times[stage] += time.perf_counter() - self._start[name]
+        return hook
+
+    def reset(self):
+        for k in self.times:
+            self.times[k] = 0.0
+
+
+def worker(args) -> dict:
+    """Benchmark one model (in its own process so its peak memory is its own)."""
+    import numpy as np
+    import torch
+
+    from detbench.data.batch import collate
+    from detbench.data.simulated import default_dataset
+    from detbench.train.inference import frame_sample
+    from detbench.train.run_config import load_run_config
+
+    torch.set_num_threads(args.threads)
+    spec = json.loads(args.worker)
+    name, device, ckpt = spec["model"], torch.device(spec["device"]), spec.get("ckpt")
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if ckpt:
+        model, ck = models.load_from_checkpoint(ckpt, device)
+        cfg_model = ck["config"]["model"]
+        ckpt_bytes = Path(ckpt).stat().st_size
+    else:
+        cfg = load_run_config(name, args.preset)
+        root_for_sizes = default_dataset({**cfg["data"], "root": args.data} if args.data else
+                                         load_run_config(name, "smoke")["data"], progress=False)
+        from detbench.data import Height3Dataset
+
+        train = Height3Dataset(root_for_sizes, args.height, "train")
+        boxes = np.concatenate([train[i].boxes for i in range(min(len(train), 20))])
+        cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
+        model = models.build_model(name, cfg_model).to(device).eval()
+        buf = io.BytesIO()
+        torch.save(model.state_dict(), buf)
+        ckpt_bytes = buf.tell()
+    params = sum(p.numel() for p in model.parameters())
+    from detbench.data import Height3Dataset
+
+    data_root = default_dataset({"root": args.data} if args.data else load_run_config(name, "smoke")["data"],
+                                progress=False)
+    test = Height3Dataset(data_root, args.height, "test")
+    n = args.frames + args.warmup
+    samples = [frame_sample(test[i % len(test)], cfg_model["point_cloud_range"]) for i in range(n)]
+    stages = getattr(model, "STAGES", None) or {"forward": [c for c, _ in model.named_children()]}
+    timer = StageTimer(model, stages, device)
+    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    rows = []
+    with torch.no_grad():
+        for i, s in enumerate(samples):
+            batch = collate([s]).to(device)
+            timer.reset()
+            sync()
+            t0 = time.perf_counter()
+            out = model(batch)
+            sync()
+            t1 = time.perf_counter()
+            model.predict(out, batch)
+            sync()
+            t2 = time.perf_counter()
+            if i >= args.warmup:
+                rows.append({**{k: v * 1000 for k, v in timer.times.items()}, "post": (t2 - t1) * 1000,
+                             "total": (t2 - t0) * 1000, "points": int(len(s.points))})
+    med = {k: round(statistics.median(r[k] for r in rows), 2) for k in rows[0]}
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    result = {"model": name, "device": str(device), "checkpoint": ckpt, "parameters": params,
+              "checkpoint_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
+              "latency_ms_min_total": round(min(r["total"] for r in rows), 2),
+              "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
+              "frames": len(rows), "threads": args.threads}
+    if device.type == "cuda":
+        result["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+    return result
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(args)))
+        return 0
+    import torch
+
+    from detbench.data.frame import height_key
+
+    names = args.models or sorted(models.REGISTRY)
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
+    results = []
+    for name in names:
+        models.get_model_class(name)
+        ckpt, report = None, None
+        if args.study:
+            run_dir = Path(args.study) / f"{name}_h{height_key(args.height)}"
+            summary = run_dir / "train_summary.json"
+            if summary.is_file():
+                ckpt = read_json(summary)["checkpoint"]
+            rep = run_dir / f"eval_h{height_key(args.height)}_test" / "report.json"
+            report = read_json(rep) if rep.is_file() else None
+        for dev in devices:
+            spec = json.dumps({"model": name, "device": dev, "ckpt": ckpt})
+            cmd = [sys.executable, __file__, "--worker", spec, "--preset", args.preset, "--height", str(args.height),
+                   "--frames", str(args.frames), "--warmup", str(args.warmup), "--threads", str(args.threads)]
+            if args.data:
+                cmd += ["--data", args.data]
+            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+            if proc.returncode != 0:
+                raise SystemExit(f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}")
+            res = json.loads(proc.stdout.strip().splitlines()[-1])
+            if report is not None:
+                res["accuracy"] = {r: {k: report["results"][r]["all"][k] for k in ("recall", "ap_r40")}
+                                   for r in report["results"]}
+            results.append(res)
+            lat = res["latency_ms"]
+            print(f"{name:10s} {dev:5s} {res['parameters'] / 1e6:6.2f} M params  {res['checkpoint_mb']:7.2f} MB  "
+                  f"{lat['total']:8.1f} ms/frame  peak {res['peak_rss_mib']:.0f} MiB")
+    meta = {"machine": platform.machine(), "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(), "torch": torch.__version__, "threads": args.threads,
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+            "preset": args.preset, "study": args.study, "height": args.height}
+    out = Path(args.out)
+    atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
+    stage_names = []  # in the models' own stage order, post-processing last
+    for r in results:
+        stage_names += [k for k in r["latency_ms"] if k not in ("total", "points", "post") and k not in stage_names]
+    stage_names.append("post")
+    head = ["model", "device", "params (M)", "checkpoint (MB)", "peak RSS (MiB)", "total (ms/frame)",
+            *[f"{s} (ms)" for s in stage_names], "points/frame"]
+    has_acc = any("accuracy" in r for r in results)
+    if has_acc:
+        head += ["AP@R40 small", "AP@R40 moderate", "AP@R40 large", "recall large"]
+    lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {args.threads} CPU threads"
+             f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
+             "Latency: median per frame after warm-up, batch of 1. Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in results:
+        lat = r["latency_ms"]
+        row = [r["model"], r["device"], f"{r['parameters'] / 1e6:.2f}", f"{r['checkpoint_mb']:.2f}",
+               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}", *[f"{lat.get(s, float('nan')):.1f}" for s in stage_names],
+               str(int(lat["points"]))]
+        if has_acc:
+            acc = r.get("accuracy") or {}
+            fmt = (lambda v: "-" if v is None else f"{v:.3f}")
+            row += [fmt(acc.get(k, {}).get("ap_r40")) for k in ("small", "moderate", "large")]
+            row += [fmt(acc.get("large", {}).get("recall"))]
+        lines.append("| " + " | ".join(row) + " |")
+    atomic_write_text(out / "benchmark.md", "\n".join(lines) + "\n")
+    print(f"wrote {out / 'benchmark.json'}, {out / 'benchmark.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
