@@ -134,12 +134,16 @@ def main(argv=None) -> int:
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names,
              "seconds_this_invocation": round(seconds, 1), "ability": ability, "detection": combined}
     atomic_write_json(out / "study.json", study)
+    def embed(md_path: Path) -> str:  # a tool's Markdown one level below the study's sections
+        return "\n".join("##" + ln if ln.startswith("#") else ln
+                         for ln in md_path.read_text(encoding="utf-8").splitlines())
+
     lines = [f"# Height3 study ({args.preset} preset)", "",
              f"Data: `{root}`. Heights: {', '.join(f'{h:g} m' for h in heights)}. Models: {', '.join(names)}.", "",
              "## 1. LiDAR detection ability (all frames)", "",
-             (out / "ability" / "ability.md").read_text(encoding="utf-8"), "",
+             embed(out / "ability" / "ability.md"), "",
              "## 2. Detectors on the LiDAR-detected vehicles (test split)", "",
-             (out / "combined" / "combined.md").read_text(encoding="utf-8"), "",
+             embed(out / "combined" / "combined.md"), "",
              "Figures: " + ", ".join(f"`{p.relative_to(out)}`" for p in sorted(out.glob("*/*.png"))), ""]
     atomic_write_text(out / "study.md", "\n".join(lines))
     print(f"\nstudy done in {seconds / 60:.1f} min: {out / 'study.md'}")
