@@ -86,12 +86,18 @@ def test_help_runs_as_script():
         assert opt in out.stdout
 
 
-def test_ckpt_says_no_model_yet(tmp_path, capsys):
+def test_ckpt_errors_name_the_file(tmp_path, capsys):
     tool = load_tool()
-    rc = tool.main(["--data", str(tmp_path), "--height", "1.8", "--ckpt", str(tmp_path / "m.pt"),
-                    "--out", str(tmp_path / "o")])
+    rc = tool.main(["--ckpt", str(tmp_path / "m.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
-    assert rc == 2 and "no detector is available yet" in err and "--pred" in err
+    assert rc == 2 and "m.pt: checkpoint not found" in err
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint at all")
+    rc = tool.main(["--ckpt", str(tmp_path / "bad.pt"), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "bad.pt: " in err and "tools/train.py" in err
+    rc = tool.main(["--data", str(tmp_path), "--height", "1.8", "--pred", str(tmp_path), "--test-height", "0.5",
+                    "--out", str(tmp_path / "o")])
+    assert rc == 2 and "--test-height goes with --ckpt" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
