@@ -54,3 +54,17 @@ def test_train_rejects_unknown_config_key(tiny_dataset, tmp_path):
                            str(tiny_dataset), "--out", str(tmp_path / "r"), "--set", "train.epoch=3"],
                           cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode != 0 and "did you mean 'epochs'" in proc.stderr
+
+
+def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
+    run(["tools/benchmark.py", "--preset", "smoke", "--data", str(tiny_dataset), "--frames", "2", "--warmup", "1",
+         "--threads", "1", "--out", str(tmp_path / "b")])
+    res = json.loads((tmp_path / "b" / "benchmark.json").read_text())["results"]
+    assert {r["model"] for r in res} >= {"second", "pillarnet"}
+    for r in res:
+        lat = r["latency_ms"]
+        stages = [v for k, v in lat.items() if k not in ("total", "points")]
+        assert r["parameters"] > 0 and r["weights_mb"] > 0 and r["peak_rss_mib"] > 0
+        assert 0 < sum(stages) <= lat["total"] * 1.05  # the stage split accounts for (nearly) all the time
+    md = (tmp_path / "b" / "benchmark.md").read_text()
+    assert "ms" in md and "MiB" in md

@@ -104,7 +104,6 @@ def worker(args) -> dict:
     if ckpt:
         model, ck = models.load_from_checkpoint(ckpt, device)
         cfg_model = ck["config"]["model"]
-        ckpt_bytes = Path(ckpt).stat().st_size
     else:
         cfg = load_run_config(name, args.preset)
         root_for_sizes = default_dataset({**cfg["data"], "root": args.data} if args.data else
@@ -115,9 +114,9 @@ def worker(args) -> dict:
         boxes = np.concatenate([train[i].boxes for i in range(min(len(train), 20))])
         cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
         model = models.build_model(name, cfg_model).to(device).eval()
-        buf = io.BytesIO()
-        torch.save(model.state_dict(), buf)
-        ckpt_bytes = buf.tell()
+    buf = io.BytesIO()  # the model's weights as torch.save writes them (no optimizer state)
+    torch.save(model.state_dict(), buf)
+    ckpt_bytes = buf.tell()
     params = sum(p.numel() for p in model.parameters())
     from detbench.data import Height3Dataset
 
@@ -150,7 +149,7 @@ def worker(args) -> dict:
     med = {k: round(statistics.median(r[k] for r in rows), 2) for k in rows[0]}
     peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     result = {"model": name, "device": str(device), "checkpoint": ckpt, "parameters": params,
-              "checkpoint_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
+              "weights_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
               "latency_ms_min_total": round(min(r["total"] for r in rows), 2),
               "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
               "frames": len(rows), "threads": args.threads}
@@ -196,7 +195,7 @@ def main(argv=None) -> int:
                                    for r in report["results"]}
             results.append(res)
             lat = res["latency_ms"]
-            print(f"{name:10s} {dev:5s} {res['parameters'] / 1e6:6.2f} M params  {res['checkpoint_mb']:7.2f} MB  "
+            print(f"{name:10s} {dev:5s} {res['parameters'] / 1e6:6.2f} M params  {res['weights_mb']:7.2f} MB  "
                   f"{lat['total']:8.1f} ms/frame  peak {res['peak_rss_mib']:.0f} MiB")
     meta = {"machine": platform.machine(), "processor": platform.processor() or platform.machine(),
             "python": platform.python_version(), "torch": torch.__version__, "threads": args.threads,
@@ -208,19 +207,20 @@ def main(argv=None) -> int:
     for r in results:
         stage_names += [k for k in r["latency_ms"] if k not in ("total", "points", "post") and k not in stage_names]
     stage_names.append("post")
-    head = ["model", "device", "params (M)", "checkpoint (MB)", "peak RSS (MiB)", "total (ms/frame)",
+    head = ["model", "device", "params (M)", "weights (MB)", "peak RSS (MiB)", "total (ms/frame)",
             *[f"{s} (ms)" for s in stage_names], "points/frame"]
     has_acc = any("accuracy" in r for r in results)
     if has_acc:
         head += ["AP@R40 small", "AP@R40 moderate", "AP@R40 large", "recall large"]
     lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {args.threads} CPU threads"
              f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
-             "Latency: median per frame after warm-up, batch of 1. Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
+             "Latency: median per frame after warm-up, batch of 1. Weights: the state_dict as torch.save writes it "
+             "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
         lat = r["latency_ms"]
-        row = [r["model"], r["device"], f"{r['parameters'] / 1e6:.2f}", f"{r['checkpoint_mb']:.2f}",
-               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}", *[f"{lat.get(s, float('nan')):.1f}" for s in stage_names],
+        row = [r["model"], r["device"], f"{r['parameters'] / 1e6:.2f}", f"{r['weights_mb']:.2f}",
+               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}", *[f"{lat[s]:.1f}" if s in lat else "-" for s in stage_names],
                str(int(lat["points"]))]
         if has_acc:
             acc = r.get("accuracy") or {}
