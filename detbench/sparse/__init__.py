@@ -17,12 +17,13 @@ for the gather-matmul-scatter kernel.
 """
 from .functional import sparse_conv
 from .modules import (SparseConv2d, SparseConv3d, SparseConvolution, SparseInverseConv2d, SparseInverseConv3d,
-                      SparseModule, SparseSequential, SubMConv2d, SubMConv3d, ToDense)
+                      SafeBatchNorm1d, SparseModule, SparseSequential, SubMConv2d, SubMConv3d, ToDense,
+                      batch_norm_few_rows)
 from .rulebook import RuleBook, build_conv_rulebook, build_subm_rulebook, conv_output_shape
 from .tensor import SparseConvTensor
 
 __all__ = [
     "SparseConvTensor", "SubMConv3d", "SparseConv3d", "SparseInverseConv3d", "SubMConv2d", "SparseConv2d",
-    "SparseInverseConv2d", "SparseSequential", "SparseModule", "SparseConvolution", "ToDense", "RuleBook",
+    "SparseInverseConv2d", "SparseSequential", "SafeBatchNorm1d", "batch_norm_few_rows", "SparseModule", "SparseConvolution", "ToDense", "RuleBook",
     "build_subm_rulebook", "build_conv_rulebook", "conv_output_shape", "sparse_conv",
 ]

@@ -221,6 +221,25 @@ class ToDense(SparseModule):
         return x.dense()
 
 
+def batch_norm_few_rows(bn: _BatchNorm, x: torch.Tensor) -> torch.Tensor:
+    """BatchNorm of (N < 2, C) rows while training: no batch statistics exist, so the running
+    ones normalise (and are not updated); zero rows stay zero rows."""
+    if x.shape[0] == 0:
+        return x
+    return F.batch_norm(x, bn.running_mean, bn.running_var, bn.weight, bn.bias, False, 0.0, bn.eps)
+
+
+class SafeBatchNorm1d(nn.BatchNorm1d):
+    """BatchNorm1d over (N, C) rows that also accepts N < 2 while training (see
+    `batch_norm_few_rows`); with N >= 2 it is exactly `nn.BatchNorm1d`. For features used
+    outside a SparseSequential (residual blocks, point-wise MLPs)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.training and x.shape[0] < 2:
+            return batch_norm_few_rows(self, x)
+        return super().forward(x)
+
+
 class SparseSequential(nn.Sequential):
     """``nn.Sequential`` for sparse tensors.
 
@@ -242,11 +261,8 @@ class SparseSequential(nn.Sequential):
     def forward(self, x):
         for module in self:
             if isinstance(x, SparseConvTensor) and not isinstance(module, (SparseModule, SparseSequential)):
-                if isinstance(module, _BatchNorm) and x.features.shape[0] <= 1:
-                    if x.features.shape[0] == 0:
-                        continue
-                    x = x.replace_feature(F.batch_norm(x.features, module.running_mean, module.running_var,
-                                                       module.weight, module.bias, False, 0.0, module.eps))
+                if isinstance(module, _BatchNorm) and module.training and x.features.shape[0] < 2:
+                    x = x.replace_feature(batch_norm_few_rows(module, x.features))
                     continue
                 x = x.replace_feature(module(x.features))
             else:

@@ -24,25 +24,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from detbench.sparse import SparseConv2d, SparseConvTensor, SparseModule, SparseSequential, SubMConv2d
+from detbench.sparse import SafeBatchNorm1d, SparseConv2d, SparseConvTensor, SparseModule, SparseSequential, SubMConv2d
 
 BN_EPS, BN_MOMENTUM = 1e-3, 0.01
-
-
-class SafeBatchNorm1d(nn.BatchNorm1d):
-    """BatchNorm1d over (N, C) rows that also accepts N < 2 while training.
-
-    torch refuses batch statistics of fewer than two rows; a frame with one pillar (or none)
-    then has no batch statistics to take, so the running statistics are used instead (no
-    update). With N >= 2 it is exactly `nn.BatchNorm1d`.
-    """
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.training and x.shape[0] < 2:
-            if x.shape[0] == 0:
-                return x.new_zeros((0, self.num_features))
-            return F.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias, False, 0.0, self.eps)
-        return super().forward(x)
 
 
 def sparse_bn(channels: int) -> SafeBatchNorm1d:
