@@ -1,0 +1,200 @@
+"""HighwaySimulator: determinism, counts, traffic, frames, presets and config errors (fast)."""
+import math
+
+import numpy as np
+import pytest
+
+from detbench.config import ConfigError
+from detbench.data.frame import LANE_OPPOSITE, Frame
+from detbench.sim import HighwaySimulator, LidarConfig, lidar_preset, load_sim_config, sim_presets
+from detbench.sim.road import Road, RoadLayout
+
+
+def _run(cfg, seed, n, lidars, fps=None, with_points=True):
+    return list(HighwaySimulator(cfg, seed).run(n, lidars, frames_per_scene=fps, with_points=with_points))
+
+
+@pytest.fixture(scope="module")
+def small_lidars():
+    # coarse scans keep the tests fast; noise and drop-off exercise the random streams
+    return [lidar_preset(0.5, channels=32, h_samples=180, range_noise_m=0.02, dropout=0.1),
+            lidar_preset(1.8, channels=32, h_samples=180, range_noise_m=0.02, dropout=0.1)]
+
+
+def test_same_seed_identical_bytes_different_seed_differs(small_lidars):
+    cfg = load_sim_config()
+    a = _run(cfg, 7, 4, small_lidars, fps=2)
+    b = _run(cfg, 7, 4, small_lidars, fps=2)
+    c = _run(cfg, 8, 4, small_lidars, fps=2)
+    for fa, fb in zip(a, b):
+        for x, y in zip(fa, fb):
+            assert x.points.tobytes() == y.points.tobytes()
+            assert x.boxes.tobytes() == y.boxes.tobytes()
+            assert list(x.classes) == list(y.classes) and x.track_ids.tobytes() == y.track_ids.tobytes()
+            assert x.hit_counts.tobytes() == y.hit_counts.tobytes()
+    assert any(x.boxes.shape != y.boxes.shape or not np.array_equal(x.boxes, y.boxes) for x, y in zip(
+        [f[0] for f in a], [f[0] for f in c]))
+
+
+def test_frames_layout(small_lidars):
+    cfg = load_sim_config()
+    steps = _run(cfg, 1, 5, small_lidars, fps=3)
+    assert [s[0].frame_id for s in steps] == ["0000_000", "0000_001", "0000_002", "0001_000", "0001_001"]
+    for step in steps:
+        assert len(step) == 2
+        f0, f1 = step
+        assert isinstance(f0, Frame) and f0.frame_id == f1.frame_id and f0.scene_id == f1.scene_id
+        np.testing.assert_array_equal(f0.boxes, f1.boxes)  # same traffic at every height
+        assert f0.sensor.height == 0.5 and f1.sensor.height == 1.8 and f1.sensor.pitch_deg == 2.5
+        f0.check()
+        assert f0.boxes.dtype == np.float32 and f0.points.dtype == np.float32
+        assert f0.track_ids.dtype == np.int64 and f0.lanes.dtype == np.int64
+        # boxes stand on the road: z = dz / 2
+        np.testing.assert_allclose(f0.boxes[:, 2], f0.boxes[:, 5] / 2, atol=1e-5)
+        assert ((f0.boxes[:, 6] >= -math.pi) & (f0.boxes[:, 6] < math.pi)).all()
+        # region: centre x in [-20, 170], |y| <= 25
+        assert (f0.boxes[:, 0] >= -20).all() and (f0.boxes[:, 0] <= 170).all()
+        assert (np.abs(f0.boxes[:, 1]) <= 25).all()
+        assert set(f0.classes) <= {"car", "suv", "taxi", "van", "truck", "bus"}
+        assert len(set(f0.track_ids.tolist())) == len(f0.track_ids)
+        for key in ("speed_mps", "lane_index", "s_m", "road_curvature_1pm", "lanes_per_direction"):
+            assert key in f0.ego
+        assert f0.timestamp == pytest.approx(int(f0.frame_id[-3:]) * 0.5)
+    # track ids persist between consecutive frames of a scene
+    assert set(steps[0][0].track_ids) & set(steps[1][0].track_ids)
+
+
+def test_hit_counts_equal_points_in_boxes(small_lidars):
+    from detbench.ops import points_in_boxes
+
+    cfg = load_sim_config()
+    lidars = small_lidars + [lidar_preset(1.0)]
+    with_pts = _run(cfg, 3, 3, lidars, fps=3)
+    no_pts = _run(cfg, 3, 3, lidars, fps=3, with_points=False)
+    checked = 0
+    for step, step2 in zip(with_pts, no_pts):
+        for f, g in zip(step, step2):
+            counts, box_index = points_in_boxes(f.points, f.boxes, bottom_lift=0.05)
+            np.testing.assert_array_equal(counts, f.hit_counts)
+            np.testing.assert_array_equal(box_index, f.point_box)
+            np.testing.assert_array_equal(g.hit_counts, f.hit_counts)  # with_points=False: same counts
+            assert g.points.shape == (0, 4)
+            checked += int(counts.sum())
+    assert checked > 1000
+
+
+def test_lift_rule_on_wheels():
+    # points on the wheels below 5 cm never count
+    from detbench.sim import build_parts, cast_lidar, make_scene
+
+    rng = np.random.default_rng(0)
+    car = build_parts("sedan", 4.5, 1.8, 1.45, rng)
+    lidar = LidarConfig(height=0.3, vfov_deg=(-10.0, 10.0), channels=200, hfov_deg=20, h_samples=60)
+    res = cast_lidar(lidar, make_scene([(car, 8.0, 0.0, 0.0)]), bottom_lift=0.05)
+    on_car = res.point_box == 0
+    assert on_car.any()
+    assert (res.points[on_car, 2] >= 0.05).all()
+    near_ground = (res.points[:, 2] < 0.05) & (np.abs(res.points[:, 1]) < 0.9) & (res.points[:, 0] > 5.7)
+    assert near_ground.any() and (res.point_box[near_ground] == -1).all()
+
+
+def test_vehicles_never_overlap_over_a_scene():
+    from detbench.ops import boxes_iou_bev
+
+    cfg = load_sim_config("dense")
+    lid = [LidarConfig(height=1.0, channels=4, h_samples=16)]
+    sim = HighwaySimulator(cfg, 2)
+    n = 0
+    for step in sim.run(120, lid, frames_per_scene=120, with_points=False):
+        b = step[0].boxes
+        iou = boxes_iou_bev(b, b)
+        np.fill_diagonal(iou, 0.0)
+        assert iou.max() == 0.0, step[0].frame_id
+        n += len(b)
+    assert n > 120 * 5
+
+
+def test_lanes_match_lateral_offsets_on_a_straight_road():
+    cfg = load_sim_config("straight", overrides=["traffic.ego_lane_change_every_s=[]", "traffic.lane_change.enabled=false",
+                                                 "traffic.lateral_jitter_m=0.0"])
+    steps = _run(cfg, 4, 6, [LidarConfig(height=1.0, channels=4, h_samples=16)], fps=6, with_points=False)
+    seen_opp = seen_own = 0
+    for (f,) in steps:
+        own = f.lanes != LANE_OPPOSITE
+        np.testing.assert_allclose(f.boxes[own, 1], 3.5 * f.lanes[own], atol=0.05)
+        np.testing.assert_allclose(np.abs(np.abs(f.boxes[~own, 6]) - math.pi), 0.0, atol=1e-3)
+        # opposite lanes lie left of the median: y > (ego lane + 1/2) lane widths + median
+        assert (f.boxes[~own, 1] > 3.5 * (f.ego["lane_index"] + 0.5) + 3.0 - 0.05).all()
+        seen_opp += int((~own).sum())
+        seen_own += int(own.sum())
+    assert seen_opp > 0 and seen_own > 0
+
+
+def test_lane_profile():
+    from detbench.sim.traffic import lane_profile
+
+    np.testing.assert_allclose(lane_profile([1.06, 1.02, 0.98, 0.94], 3), [1.06, 1.0, 0.94])
+    np.testing.assert_allclose(lane_profile([], 2), [1.0, 1.0])
+    np.testing.assert_allclose(lane_profile([2.0], 3), [2.0, 2.0, 2.0])
+
+
+def test_road_curve_geometry():
+    layout = RoadLayout(3, 3.5, 2.0, 1.0)
+    radius = 300.0
+    road = Road(layout, 0.0, np.full(1001, 1.0 / radius), step=1.0)
+    x, y, th, k = road.centre(np.array([0.0, 100.0 * math.pi]))
+    # a quarter... of a circle: after s = R * angle the heading equals the angle and the point is on the circle
+    assert th[1] == pytest.approx(100.0 * math.pi / radius, rel=1e-9)
+    assert math.hypot(x[1] - 0.0, y[1] - radius) == pytest.approx(radius, rel=1e-5)
+    wx, wy, _ = road.to_world(np.array([100.0]), np.array([-5.0]))
+    cx, cy, cth, _ = road.centre(np.array([100.0]))
+    assert math.hypot(wx[0] - cx[0], wy[0] - cy[0]) == pytest.approx(5.0, rel=1e-9)
+    with pytest.raises(ValueError, match="outside the generated road"):
+        road.centre(np.array([5000.0]))
+
+
+def test_lidar_presets():
+    p18 = lidar_preset("h3-1.8")
+    assert (p18.height, p18.pitch_deg, p18.vfov_deg, p18.hfov_deg, p18.channels, p18.h_samples, p18.max_range) == \
+        (1.8, 2.5, (-15.0, 10.0), 180.0, 128, 480, 150.0)
+    assert lidar_preset(1.8) == p18 and lidar_preset("1.0") == lidar_preset("h3-1.0")
+    p07 = lidar_preset(0.7)
+    assert p07.height == 0.7 and p07.vfov_deg == (-12.5, 12.5) and p07.pitch_deg == 0.0 and p07.name == "h3-0.7"
+    l8 = lidar_preset("Leading Ideal L8")
+    assert (l8.hfov_deg, l8.max_range, l8.h_samples, l8.channels, l8.height) == (120.0, 200.0, 1200, 125, 1.8)
+    assert lidar_preset("neta-s").channels == 96 and lidar_preset("AVATR 3").height == 0.4
+    assert lidar_preset("h3-0.5").sensor.to_dict()["vfov_deg"] == [-12.5, 12.5]
+    with pytest.raises(ValueError, match="unknown LiDAR preset"):
+        lidar_preset("velodyne-hdl64")
+    with pytest.raises(ValueError, match="height"):
+        lidar_preset(-1.0)
+    with pytest.raises(ValueError, match="dropout"):
+        lidar_preset(1.0, dropout=1.5)
+
+
+def test_config_errors_name_the_key():
+    with pytest.raises(ConfigError, match="density_per_km_lane"):
+        load_sim_config("paper", ["traffic.density_per_km_lan=3"])
+    with pytest.raises(ConfigError, match="lanes_per_direction"):
+        load_sim_config("paper", ["road.lanes_per_direction=0"])
+    with pytest.raises(ConfigError, match="unknown simulator preset"):
+        load_sim_config("nope")
+    with pytest.raises(ConfigError, match="ego_lane_weights"):
+        load_sim_config("paper", ["traffic.ego_lane_weights=[1, -1]"])
+    load_sim_config("paper", ["road.lanes_per_direction=3"])  # per-lane lists are resampled
+    cfg = load_sim_config()
+    cfg["traffic"]["bogus"] = 1
+    with pytest.raises(ConfigError, match="bogus"):
+        HighwaySimulator(cfg, 0)
+    assert "paper" in sim_presets()
+    for name in sim_presets():
+        load_sim_config(name)
+
+
+def test_run_arguments_checked():
+    sim = HighwaySimulator(load_sim_config(), 0)
+    with pytest.raises(ValueError, match="LidarConfig"):
+        next(sim.run(1, [1.0]))
+    with pytest.raises(ValueError, match="frames_per_scene"):
+        next(sim.run(1, [lidar_preset(1.0)], frames_per_scene=0))
+    assert list(sim.run(0, [lidar_preset(1.0)])) == []
