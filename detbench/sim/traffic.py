@@ -18,6 +18,17 @@ gap to the leader never drops below `min_gap_hard` metres, so vehicles never ove
 A vehicle changing lanes occupies both lanes until it has finished, and is leader and
 follower in both, so lane changes cannot cause overlaps either.
 
+Spawning: each lane is filled front to back by a renewal process: a vehicle follows the one
+ahead at a short platoon gap with probability `platoon.follow_fraction`, else at a free gap
+sized so the lane holds `density_per_km_lane` on average (see `Traffic._spawn_lane`).
+Desired speeds: speed limit x lane factor (faster inside) x vehicle factor; platoon
+followers want slightly more than their leader so platoons stay together.
+
+The ego drives like CARLA's autopilot in traffic: a little faster than the flow
+(`ego_speed_factor`) so that it catches up and follows the vehicle ahead at its own short
+headway (`ego_time_headway_s`), and every `ego_lane_change_every_s` it moves to a
+neighbouring lane that has traffic ahead, which renews its surroundings within a scene.
+
 Lane changes: each vehicle draws at `rate_per_s` a chance to consider its neighbours; it
 changes when the gap ahead and behind in the target lane are safe (the new follower would
 not brake harder than `safe_decel`), and its own IDM acceleration there beats the current
