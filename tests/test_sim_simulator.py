@@ -156,7 +156,12 @@ def test_road_curve_geometry():
 def test_lidar_presets():
     p18 = lidar_preset("h3-1.8")
     assert (p18.height, p18.pitch_deg, p18.vfov_deg, p18.hfov_deg, p18.channels, p18.h_samples, p18.max_range) == \
-        (1.8, 2.5, (-15.0, 10.0), 180.0, 128, 480, 150.0)
+        (1.8, 2.5, (-12.5, 12.5), 180.0, 128, 480, 150.0)
+    dirs = p18.ray_directions()  # (channels, h_samples, 3) in the ground frame
+    ahead = dirs[:, np.argmax(dirs[0, :, 0])]  # the column looking straight ahead
+    el = np.degrees(np.arcsin(np.clip(ahead[:, 2], -1, 1)))
+    # ahead, relative to the road, the field is Table II's -15..10 deg
+    assert el.min() == pytest.approx(-15.0, abs=0.05) and el.max() == pytest.approx(10.0, abs=0.05)
     assert lidar_preset(1.8) == p18 and lidar_preset("1.0") == lidar_preset("h3-1.0")
     p07 = lidar_preset(0.7)
     assert p07.height == 0.7 and p07.vfov_deg == (-12.5, 12.5) and p07.pitch_deg == 0.0 and p07.name == "h3-0.7"

@@ -168,7 +168,7 @@ def _table1(name: str, rng: float, h_res: float, v_res: float, height: float) ->
 
 PRESETS: dict[str, LidarConfig] = {
     # Table II of the paper
-    "h3-1.8": _table2(1.8, 2.5, (-15.0, 10.0)),
+    "h3-1.8": _table2(1.8, 2.5, (-12.5, 12.5)),
     "h3-1.0": _table2(1.0, 0.0, (-12.5, 12.5)),
     "h3-0.5": _table2(0.5, 0.0, (-12.5, 12.5)),
     # Table I of the paper: FOV 120 x 25 deg, range, resolution h x v (deg), height
@@ -195,7 +195,7 @@ def lidar_preset(name_or_height: str | float, **changes) -> LidarConfig:
     Names: "h3-1.8", "h3-1.0", "h3-0.5" (the paper's Table II) and the Table I models
     (see `PRESETS`; spelling and case are forgiven, e.g. "Leading Ideal L8").
     A number (or a numeric string) is a height: the paper's own heights 0.5, 1.0 and 1.8 m
-    give exactly their Table II sensors (so 1.8 is pitched down 2.5 deg with -15..10 deg);
+    give exactly their Table II sensors (so 1.8 is +-12.5 deg in the sensor, pitched down 2.5 deg: -15..10 deg to the road);
     any other height takes the paper's 1.0 m specification (level, -12.5..12.5 deg,
     180 deg, 128 x 480, 150 m) at that height, named "h3-<height>".
     `changes` override fields, e.g. `lidar_preset(1.8, range_noise_m=0.02)`.
