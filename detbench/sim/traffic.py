@@ -65,7 +65,8 @@ def _fwd(xi, xj, direction, ring):
 
 
 @njit(cache=True)
-def _leader(i, lane_q, x, lane, lane_from, direction, ring):
+def _nearest(i, lane_q, x, lane, lane_from, direction, ring, ahead):
+    """Nearest vehicle in lane `lane_q` ahead of vehicle i (ahead=True) or behind it, and its gap."""
     best = np.inf
     bj = -1
     for j in range(x.shape[0]):
@@ -73,7 +74,7 @@ def _leader(i, lane_q, x, lane, lane_from, direction, ring):
             continue
         if lane[j] != lane_q and lane_from[j] != lane_q:
             continue
-        d = _fwd(x[i], x[j], direction, ring)
+        d = _fwd(x[i], x[j], direction, ring) if ahead else _fwd(x[j], x[i], direction, ring)
         if d < best:
             best = d
             bj = j
@@ -81,19 +82,13 @@ def _leader(i, lane_q, x, lane, lane_from, direction, ring):
 
 
 @njit(cache=True)
+def _leader(i, lane_q, x, lane, lane_from, direction, ring):
+    return _nearest(i, lane_q, x, lane, lane_from, direction, ring, True)
+
+
+@njit(cache=True)
 def _follower(i, lane_q, x, lane, lane_from, direction, ring):
-    best = np.inf
-    bj = -1
-    for j in range(x.shape[0]):
-        if j == i:
-            continue
-        if lane[j] != lane_q and lane_from[j] != lane_q:
-            continue
-        d = _fwd(x[j], x[i], direction, ring)
-        if d < best:
-            best = d
-            bj = j
-    return bj, best
+    return _nearest(i, lane_q, x, lane, lane_from, direction, ring, False)
 
 
 @njit(cache=True)
