@@ -85,7 +85,7 @@ def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from detbench.data import DatasetWriter
+    from detbench.data.simulated import write_simulation
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
 
     try:
@@ -108,28 +108,27 @@ def main(argv=None) -> int:
     except (ConfigError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
 
-    from tqdm import tqdm
-
     out = Path(args.out)
     source = {"kind": "simulator", "preset": args.preset, "seed": args.seed, "overrides": list(args.overrides),
               "frames": frames, "frames_per_scene": fps, "lidars": [lid.to_dict() for lid in lidars], "config": cfg}
-    heights = [lid.height for lid in lidars]
     t0 = time.perf_counter()
     n_points = np.zeros(len(lidars))
     n_boxes = 0
     n_detected = np.zeros(len(lidars))
+
+    def tally(step) -> None:
+        nonlocal n_boxes
+        n_boxes += step[0].num_boxes
+        for i, f in enumerate(step):
+            n_points[i] += f.points.shape[0]
+            n_detected[i] += int((f.hit_counts >= 1).sum())
+
     try:
-        writer = DatasetWriter(out, heights, source, test_fraction=args.test_fraction, overwrite=args.overwrite)
+        write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
+                         test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,
+                         on_step=tally)
     except (FileExistsError, ValueError, TypeError) as e:
         raise SystemExit(f"error: {e}") from None
-    with writer:
-        for step in tqdm(sim.run(frames, lidars, frames_per_scene=fps), total=frames, desc="simulate",
-                         unit="frame", disable=args.no_progress):
-            writer.add(step)
-            n_boxes += step[0].num_boxes
-            for i, f in enumerate(step):
-                n_points[i] += f.points.shape[0]
-                n_detected[i] += int((f.hit_counts >= 1).sum())
     seconds = time.perf_counter() - t0
     scenes = math.ceil(frames / fps)
     report = {

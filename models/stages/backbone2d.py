@@ -48,9 +48,6 @@ class BEVBackbone(nn.Module):
             self.deblocks.append(nn.Sequential(de, nn.BatchNorm2d(nuf, eps=1e-3, momentum=0.01), nn.ReLU()))
             cin = nf
         self.out_channels = int(sum(num_upsample_filters))
-        self.min_input_multiple = 1
-        for s in layer_strides:
-            self.min_input_multiple *= s
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         ups = []

@@ -8,10 +8,8 @@ with a message that says which numbers to change.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import torch
 
 
 @dataclass(frozen=True)
@@ -64,15 +62,3 @@ class VoxelGrid:
     def bev_cell(self, stride: int) -> tuple[float, float]:
         """Size (m) of one cell of a BEV map at `stride` voxels."""
         return self.voxel_size[0] * stride, self.voxel_size[1] * stride
-
-    def contains(self, xyz: torch.Tensor) -> torch.Tensor:
-        """Boolean mask of points (N, >=3) inside the range (lower bound inclusive, upper exclusive)."""
-        r = torch.as_tensor(self.point_cloud_range, dtype=xyz.dtype, device=xyz.device)
-        return ((xyz[:, :3] >= r[:3]) & (xyz[:, :3] < r[3:])).all(dim=1)
-
-
-def padded_extent(lo: float, hi: float, step: float) -> tuple[float, float]:
-    """Grow [lo, hi] symmetrically to a whole number of `step`s (a helper for writing configs)."""
-    n = math.ceil((hi - lo) / step - 1e-9)
-    extra = n * step - (hi - lo)
-    return lo - extra / 2, hi + extra / 2
