@@ -116,7 +116,8 @@ def test_vehicles_never_overlap_over_a_scene():
 
 def test_lanes_match_lateral_offsets_on_a_straight_road():
     cfg = load_sim_config("straight", overrides=["traffic.ego_lane_change_every_s=[]", "traffic.lane_change.enabled=false",
-                                                 "traffic.lateral_jitter_m=0.0"])
+                                                 "traffic.lateral_jitter_m=0.0",
+                                                 "traffic.opposite_density_per_km_lane=12.0"])
     steps = _run(cfg, 4, 6, [LidarConfig(height=1.0, channels=4, h_samples=16)], fps=6, with_points=False)
     seen_opp = seen_own = 0
     for (f,) in steps:
@@ -203,3 +204,61 @@ def test_run_arguments_checked():
     with pytest.raises(ValueError, match="frames_per_scene"):
         next(sim.run(1, [lidar_preset(1.0)], frames_per_scene=0))
     assert list(sim.run(0, [lidar_preset(1.0)])) == []
+
+
+def test_type_deck_holds_the_mix_in_proportion():
+    from detbench.sim.vehicles import TypeDeck
+
+    names = ["car", "van", "truck", "bus"]
+    probs = np.array([0.5, 0.2, 0.25, 0.05])
+    deck = TypeDeck(names, probs, 20, np.random.default_rng(0))
+    draws = [deck.draw() for _ in range(20 * 500)]
+    # every deck of 20 holds floor or ceil of 20 p cards of each type ...
+    for k in range(0, len(draws), 20):
+        chunk = draws[k:k + 20]
+        for name, p in zip(names, probs):
+            assert math.floor(20 * p) <= chunk.count(name) <= math.ceil(20 * p)
+    # ... and over many decks each type keeps its probability (the bus, 1 card per deck on average)
+    for name, p in zip(names, probs):
+        assert abs(draws.count(name) / len(draws) - p) < 0.01
+    # within a deck the order is shuffled
+    assert draws[:20] != sorted(draws[:20])
+
+
+def test_each_lane_ring_holds_its_share_of_vehicles():
+    from detbench.sim.traffic import Traffic
+    from detbench.sim.vehicles import VehicleCatalog
+
+    cfg = load_sim_config("paper", ["traffic.density_per_km_lane=10.0", "traffic.opposite_density_per_km_lane=4.0"])
+    t = cfg["traffic"]
+    layout = HighwaySimulator(cfg, 0).layout
+    ring = float(t["window_behind_m"]) + float(t["window_ahead_m"])
+    counts_own, counts_opp = [], []
+    for seed in range(12):
+        tr = Traffic(t, layout, VehicleCatalog(cfg["vehicles"]), np.random.default_rng(seed))
+        for cw, per_km, out in ((tr.own, 10.0, counts_own), (tr.opp, 4.0, counts_opp)):
+            for lane in range(layout.lanes_per_direction):
+                n = int((cw.lane == lane).sum())
+                # exactly floor or ceil of density x ring (the ego counts in its lane)
+                assert math.floor(per_km * ring / 1000) <= n <= math.ceil(per_km * ring / 1000)
+                out.append(n)
+        # the ring is filled without overlaps: sorted positions in each lane are a vehicle length + gap apart
+        for cw in (tr.own, tr.opp):
+            for lane in range(layout.lanes_per_direction):
+                idx = np.flatnonzero(cw.lane == lane)
+                order = idx[np.argsort(cw.x[idx])]
+                x, L = cw.x[order], cw._len[order]
+                gaps = np.diff(x) - 0.5 * (L[1:] + L[:-1])
+                closure = x[0] + ring - x[-1] - 0.5 * (L[0] + L[-1])
+                assert gaps.min() >= tr.idm.min_gap_hard and closure >= tr.idm.min_gap_hard
+    assert abs(np.mean(counts_own) - 10.0 * ring / 1000) < 0.5
+    assert abs(np.mean(counts_opp) - 4.0 * ring / 1000) < 0.5
+
+
+def test_ego_never_stalls_for_a_whole_scene():
+    # the ego changes lanes within a scene even when no neighbouring lane has traffic close ahead
+    cfg = load_sim_config("sparse", ["traffic.ego_lane_change_every_s=[5,10]"])
+    lid = [LidarConfig(height=1.0, channels=4, h_samples=16)]
+    lanes = [step[0].ego["lane_index"] for step in HighwaySimulator(cfg, 3).run(120, lid, frames_per_scene=120,
+                                                                                   with_points=False)]
+    assert len(set(lanes)) >= 2

@@ -109,8 +109,6 @@ def check_sim_config(cfg: dict) -> None:
     _num(cfg, "traffic.window_ahead_m", 100.0)
     _num(cfg, "traffic.density_per_km_lane", 0.0, 150.0)
     _num(cfg, "traffic.opposite_density_per_km_lane", 0.0, 150.0)
-    _num(cfg, "traffic.cluster.gain", 0.0)
-    _num(cfg, "traffic.cluster.sigma_m", 0.0)
     _num(cfg, "traffic.scene_density_shape", 0.0)
     _num(cfg, "traffic.platoon.follow_fraction", 0.0, 0.95)
     _pair(cfg, "traffic.platoon.gap_m", 0.5)

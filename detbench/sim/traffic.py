@@ -18,9 +18,12 @@ gap to the leader never drops below `min_gap_hard` metres, so vehicles never ove
 A vehicle changing lanes occupies both lanes until it has finished, and is leader and
 follower in both, so lane changes cannot cause overlaps either.
 
-Spawning: each lane is filled front to back by a renewal process: a vehicle follows the one
-ahead at a short platoon gap with probability `platoon.follow_fraction`, else at a free gap
-sized so the lane holds `density_per_km_lane` on average (see `Traffic._spawn_lane`).
+Spawning: each lane ring holds exactly its share (density x window length) of vehicles,
+filled front to back: a vehicle follows the one ahead at a short platoon gap with
+probability `platoon.follow_fraction`, else at a free gap, and the free gaps are scaled to
+fill the ring (see `Traffic._spawn_lane`). Vehicle types come from a shuffled deck that
+holds the mix in proportion (`vehicles.mix_deck_size`), so every scene has close to the
+configured share of trucks and vans.
 Desired speeds: speed limit x lane factor (faster inside) x vehicle factor; platoon
 followers want slightly more than their leader so platoons stay together.
 
@@ -351,6 +354,7 @@ class Traffic:
         self.ego_lc_timer = float(rng.uniform(*self.ego_lc_every)) if self.ego_lc_every else 0.0
         self.lane_factor = lane_profile(t["lane_speed_factors"], layout.lanes_per_direction)
         self.next_track = int(first_track)
+        self.deck = catalog.deck(rng)
         n_lanes = layout.lanes_per_direction
         self.own = Carriageway(+1, n_lanes, self.ring)
         self.opp = Carriageway(-1, n_lanes, self.ring)
@@ -367,80 +371,76 @@ class Traffic:
         outer = self.catalog.types[type_name].outer_lanes_only
         return (max(n - outer, 0), n - 1) if outer > 0 else (0, n - 1)
 
-    def _spawn_lane(self, cw: Carriageway, lane: int, density_km: float, cluster_gain: float, cluster_sigma: float,
-                    occupied: list[tuple[float, float]]):
-        """Fill one lane from front to back with a renewal process of gaps.
+    def _draw_type(self, lane: int) -> str | None:
+        """A vehicle type allowed in `lane`, from the stratified deck (or freely when the deck
+        is off); None when no allowed type turns up in 20 draws."""
+        for _ in range(20):
+            name = self.deck.draw() if self.deck is not None else self.catalog.sample_type(self.rng)
+            lo, hi = self._lane_range(name)
+            if lo <= lane <= hi:
+                return name
+        return None
 
-        Each vehicle follows the one ahead at a short "platoon" gap (uniform in
-        `platoon.gap_m`, bumper to bumper) with probability `platoon.follow_fraction`, else
-        at a free gap: 2 m plus a uniform draw in mean x [1 - spread, 1 + spread]
-        (`platoon.free_gap_spread`; 1 gives the most irregular traffic) whose mean makes the
-        lane's average density `density_km` vehicles per km, shortened near the ego by the cluster bump
-        (1 + gain exp(-x^2 / 2 sigma^2)). A follower's desired speed is its leader's plus
-        `platoon.follower_speed_boost`, so platoons stay together; other vehicles draw their
-        own. Positions that would come within min_gap + 2 m of a vehicle already placed
-        (the ego) are skipped.
+    def _spawn_lane(self, cw: Carriageway, lane: int, density_km: float, ego_shape: VehicleShape | None = None):
+        """Fill one lane ring with exactly its share of vehicles.
+
+        The lane holds n = density_km x ring / 1000 vehicles (the fraction rounded up with
+        its probability), so scenes differ in where the vehicles are, not in how many there
+        are. Going from the front to the back, each vehicle follows the one ahead at a short
+        platoon gap (uniform in `platoon.gap_m`, bumper to bumper) with probability
+        `platoon.follow_fraction`, else at a free gap of 2 m plus a weight uniform in
+        [1 - spread, 1 + spread] (`platoon.free_gap_spread`; 1 gives the most irregular
+        traffic); the free gaps are then scaled so that the ring is filled exactly. A
+        follower's desired speed is its leader's plus `platoon.follower_speed_boost`, so
+        platoons stay together; other vehicles draw their own. On the ego's lane the ego
+        (`ego_shape`, already added at x = 0) is the first vehicle of the ring and counts
+        towards n.
         """
         rng = self.rng
-        if density_km <= 0:
+        n_mean = max(density_km, 0.0) * self.ring / 1000.0
+        n = int(math.floor(n_mean)) + int(rng.random() < n_mean - math.floor(n_mean))
+        if ego_shape is not None:
+            n = max(n, 1)
+        if n == 0:
             return
         p = self.follow_fraction
-        g_follow = 0.5 * (self.platoon_gap[0] + self.platoon_gap[1])
-        mean_len = 4.8
-        spacing = 1000.0 / density_km
-        free_mean = max((spacing - mean_len - p * g_follow) / max(1.0 - p, 1e-6) - 2.0, 1.0)
-        placed = list(occupied)
-        # start the renewal process well ahead of the window so that it is stationary inside it
-        pos = self.ahead + 5.0 * spacing / max(1.0 - p, 0.05) + float(rng.uniform(0.0, spacing))
-        prev_len = 0.0
+        items = []  # (type_name or None for the ego, shape, following)
+        if ego_shape is not None:
+            items.append((None, ego_shape, False))
+        while len(items) < n:
+            name = self._draw_type(lane)
+            if name is None:
+                break
+            items.append((name, self.catalog.sample(rng, name), len(items) > 0 and rng.random() < p))
+        n = len(items)
+        lengths = np.array([it[1].length for it in items])
+        follow = np.array([it[2] for it in items])
+        gaps = np.where(follow, rng.uniform(*self.platoon_gap, size=n), 0.0)
+        weights = np.where(follow, 0.0, rng.uniform(1.0 - self.free_gap_spread, 1.0 + self.free_gap_spread, size=n))
+        free_min = self.idm.min_gap + 0.5
+        room = self.ring - lengths.sum() - gaps.sum() - free_min * (~follow).sum()
+        if room < 0 or weights.sum() <= 0:
+            # too dense for the window: every gap becomes the same (at least min_gap_hard)
+            gaps = np.full(n, max((self.ring - lengths.sum()) / n, self.idm.min_gap_hard))
+        else:
+            gaps = gaps + np.where(follow, 0.0, free_min + weights * room / weights.sum())
+        # gaps[k] is the gap between vehicle k and the one ahead of it (k - 1; for k = 0 the last one, around the ring)
+        x0 = 0.0 if ego_shape is not None else float(rng.uniform(-self.behind, self.ahead))
+        pos = x0
         prev_speed = None
-        first = True
-        while True:
-            type_name = self.catalog.sample_type(rng)
-            lo, hi = self._lane_range(type_name)
-            tries = 0
-            while not (lo <= lane <= hi) and tries < 20:
-                type_name = self.catalog.sample_type(rng)
-                lo, hi = self._lane_range(type_name)
-                tries += 1
-            if not (lo <= lane <= hi):
-                return
-            shape = self.catalog.sample(rng, type_name)
-            following = (not first) and rng.random() < p
-            if first:
-                gap = 0.0
-            elif following:
-                gap = float(rng.uniform(*self.platoon_gap))
-            else:
-                bump = math.exp(-0.5 * (pos / cluster_sigma) ** 2) if cluster_sigma > 0 else 0.0
-                gap = 2.0 + float(rng.uniform(1.0 - self.free_gap_spread, 1.0 + self.free_gap_spread)) * free_mean / (
-                    1.0 + max(cluster_gain, 0.0) * bump)
-            pos -= (0.5 * (prev_len + shape.length) + gap) if not first else 0.0
-            first = False
-            if pos < -self.behind:
-                return
-            if pos >= self.ahead:  # still in the run-in
-                prev_len = shape.length
-                prev_speed = None if not following else prev_speed
-                continue
-            ok = True
-            for (px, pl) in placed:
-                d = abs(pos - px)
-                d = min(d, self.ring - d)
-                if d < 0.5 * (pl + shape.length) + self.idm.min_gap + 2.0:
-                    ok = False
-                    break
-            prev_len = shape.length
-            if not ok:
+        for k, (name, shape, following) in enumerate(items):
+            if k > 0:
+                pos -= 0.5 * (lengths[k - 1] + lengths[k]) + gaps[k]
+            if name is None:  # the ego is already in place
                 prev_speed = None
                 continue
-            placed.append((pos, shape.length))
             if following and prev_speed is not None:
                 speed = prev_speed * (1.0 + self.platoon_boost)
             else:
                 speed = float(np.clip(rng.normal(1.0, self.speed_spread), 0.7, 1.3))
             prev_speed = speed
-            self._add(cw, shape, type_name, pos, lane, speed=speed)
+            x = -self.behind + (pos + self.behind) % self.ring
+            self._add(cw, shape, name, x, lane, speed=speed)
 
     def _add(self, cw: Carriageway, shape: VehicleShape, type_name: str, x: float, lane: int, ego: bool = False,
              speed: float | None = None):
@@ -474,17 +474,15 @@ class Traffic:
         self.own.can_change[0] = False  # the ego changes lanes only on its own schedule (ego_lane_change_every_s)
         self.own.lane_lo[0], self.own.lane_hi[0] = 0, n - 1
         lane_w = lane_profile(t["lane_density_weights"], n)
-        cl = t["cluster"]
         # scene-to-scene variation of the traffic volume: a Gamma factor of mean 1
         shape = float(t["scene_density_shape"])
         self.scene_density = float(rng.gamma(shape, 1.0 / shape)) if shape > 0 else 1.0
         for lane in range(n):
-            occ = [(0.0, ego_shape.length)] if lane == ego_lane else []
             self._spawn_lane(self.own, lane, float(t["density_per_km_lane"]) * lane_w[lane] * self.scene_density,
-                             float(cl["gain"]), float(cl["sigma_m"]), occ)
+                             ego_shape if lane == ego_lane else None)
         for lane in range(n):
             self._spawn_lane(self.opp, lane,
-                             float(t["opposite_density_per_km_lane"]) * lane_w[lane] * self.scene_density, 0.0, 0.0, [])
+                             float(t["opposite_density_per_km_lane"]) * lane_w[lane] * self.scene_density)
         for cw in (self.own, self.opp):
             cw.finalize()
             self._settle_speeds(cw)
@@ -527,7 +525,9 @@ class Traffic:
         """The ego changes to a random neighbouring lane every `ego_lane_change_every_s` seconds
         (uniform in that range), as soon as the gap there is accepted. Only lanes with a vehicle
         ahead within `ego_lane_change_lookahead_m` are chosen: the ego changes lanes to join
-        traffic, not into an empty lane."""
+        traffic, not into an empty lane; but when it has waited one further full period
+        (the lower bound of the range) any neighbouring lane with an accepted gap will do,
+        so a scene never stalls behind one leader."""
         if self.ego_lc_every is None:
             return
         own, p = self.own, self.idm
@@ -535,12 +535,14 @@ class Traffic:
         if self.ego_lc_timer > 0 or own.lane_from[0] >= 0:
             return
         k = int(own.lane[0])
+        # after waiting a further full period, any lane with an accepted gap will do (no scene-long stalls)
+        impatient = self.ego_lc_timer < -self.ego_lc_every[0]
         options = []
         for q in (k - 1, k + 1):
             if not 0 <= q < own.n_lanes:
                 continue
             j, d = _leader(0, q, own.x, own.lane, own.lane_from, 1, self.ring)
-            if j < 0 or d > self.ego_lc_lookahead:
+            if (j < 0 or d > self.ego_lc_lookahead) and not impatient:
                 continue
             if gap_accepted(0, q, own.x, own.lane, own.lane_from, own.v, own.v0, self.lane_factor, own._len, own.T,
                             p.accel, p.decel, p.min_gap, p.delta, 1, self.ring, self.lc_safe, self.ego_lc_time_gap):

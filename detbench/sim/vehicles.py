@@ -163,9 +163,16 @@ class VehicleCatalog:
             raise ValueError("vehicles.mix: weights must be >= 0 and not all zero")
         self.names = list(self.types)
         self.probs = w / w.sum()
+        self.deck_size = int(cfg.get("mix_deck_size", 0))
+        if self.deck_size < 0:
+            raise ValueError("vehicles.mix_deck_size must be >= 0 (0 draws every type independently)")
 
     def sample_type(self, rng: np.random.Generator) -> str:
         return self.names[int(rng.choice(len(self.names), p=self.probs))]
+
+    def deck(self, rng: np.random.Generator) -> "TypeDeck | None":
+        """A stratified type deck for one scene (None when `mix_deck_size` is 0)."""
+        return TypeDeck(self.names, self.probs, self.deck_size, rng) if self.deck_size > 0 else None
 
     def sample(self, rng: np.random.Generator, type_name: str | None = None) -> VehicleShape:
         """One vehicle: its class, label size (metres, margin included), parts and reflectivity."""
@@ -174,6 +181,35 @@ class VehicleCatalog:
         parts = build_parts(t.shape, L, W, H, rng)
         m = self.label_margin
         return VehicleShape(t.name, L + 2 * m, W + 2 * m, H + m, parts, float(rng.uniform(0.35, 0.95)))
+
+
+class TypeDeck:
+    """Vehicle types dealt from shuffled decks of `size` cards that hold the mix in proportion.
+
+    Each deck gets size x p_k cards of type k, rounded by systematic sampling (one random
+    offset, so the expected count is exactly size x p_k); a new deck is shuffled when one
+    runs out. Every type keeps its probability, but a scene's share of trucks or vans
+    scatters much less than with independent draws.
+    """
+
+    def __init__(self, names: list[str], probs: np.ndarray, size: int, rng: np.random.Generator):
+        self.names = list(names)
+        self.cdf = np.cumsum(np.asarray(probs, dtype=np.float64))
+        self.cdf[-1] = 1.0
+        self.size = int(size)
+        self.rng = rng
+        self.cards: list[int] = []
+
+    def _deal(self) -> None:
+        u = (self.rng.random() + np.arange(self.size)) / self.size
+        cards = np.searchsorted(self.cdf, u, side="right")
+        self.rng.shuffle(cards)
+        self.cards = [int(c) for c in cards]
+
+    def draw(self) -> str:
+        if not self.cards:
+            self._deal()
+        return self.names[self.cards.pop()]
 
 
 def label_box_local(parts: np.ndarray, margin: float = 0.0) -> np.ndarray:
@@ -186,4 +222,4 @@ def label_box_local(parts: np.ndarray, margin: float = 0.0) -> np.ndarray:
     return np.array([c[0], c[1], c[2], hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.0])
 
 
-__all__ = ["VehicleType", "VehicleShape", "VehicleCatalog", "build_parts", "label_box_local", "SHAPES"]
+__all__ = ["VehicleType", "VehicleShape", "VehicleCatalog", "TypeDeck", "build_parts", "label_box_local", "SHAPES"]
