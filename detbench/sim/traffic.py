@@ -412,6 +412,9 @@ class Traffic:
             if name is None:
                 break
             items.append((name, self.catalog.sample(rng, name), len(items) > 0 and rng.random() < p))
+        # a lane cannot hold more than bumper-to-bumper at min_gap_hard: drop the last ones (never the ego)
+        while len(items) > 1 and sum(it[1].length for it in items) + len(items) * self.idm.min_gap_hard > self.ring:
+            items.pop()
         n = len(items)
         lengths = np.array([it[1].length for it in items])
         follow = np.array([it[2] for it in items])
