@@ -1,0 +1,62 @@
+"""tools/check_calibration.py: the Table IV criteria and a tiny end-to-end run."""
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import check_calibration as cc  # noqa: E402
+
+from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
+from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+
+
+def paper_counts() -> np.ndarray:
+    return np.array([[PAPER_TABLE_IV[r][0]] + [PAPER_TABLE_IV[r][1][h][0] for h in cc.HEIGHTS] for r in RANGE_NAMES])
+
+
+def test_the_papers_own_counts_pass():
+    res = cc.check_counts(paper_counts())
+    assert res["ok"] and res["worst_abs_deviation"] < 0.006  # Table IV's LDRs are its counts, rounded
+
+
+def test_each_criterion_can_fail():
+    c = paper_counts().astype(float)
+    high = c.copy()
+    high[0, 2] = c[0, 0] * 0.79  # small at 1.0 m: 0.79 vs 0.73
+    res = cc.check_counts(high)
+    assert not res["within_tolerance"] and not res["low_pair_close"] and res["high_above_low"] and not res["ok"]
+    assert res["worst_abs_deviation"] == pytest.approx(0.06, abs=1e-9)
+    flat = c.copy()
+    flat[2, 3] = flat[2, 1]  # large: 1.8 m no better than 0.5 m
+    res = cc.check_counts(flat, tolerance=1.0)
+    assert res["within_tolerance"] and not res["high_above_low"] and not res["ok"]
+    empty = c.copy()
+    empty[1] = 0  # no vehicle in the moderate range: undefined, fails
+    res = cc.check_counts(empty)
+    assert not res["ok"] and res["worst_abs_deviation"] is None
+
+
+def test_tiny_run_writes_json_and_markdown(tmp_path):
+    out = tmp_path / "cal"
+    rc = cc.main(["--seeds", "0", "--frames", "40", "--frames-per-scene", "20", "--block-frames", "20",
+                  "--out", str(out), "--no-progress"])
+    assert rc == 0
+    rep = json.loads((out / "calibration.json").read_text())
+    runs = rep["seeds"]["0"]["runs"]
+    assert set(runs) == {"all", "block 0", "block 1"}
+    tot = sum(runs[k]["vehicles_per_frame"]["large"] for k in ("block 0", "block 1")) / 2
+    assert runs["all"]["vehicles_per_frame"]["large"] == pytest.approx(tot, abs=1e-3)
+    for r in RANGE_NAMES:
+        for h in cc.HEIGHTS:
+            v = runs["all"]["ldr"][r][h]
+            assert v is None or 0.0 <= v <= 1.0
+    assert "| 0 | all (40) |" in (out / "calibration.md").read_text()
+
+
+def test_bad_arguments_exit_2(tmp_path, capsys):
+    assert cc.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30", "--out", str(tmp_path)]) == 2
+    assert "multiple of the frames per scene" in capsys.readouterr().err
+    assert cc.main(["--set", "traffic.no_such_key=1", "--out", str(tmp_path)]) == 2

@@ -1,0 +1,213 @@
+#!/usr/bin/env python3
+"""Check the simulator's calibration against the paper's Table IV, per seed and per block.
+
+For each seed, streams `--frames` frames of the simulator (hit counts only, as
+`tools/analyze.py --simulate` does) at the paper's three heights and checks the issue's
+criteria for all vehicles:
+  1. every (range, height) LDR within +-`--tolerance` of Table IV;
+  2. 1.8 m above both lower heights in every range;
+  3. 0.5 m and 1.0 m within `--pair-tolerance` of each other in every range.
+It checks the whole run and each block of `--block-frames` consecutive frames (a shorter
+study, e.g. 2000 frames = 10 scenes), and reports the scatter of one scene's LDR (standard
+deviation across scenes) and the vehicles per frame against the paper's.
+
+Examples:
+  python tools/check_calibration.py                       # seeds 0 1 2, 8000 frames, blocks of 2000
+  python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 2000
+  python tools/check_calibration.py --set traffic.density_per_km_lane=10 --strict
+
+Writes OUT/calibration.json and OUT/calibration.md. LDR = detected / total (a fraction);
+deviations are LDR differences; vehicles per frame are counts per frame; times are seconds.
+With --strict the exit code is 1 when any whole run fails a criterion.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from detbench.config import ConfigError  # noqa: E402
+from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
+from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+
+HEIGHTS = ("0.5", "1.0", "1.8")
+PAPER_FRAMES = 8000
+
+
+def paper_arrays() -> tuple[np.ndarray, np.ndarray]:
+    """Table IV as arrays: LDR (3 ranges, 3 heights) and vehicles per frame (3 ranges)."""
+    ldr = np.array([[PAPER_TABLE_IV[r][1][h][1] for h in HEIGHTS] for r in RANGE_NAMES])
+    per_frame = np.array([PAPER_TABLE_IV[r][0] / PAPER_FRAMES for r in RANGE_NAMES])
+    return ldr, per_frame
+
+
+def check_counts(counts: np.ndarray, tolerance: float = 0.05, pair_tolerance: float = 0.03) -> dict:
+    """The criteria on summed counts (3 ranges, 1 + 3: total, then detected per height).
+
+    Returns LDR (3, 3), deviation from Table IV, the worst |deviation| and each criterion's
+    pass/fail. A range with no vehicle fails (its LDR is undefined).
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    total = counts[:, :1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ldr = np.where(total > 0, counts[:, 1:] / np.maximum(total, 1), np.nan)
+    paper, _ = paper_arrays()
+    dev = ldr - paper
+    finite = np.isfinite(ldr).all()
+    within = bool(finite and (np.abs(dev) <= tolerance + 1e-12).all())
+    order = bool(finite and (ldr[:, 2] > np.maximum(ldr[:, 0], ldr[:, 1])).all())
+    pair = bool(finite and (np.abs(ldr[:, 0] - ldr[:, 1]) <= pair_tolerance + 1e-12).all())
+    return {"ldr": ldr, "deviation": dev, "worst_abs_deviation": float(np.nanmax(np.abs(dev))) if finite else None,
+            "within_tolerance": within, "high_above_low": order, "low_pair_close": pair,
+            "ok": within and order and pair}
+
+
+def scene_counts(seed: int, frames: int, frames_per_scene: int | None, cfg: dict, progress: bool) -> np.ndarray:
+    """Counts per scene (scenes, 3 ranges, 1 + 3) from the streamed simulator."""
+    from detbench.eval.regions import region_masks
+    from detbench.sim import HighwaySimulator, lidar_preset
+
+    lidars = [lidar_preset(float(h)) for h in HEIGHTS]
+    per_scene: dict[int, np.ndarray] = {}
+    it = HighwaySimulator(cfg, seed).run(frames, lidars, frames_per_scene=frames_per_scene, with_points=False)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, total=frames, desc=f"seed {seed}", unit="frame", leave=False)
+    for step in it:
+        f0 = step[0]
+        acc = per_scene.setdefault(int(f0.scene_id), np.zeros((len(RANGE_NAMES), 1 + len(HEIGHTS)), np.int64))
+        masks = region_masks(f0.boxes[:, :2], f0.lanes)
+        for i, r in enumerate(RANGE_NAMES):
+            m = masks[(r, "all")]
+            acc[i, 0] += int(m.sum())
+            for j, f in enumerate(step):
+                acc[i, 1 + j] += int((m & (f.hit_counts >= 1)).sum())
+    return np.stack([per_scene[k] for k in sorted(per_scene)])
+
+
+def _jsonable(res: dict) -> dict:
+    out = {}
+    for k, v in res.items():
+        if isinstance(v, np.ndarray):
+            out[k] = {r: {h: (None if not np.isfinite(v[i, j]) else round(float(v[i, j]), 4))
+                          for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)}
+        else:
+            out[k] = v
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description="Check the simulator's LiDAR detection rates against the paper's "
+                                             "Table IV, per seed and per block of frames.",
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2], help="simulator seeds (default 0 1 2)")
+    ap.add_argument("--frames", type=int, default=8000, help="frames per seed (default 8000, the paper's)")
+    ap.add_argument("--block-frames", type=int, default=2000,
+                    help="also check each block of this many consecutive frames (default 2000; 0 = no blocks); "
+                         "a multiple of the frames per scene")
+    ap.add_argument("--frames-per-scene", type=int, default=None, help="frames per scene (default: the preset's, 200)")
+    ap.add_argument("--tolerance", type=float, default=0.05, help="allowed |LDR - Table IV| (default 0.05)")
+    ap.add_argument("--pair-tolerance", type=float, default=0.03,
+                    help="allowed |LDR(0.5 m) - LDR(1.0 m)| in each range (default 0.03)")
+    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default paper)")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="simulator config override, repeatable")
+    ap.add_argument("--out", default="runs/check_calibration", help="output folder for the JSON and Markdown")
+    ap.add_argument("--strict", action="store_true", help="exit with 1 when any whole run fails a criterion")
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from detbench.sim import load_sim_config
+
+    if args.frames <= 0 or args.block_frames < 0:
+        print("error: --frames must be > 0 and --block-frames >= 0", file=sys.stderr)
+        return 2
+    try:
+        cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
+    except (ConfigError, ValueError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    fps = int(args.frames_per_scene or cfg["scene"]["frames_per_scene"])
+    if args.block_frames and args.block_frames % fps:
+        print(f"error: --block-frames {args.block_frames} must be a multiple of the frames per scene ({fps}); "
+              f"set --frames-per-scene or change --block-frames", file=sys.stderr)
+        return 2
+    paper_ldr, paper_pf = paper_arrays()
+    report = {"preset": args.preset, "overrides": list(args.overrides), "frames": args.frames,
+              "frames_per_scene": fps, "block_frames": args.block_frames, "tolerance": args.tolerance,
+              "pair_tolerance": args.pair_tolerance, "units": {"ldr": "fraction detected / total",
+                                                               "vehicles_per_frame": "count per frame",
+                                                               "seconds": "wall-clock s"},
+              "paper": {"ldr": _jsonable({"x": paper_ldr})["x"],
+                        "vehicles_per_frame": {r: round(float(v), 3) for r, v in zip(RANGE_NAMES, paper_pf)}},
+              "seeds": {}}
+    md = [f"# Simulator calibration against Table IV ({args.preset} preset)", "",
+          f"{args.frames} frames per seed, scenes of {fps} frames, blocks of {args.block_frames} frames; "
+          f"criteria: every |LDR - paper| <= {args.tolerance}, 1.8 m above both lower heights, "
+          f"|LDR(0.5) - LDR(1.0)| <= {args.pair_tolerance}. LDR is a fraction; vehicles per frame a count.", "",
+          "| seed | run | LDR small 0.5/1.0/1.8 | moderate | large | worst abs dev | veh/frame s/m/l | ok |",
+          "| --- | --- | --- | --- | --- | --- | --- | --- |",
+          "| paper | 8000 | " + " | ".join(" / ".join(f"{v:.2f}" for v in paper_ldr[i]) for i in range(3))
+          + " | - | " + " / ".join(f"{v:.2f}" for v in paper_pf) + " | - |"]
+    any_fail = False
+    for seed in args.seeds:
+        t0 = time.perf_counter()
+        S = scene_counts(seed, args.frames, fps, cfg, not args.no_progress)
+        secs = time.perf_counter() - t0
+        n_frames = args.frames
+        runs = [("all", S, n_frames)]
+        if args.block_frames:
+            per = args.block_frames // fps
+            for b in range(S.shape[0] // per):
+                runs.append((f"block {b}", S[b * per:(b + 1) * per], args.block_frames))
+        seed_rep = {"seconds": round(secs, 1), "runs": {}}
+        with np.errstate(invalid="ignore", divide="ignore"):
+            per_scene_ldr = S[:, :, 1:] / np.where(S[:, :, :1] > 0, S[:, :, :1], np.nan)
+        seed_rep["scene_ldr_std"] = _jsonable({"x": np.nanstd(per_scene_ldr, axis=0)})["x"]
+        for name, block, nf in runs:
+            res = check_counts(block.sum(0), args.tolerance, args.pair_tolerance)
+            res["vehicles_per_frame"] = {r: round(float(block[:, i, 0].sum() / nf), 3)
+                                         for i, r in enumerate(RANGE_NAMES)}
+            seed_rep["runs"][name] = _jsonable(res)
+            if name == "all" and not res["ok"]:
+                any_fail = True
+            worst = res["worst_abs_deviation"]
+            md.append(f"| {seed} | {name} ({nf}) | "
+                      + " | ".join(" / ".join(f"{v:.3f}" for v in res["ldr"][i]) for i in range(3))
+                      + f" | {'-' if worst is None else f'{worst:.3f}'} | "
+                      + " / ".join(f"{v:.2f}" for v in res["vehicles_per_frame"].values())
+                      + f" | {'yes' if res['ok'] else 'no'} |")
+        report["seeds"][str(seed)] = seed_rep
+        summary = seed_rep["runs"]["all"]
+        worst = summary["worst_abs_deviation"]
+        shown = None if worst is None else round(worst, 3)
+        print(f"seed {seed}: {args.frames} frames in {secs:.0f} s, worst |dLDR| {shown}, "
+              f"ok={summary['ok']}; blocks ok: "
+              f"{sum(r['ok'] for k, r in seed_rep['runs'].items() if k != 'all')}/{len(runs) - 1}", flush=True)
+    md += ["", "Scatter of one scene's LDR (standard deviation across scenes, small / moderate / large at "
+               "0.5 / 1.0 / 1.8 m):", ""]
+    for seed, rep in report["seeds"].items():
+        std = rep["scene_ldr_std"]
+        cells = ["{} {}".format(r, " / ".join("-" if std[r][h] is None else f"{std[r][h]:.3f}" for h in HEIGHTS))
+                 for r in RANGE_NAMES]
+        md.append(f"- seed {seed}: " + "; ".join(cells))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "calibration.json", report)
+    atomic_write_text(out / "calibration.md", "\n".join(md) + "\n")
+    print(f"wrote {out / 'calibration.json'}, {out / 'calibration.md'}")
+    return 1 if (args.strict and any_fail) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
