@@ -69,38 +69,37 @@ def check_counts(counts: np.ndarray, tolerance: float = 0.05, pair_tolerance: fl
 
 
 def scene_counts(seed: int, frames: int, frames_per_scene: int | None, cfg: dict, progress: bool) -> np.ndarray:
-    """Counts per scene (scenes, 3 ranges, 1 + 3) from the streamed simulator."""
-    from detbench.eval.regions import region_masks
+    """Counts per scene (scenes, 3 ranges, 1 + 3: total, then detected per height), all vehicles,
+    counted by one `AbilityStudy` per scene (the study's own rule, as in tools/analyze.py)."""
+    from detbench.eval.ability import AbilityStudy
     from detbench.sim import HighwaySimulator, lidar_preset
 
     lidars = [lidar_preset(float(h)) for h in HEIGHTS]
-    per_scene: dict[int, np.ndarray] = {}
+    studies: dict[int, AbilityStudy] = {}
     it = HighwaySimulator(cfg, seed).run(frames, lidars, frames_per_scene=frames_per_scene, with_points=False)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, total=frames, desc=f"seed {seed}", unit="frame", leave=False)
     for step in it:
-        f0 = step[0]
-        acc = per_scene.setdefault(int(f0.scene_id), np.zeros((len(RANGE_NAMES), 1 + len(HEIGHTS)), np.int64))
-        masks = region_masks(f0.boxes[:, :2], f0.lanes)
+        study = studies.setdefault(int(step[0].scene_id), AbilityStudy(thresholds=(1,), keep_example=False))
+        study.add(step, counts=[f.hit_counts for f in step])
+    out = np.zeros((len(studies), len(RANGE_NAMES), 1 + len(HEIGHTS)), np.int64)
+    for k, scene in enumerate(sorted(studies)):
         for i, r in enumerate(RANGE_NAMES):
-            m = masks[(r, "all")]
-            acc[i, 0] += int(m.sum())
-            for j, f in enumerate(step):
-                acc[i, 1 + j] += int((m & (f.hit_counts >= 1)).sum())
-    return np.stack([per_scene[k] for k in sorted(per_scene)])
+            cells = [studies[scene].cell(h, r, "all") for h in HEIGHTS]
+            out[k, i] = [cells[0]["total"]] + [c["detected"] for c in cells]
+    return out
+
+
+def _grid(values: np.ndarray) -> dict:
+    """A (3 ranges, 3 heights) array as {range: {height: value or None}}, rounded to 4 places."""
+    return {r: {h: (None if not np.isfinite(values[i, j]) else round(float(values[i, j]), 4))
+                for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)}
 
 
 def _jsonable(res: dict) -> dict:
-    out = {}
-    for k, v in res.items():
-        if isinstance(v, np.ndarray):
-            out[k] = {r: {h: (None if not np.isfinite(v[i, j]) else round(float(v[i, j]), 4))
-                          for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)}
-        else:
-            out[k] = v
-    return out
+    return {k: (_grid(v) if isinstance(v, np.ndarray) else v) for k, v in res.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -148,7 +147,7 @@ def main(argv=None) -> int:
               "pair_tolerance": args.pair_tolerance, "units": {"ldr": "fraction detected / total",
                                                                "vehicles_per_frame": "count per frame",
                                                                "seconds": "wall-clock s"},
-              "paper": {"ldr": _jsonable({"x": paper_ldr})["x"],
+              "paper": {"ldr": _grid(paper_ldr),
                         "vehicles_per_frame": {r: round(float(v), 3) for r, v in zip(RANGE_NAMES, paper_pf)}},
               "seeds": {}}
     md = [f"# Simulator calibration against Table IV ({args.preset} preset)", "",
@@ -173,7 +172,7 @@ def main(argv=None) -> int:
         seed_rep = {"seconds": round(secs, 1), "runs": {}}
         with np.errstate(invalid="ignore", divide="ignore"):
             per_scene_ldr = S[:, :, 1:] / np.where(S[:, :, :1] > 0, S[:, :, :1], np.nan)
-        seed_rep["scene_ldr_std"] = _jsonable({"x": np.nanstd(per_scene_ldr, axis=0)})["x"]
+        seed_rep["scene_ldr_std"] = _grid(np.nanstd(per_scene_ldr, axis=0))
         for name, block, nf in runs:
             res = check_counts(block.sum(0), args.tolerance, args.pair_tolerance)
             res["vehicles_per_frame"] = {r: round(float(block[:, i, 0].sum() / nf), 3)

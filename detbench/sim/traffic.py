@@ -388,9 +388,11 @@ class Traffic:
         its probability), so scenes differ in where the vehicles are, not in how many there
         are. Going from the front to the back, each vehicle follows the one ahead at a short
         platoon gap (uniform in `platoon.gap_m`, bumper to bumper) with probability
-        `platoon.follow_fraction`, else at a free gap of 2 m plus a weight uniform in
-        [1 - spread, 1 + spread] (`platoon.free_gap_spread`; 1 gives the most irregular
-        traffic); the free gaps are then scaled so that the ring is filled exactly. A
+        `platoon.follow_fraction`, else at a free gap of min_gap + 0.5 m plus a share of the
+        room left, in proportion to a weight uniform in [1 - spread, 1 + spread]
+        (`platoon.free_gap_spread`; 1 gives the most irregular traffic), so that the ring is
+        filled exactly. A lane too short for its vehicles bumper to bumper at min_gap_hard
+        keeps only those that fit (never dropping the ego). A
         follower's desired speed is its leader's plus `platoon.follower_speed_boost`, so
         platoons stay together; other vehicles draw their own. On the ego's lane the ego
         (`ego_shape`, already added at x = 0) is the first vehicle of the ring and counts
