@@ -67,7 +67,8 @@ def test_frames_layout(small_lidars):
 def test_hit_counts_equal_points_in_boxes(small_lidars):
     from detbench.ops import points_in_boxes
 
-    cfg = load_sim_config()
+    # dense traffic, so that the comparison covers many points whatever the calibration
+    cfg = load_sim_config("paper", ["traffic.density_per_km_lane=16"])
     lidars = small_lidars + [lidar_preset(1.0)]
     with_pts = _run(cfg, 3, 3, lidars, fps=3)
     no_pts = _run(cfg, 3, 3, lidars, fps=3, with_points=False)
