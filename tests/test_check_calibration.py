@@ -60,3 +60,21 @@ def test_bad_arguments_exit_2(tmp_path, capsys):
     assert cc.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30", "--out", str(tmp_path)]) == 2
     assert "multiple of the frames per scene" in capsys.readouterr().err
     assert cc.main(["--set", "traffic.no_such_key=1", "--out", str(tmp_path)]) == 2
+
+
+def test_pooled_row_sums_the_seeds(tmp_path):
+    out = tmp_path / "cal"
+    assert cc.main(["--seeds", "0", "1", "--frames", "20", "--frames-per-scene", "20", "--block-frames", "0",
+                    "--out", str(out), "--no-progress"]) == 0
+    rep = json.loads((out / "calibration.json").read_text())
+    per_seed = [rep["seeds"][s]["runs"]["all"]["vehicles_per_frame"]["large"] for s in ("0", "1")]
+    assert rep["pooled"]["frames"] == 40 and rep["pooled"]["seeds"] == [0, 1]
+    assert rep["pooled"]["vehicles_per_frame"]["large"] == pytest.approx(sum(per_seed) / 2, abs=1e-3)
+    assert "| pooled | all seeds (40) |" in (out / "calibration.md").read_text()
+    # a pooled LDR is a count-weighted mean of the seeds' LDRs: it lies between them
+    for r in RANGE_NAMES:
+        for h in cc.HEIGHTS:
+            seeds = [rep["seeds"][s]["runs"]["all"]["ldr"][r][h] for s in ("0", "1")]
+            pooled = rep["pooled"]["ldr"][r][h]
+            if None not in seeds:
+                assert min(seeds) - 1e-4 <= pooled <= max(seeds) + 1e-4

@@ -8,7 +8,7 @@ criteria for all vehicles:
   2. 1.8 m above both lower heights in every range;
   3. 0.5 m and 1.0 m within `--pair-tolerance` of each other in every range.
 It checks the whole run and each block of `--block-frames` consecutive frames (a shorter
-study, e.g. 2000 frames = 10 scenes), and reports the scatter of one scene's LDR (standard
+study, e.g. 2000 frames = 10 scenes), then the counts of all seeds pooled, and reports the scatter of one scene's LDR (standard
 deviation across scenes) and the vehicles per frame against the paper's.
 
 Examples:
@@ -92,6 +92,22 @@ def scene_counts(seed: int, frames: int, frames_per_scene: int | None, cfg: dict
     return out
 
 
+def summarize(block: np.ndarray, frames: int, tolerance: float, pair_tolerance: float) -> dict:
+    """`check_counts` on a block of scene counts (scenes, 3, 4), plus its vehicles per frame."""
+    res = check_counts(block.sum(0), tolerance, pair_tolerance)
+    res["vehicles_per_frame"] = {r: round(float(block[:, i, 0].sum() / frames), 3) for i, r in enumerate(RANGE_NAMES)}
+    return res
+
+
+def _md_row(seed: str, name: str, frames: int, res: dict) -> str:
+    worst = res["worst_abs_deviation"]
+    return (f"| {seed} | {name} ({frames}) | "
+            + " | ".join(" / ".join(f"{v:.3f}" for v in res["ldr"][i]) for i in range(3))
+            + f" | {'-' if worst is None else f'{worst:.3f}'} | "
+            + " / ".join(f"{v:.2f}" for v in res["vehicles_per_frame"].values())
+            + f" | {'yes' if res['ok'] else 'no'} |")
+
+
 def _grid(values: np.ndarray) -> dict:
     """A (3 ranges, 3 heights) array as {range: {height: value or None}}, rounded to 4 places."""
     return {r: {h: (None if not np.isfinite(values[i, j]) else round(float(values[i, j]), 4))
@@ -159,12 +175,13 @@ def main(argv=None) -> int:
           "| paper | 8000 | " + " | ".join(" / ".join(f"{v:.2f}" for v in paper_ldr[i]) for i in range(3))
           + " | - | " + " / ".join(f"{v:.2f}" for v in paper_pf) + " | - |"]
     any_fail = False
+    all_scenes = []
     for seed in args.seeds:
         t0 = time.perf_counter()
         S = scene_counts(seed, args.frames, fps, cfg, not args.no_progress)
+        all_scenes.append(S)
         secs = time.perf_counter() - t0
-        n_frames = args.frames
-        runs = [("all", S, n_frames)]
+        runs = [("all", S, args.frames)]
         if args.block_frames:
             per = args.block_frames // fps
             for b in range(S.shape[0] // per):
@@ -174,18 +191,11 @@ def main(argv=None) -> int:
             per_scene_ldr = S[:, :, 1:] / np.where(S[:, :, :1] > 0, S[:, :, :1], np.nan)
         seed_rep["scene_ldr_std"] = _grid(np.nanstd(per_scene_ldr, axis=0))
         for name, block, nf in runs:
-            res = check_counts(block.sum(0), args.tolerance, args.pair_tolerance)
-            res["vehicles_per_frame"] = {r: round(float(block[:, i, 0].sum() / nf), 3)
-                                         for i, r in enumerate(RANGE_NAMES)}
+            res = summarize(block, nf, args.tolerance, args.pair_tolerance)
             seed_rep["runs"][name] = _jsonable(res)
             if name == "all" and not res["ok"]:
                 any_fail = True
-            worst = res["worst_abs_deviation"]
-            md.append(f"| {seed} | {name} ({nf}) | "
-                      + " | ".join(" / ".join(f"{v:.3f}" for v in res["ldr"][i]) for i in range(3))
-                      + f" | {'-' if worst is None else f'{worst:.3f}'} | "
-                      + " / ".join(f"{v:.2f}" for v in res["vehicles_per_frame"].values())
-                      + f" | {'yes' if res['ok'] else 'no'} |")
+            md.append(_md_row(str(seed), name, nf, res))
         report["seeds"][str(seed)] = seed_rep
         summary = seed_rep["runs"]["all"]
         worst = summary["worst_abs_deviation"]
@@ -193,6 +203,14 @@ def main(argv=None) -> int:
         print(f"seed {seed}: {args.frames} frames in {secs:.0f} s, worst |dLDR| {shown}, "
               f"ok={summary['ok']}; blocks ok: "
               f"{sum(r['ok'] for k, r in seed_rep['runs'].items() if k != 'all')}/{len(runs) - 1}", flush=True)
+    if len(args.seeds) > 1:
+        pooled_frames = args.frames * len(args.seeds)
+        res = summarize(np.concatenate(all_scenes), pooled_frames, args.tolerance, args.pair_tolerance)
+        report["pooled"] = {"seeds": list(args.seeds), "frames": pooled_frames, **_jsonable(res)}
+        md.append(_md_row("pooled", "all seeds", pooled_frames, res))
+        print(f"pooled over seeds {' '.join(map(str, args.seeds))}: worst |dLDR| "
+              f"{None if res['worst_abs_deviation'] is None else round(res['worst_abs_deviation'], 3)}, "
+              f"ok={res['ok']}", flush=True)
     md += ["", "Scatter of one scene's LDR (standard deviation across scenes, small / moderate / large at "
                "0.5 / 1.0 / 1.8 m):", ""]
     for seed, rep in report["seeds"].items():
