@@ -287,3 +287,71 @@ def test_simulator_counts_match_points_in_boxes(tmp_path):
     assert a["heights"] == b["heights"] and a["extras"]["min_points"] == b["extras"]["min_points"]
     assert a["extras"]["ldr_vs_distance"] == b["extras"]["ldr_vs_distance"]
     assert cell(a, "0.5", "large", "all")["total"] > 0
+
+
+# ----------------------------------------------------------------------------- sampling uncertainty
+
+def _scene_study(ldrs_05, ldrs_18=None, vehicles=10, frames=4, bootstrap=400, seed=0):
+    """Scenes with a known LDR each: `vehicles` cars in the small range per frame, the first
+    round(ldr x vehicles) detected (counts given, no points needed)."""
+    st = AbilityStudy(thresholds=(1,), keep_example=False, bootstrap=bootstrap, bootstrap_seed=seed)
+    boxes = [car(4.0 + 4.5 * k, 0.0) for k in range(vehicles)]
+    for s, l05 in enumerate(ldrs_05):
+        l18 = l05 if ldrs_18 is None else ldrs_18[s]
+        for i in range(frames):
+            fid = f"{s:04d}_{i:03d}"
+            fs, cs = [], []
+            for h, l in ((0.5, l05), (1.8, l18)):
+                fs.append(frame(boxes, [], height=h, fid=fid))
+                cs.append((np.arange(vehicles) < round(l * vehicles)).astype(np.int64))
+            st.add(fs, counts=cs)
+    return st
+
+
+def test_bootstrap_interval_covers_the_estimate_and_shrinks_with_scenes():
+    few = _scene_study([0.4, 0.9, 0.6, 0.7]).report()["extras"]["uncertainty"]
+    many = _scene_study([0.4, 0.9, 0.6, 0.7] * 9).report()["extras"]["uncertainty"]
+    assert few["clusters"] == "scene" and few["num_clusters"] == 4 and many["num_clusters"] == 36
+    lo, hi = few["heights"]["0.5"]["small"]["all"]["ci95"]
+    assert lo < 0.65 < hi and 0.4 <= lo and hi <= 0.9  # the pooled 0.65 inside, within the scenes' range
+    mlo, mhi = many["heights"]["0.5"]["small"]["all"]["ci95"]
+    assert mlo < 0.65 < mhi and (mhi - mlo) < 0.6 * (hi - lo)  # 9x the scenes: about a third of the width
+    # one scene's scatter: the sample std of 0.4 / 0.9 / 0.6 / 0.7
+    assert few["heights"]["0.5"]["small"]["all"]["scene_std"] == pytest.approx(np.std([0.4, 0.9, 0.6, 0.7], ddof=1),
+                                                                               abs=1e-6)
+    # deterministic for a seed, different for another
+    again = _scene_study([0.4, 0.9, 0.6, 0.7]).report()["extras"]["uncertainty"]
+    other = _scene_study([0.4, 0.9, 0.6, 0.7], seed=1).report()["extras"]["uncertainty"]
+    assert again == few and other["heights"] != few["heights"]
+
+
+def test_paired_height_difference_is_tight_when_heights_move_together():
+    # every scene: 1.8 m sees exactly 0.2 more than 0.5 m, whatever the scene's level
+    st = _scene_study([0.3, 0.7, 0.5, 0.6, 0.4], ldrs_18=[0.5, 0.9, 0.7, 0.8, 0.6])
+    unc = st.report()["extras"]["uncertainty"]
+    d = unc["differences"]["1.8-0.5"]["small"]["all"]
+    assert d["diff"] == pytest.approx(0.2) and d["ci95"] == pytest.approx([0.2, 0.2])
+    wide = unc["heights"]["0.5"]["small"]["all"]["ci95"]
+    assert wide[1] - wide[0] > 0.1  # the LDR itself is uncertain; the paired difference is not
+    # identical heights: a zero difference exactly
+    same = _scene_study([0.3, 0.7]).report()["extras"]["uncertainty"]["differences"]["1.8-0.5"]["small"]["all"]
+    assert same == {"diff": 0.0, "ci95": [0.0, 0.0]}
+
+
+def test_uncertainty_needs_two_scenes_and_frames_without_scene_count_alone():
+    one = _scene_study([0.5]).report()["extras"]["uncertainty"]
+    assert one["num_clusters"] == 1 and "note" in one
+    assert one["heights"]["0.5"]["small"]["all"] == {"ci95": None, "scene_std": None}
+    off = _scene_study([0.5, 0.7], bootstrap=0).report()["extras"]["uncertainty"]
+    assert off["heights"]["0.5"]["small"]["all"]["ci95"] is None
+    with pytest.raises(ValueError, match="bootstrap"):
+        AbilityStudy(bootstrap=-1)
+    st = AbilityStudy(thresholds=(1,), keep_example=False, bootstrap=200)
+    for i in range(3):
+        f = frame([car(10, 0)], [], fid=f"f{i}")
+        f.scene_id = ""
+        st.add(f, counts=np.array([i % 2]))
+    unc = st.report()["extras"]["uncertainty"]
+    assert unc["clusters"] == "frame" and unc["num_clusters"] == 3
+    md = ability_markdown(_scene_study([0.4, 0.9, 0.6]).report())
+    assert "## Sampling uncertainty" in md and "1.8-0.5 m difference" in md

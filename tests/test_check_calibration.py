@@ -78,3 +78,33 @@ def test_pooled_row_sums_the_seeds(tmp_path):
             pooled = rep["pooled"]["ldr"][r][h]
             if None not in seeds:
                 assert min(seeds) - 1e-4 <= pooled <= max(seeds) + 1e-4
+
+
+def test_precision_from_scene_scatter():
+    paper, _ = cc.paper_arrays()
+    rng = np.random.default_rng(0)
+    # 50 scenes of 1000 vehicles per range whose LDRs scatter by 0.1 around the paper's
+    ldr = np.clip(paper[None] + rng.normal(0, 0.1, (50, 3, 3)), 0, 1)
+    scenes = np.concatenate([np.full((50, 3, 1), 1000.0), np.round(ldr * 1000)], axis=2)
+    p = cc.precision(scenes, paper, 0.05, 10)
+    std = p["scene_std"]["large"]["0.5"]
+    assert 0.07 < std < 0.13 and p["scenes"] == 50 and p["scenes_per_block"] == 10
+    assert p["half_width_95_at_block"]["large"]["0.5"] == pytest.approx(1.96 * std / np.sqrt(10), abs=1e-3)
+    pooled = p["pooled_ldr"]["large"]["0.5"]
+    expect = np.ceil((1.96 * std / (0.05 - abs(pooled - 0.63))) ** 2)
+    assert p["scenes_needed"]["large"]["0.5"] == pytest.approx(expect, abs=1)
+    # a pooled LDR off by more than the tolerance: no study length helps
+    off = scenes.copy()
+    off[:, 0, 1] = np.round(off[:, 0, 0] * 0.5)  # small at 0.5 m: 0.5 against the paper's 0.73
+    assert cc.precision(off, paper, 0.05, 10)["scenes_needed"]["small"]["0.5"] is None
+    # one scene: no scatter to speak of
+    assert cc.precision(scenes[:1], paper, 0.05, None)["scene_std"]["small"]["1.8"] is None
+
+
+def test_tiny_run_reports_precision(tmp_path):
+    out = tmp_path / "cal"
+    assert cc.main(["--seeds", "0", "--frames", "60", "--frames-per-scene", "20", "--block-frames", "40",
+                    "--out", str(out), "--no-progress"]) == 0
+    rep = json.loads((out / "calibration.json").read_text())
+    assert rep["precision"]["scenes"] == 3 and rep["precision"]["scenes_per_block"] == 2
+    assert "Precision (all seeds' scenes)" in (out / "calibration.md").read_text()

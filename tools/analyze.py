@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--skip-bad", action="store_true",
                     help="(--data) skip instants with a malformed file at any height and list them in the JSON, "
                          "instead of stopping at the first")
+    ap.add_argument("--bootstrap", type=int, default=1000, metavar="B",
+                    help="replicates of the scene bootstrap behind the 95 %% intervals in the report (default 1000; "
+                         "0 = no intervals). Scenes, not frames, are resampled: frames of a scene are correlated")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap
 
@@ -174,7 +177,7 @@ def main(argv=None) -> int:
     try:
         study = AbilityStudy(thresholds=args.thresholds, distance_bin=args.distance_bin, lane_width=lane_width,
                              keep_example=not args.no_figures and not sim_counts,
-                             example_frame_id=args.example_frame)
+                             example_frame_id=args.example_frame, bootstrap=args.bootstrap)
     except ValueError as e:
         raise SystemExit(f"error: {e}") from None
     t0 = time.perf_counter()
@@ -212,6 +215,14 @@ def main(argv=None) -> int:
         cells = [report["heights"][h][r]["all"] for h in heights]
         print(f"{r:<10}" + "".join(f"{c['detected']:>9}/{c['total']:<6} {c['ldr']:.2f}" if c["total"] else
                                    f"{'-':>20}" for c in cells))
+    unc = report["extras"]["uncertainty"]
+    if unc["heights"] and unc["heights"][heights[0]]["large"]["all"]["ci95"] is not None:
+        worst = max((unc["heights"][h][r]["all"]["ci95"][1] - unc["heights"][h][r]["all"]["ci95"][0]) / 2
+                    for h in heights for r in RANGE_NAMES if unc["heights"][h][r]["all"]["ci95"] is not None)
+        print(f"sampling uncertainty ({unc['num_clusters']} {unc['clusters']}s, 95 % bootstrap): LDR within "
+              f"+-{worst:.3f} at worst (half-width of the interval; see ability.md)")
+    else:
+        print("sampling uncertainty: not estimated (needs at least 2 scenes and --bootstrap > 0)")
     print("wrote: " + ", ".join(str(p) for p in written))
     return 0
 

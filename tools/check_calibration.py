@@ -11,6 +11,12 @@ It checks the whole run and each block of `--block-frames` consecutive frames (a
 study, e.g. 2000 frames = 10 scenes), then the counts of all seeds pooled, and reports the scatter of one scene's LDR (standard
 deviation across scenes) and the vehicles per frame against the paper's.
 
+It also states the precision a study of a given length can have (`precision` in the JSON):
+from the scene scatter s over all seeds, a block of n scenes is uncertain by about
++-1.96 s / sqrt(n) (95 %, normal approximation), and a cell whose pooled LDR is off the
+paper by d needs about (1.96 s / (tolerance - d))^2 scenes for its block LDR to stay within
+the tolerance 95 % of the time (per cell; all nine cells at once need more).
+
 Examples:
   python tools/check_calibration.py                       # seeds 0 1 2, 8000 frames, blocks of 2000
   python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 2000
@@ -23,6 +29,8 @@ With --strict the exit code is 1 when any whole run fails a criterion.
 from __future__ import annotations
 
 import argparse
+import math
+import warnings
 import sys
 import time
 from pathlib import Path
@@ -118,6 +126,39 @@ def _jsonable(res: dict) -> dict:
     return {k: (_grid(v) if isinstance(v, np.ndarray) else v) for k, v in res.items()}
 
 
+def precision(scenes: np.ndarray, paper_ldr: np.ndarray, tolerance: float, scenes_per_block: int | None) -> dict:
+    """How precise a study of n scenes is, from scene counts (scenes, 3 ranges, 4: total, detected x 3 heights).
+
+    scene_std: std (ddof 1) of one scene's LDR across scenes (scenes with vehicles in the range);
+    half_width_95_at_block: 1.96 std / sqrt(scenes_per_block); scenes_needed: the n with
+    1.96 std / sqrt(n) <= tolerance - |pooled LDR - paper| (None where the pooled LDR is off by
+    the tolerance or more). Normal approximation, per cell.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        per = scenes[:, :, 1:] / np.where(scenes[:, :, :1] > 0, scenes[:, :, :1], np.nan)
+        tot = scenes.sum(0)
+        pooled = tot[:, 1:] / np.where(tot[:, :1] > 0, tot[:, :1], np.nan)
+    std = np.full(per.shape[1:], np.nan)
+    valid = np.isfinite(per).sum(0) >= 2
+    if valid.any():
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # cells with fewer than 2 scenes stay NaN
+            std = np.where(valid, np.nanstd(per, axis=0, ddof=1), np.nan)
+    margin = tolerance - np.abs(pooled - paper_ldr)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        needed = np.where((margin > 0) & np.isfinite(std), np.ceil((1.96 * std / margin) ** 2), np.nan)
+    half = 1.96 * std / math.sqrt(scenes_per_block) if scenes_per_block else None
+    finite = std[np.isfinite(std)]
+    return {"scenes": int(scenes.shape[0]), "scenes_per_block": scenes_per_block,
+            "scene_std": _grid(std), "scene_std_range": [round(float(finite.min()), 4), round(float(finite.max()), 4)]
+            if finite.size else [None, None],
+            "pooled_ldr": _grid(pooled), "half_width_95_at_block": None if half is None else _grid(half),
+            "scenes_needed": {r: {h: (None if not np.isfinite(needed[i, j]) else max(int(needed[i, j]), 1))
+                                  for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)},
+            "method": "normal approximation per cell: half-width 1.96 std / sqrt(n); needed n from the margin "
+                      "tolerance - |pooled - paper|"}
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description="Check the simulator's LiDAR detection rates against the paper's "
                                              "Table IV, per seed and per block of frames.",
@@ -211,6 +252,31 @@ def main(argv=None) -> int:
         print(f"pooled over seeds {' '.join(map(str, args.seeds))}: worst |dLDR| "
               f"{None if res['worst_abs_deviation'] is None else round(res['worst_abs_deviation'], 3)}, "
               f"ok={res['ok']}", flush=True)
+    prec = precision(np.concatenate(all_scenes), paper_ldr, args.tolerance,
+                     args.block_frames // fps if args.block_frames else None)
+    report["precision"] = prec
+    hw = prec["half_width_95_at_block"]
+    need = [v for r in RANGE_NAMES for v in prec["scenes_needed"][r].values()]
+    need_txt = "more than any finite study (a pooled LDR is off by the tolerance or more)" if None in need \
+        else f"{min(need)}-{max(need)} scenes per cell"
+    if hw is not None:
+        vals = [v for r in RANGE_NAMES for v in hw[r].values() if v is not None]
+        print(f"precision: one scene's LDR scatters by {prec['scene_std_range'][0]:.3f}-{prec['scene_std_range'][1]:.3f}; "
+              f"a block of {prec['scenes_per_block']} scenes is uncertain by +-{min(vals):.3f} to +-{max(vals):.3f} "
+              f"(95 %); staying within +-{args.tolerance} 95 % of the time needs {need_txt}", flush=True)
+    md += ["", f"Precision (all seeds' scenes): one scene's LDR scatters by {prec['scene_std_range'][0]:.3f}-"
+               f"{prec['scene_std_range'][1]:.3f} (std across scenes)"
+               + (f"; a block of {prec['scenes_per_block']} scenes is uncertain by about +-1.96 std / "
+                  f"sqrt({prec['scenes_per_block']}) (95 %)" if hw is not None else "")
+               + f"; to keep a cell within +-{args.tolerance} of the paper 95 % of the time, given its pooled "
+                 f"offset from the paper, needs {need_txt}.", "",
+           "| range | scenes needed 0.5 / 1.0 / 1.8 m | 95 % half-width of a block 0.5 / 1.0 / 1.8 m |",
+           "| --- | --- | --- |"]
+    for r in RANGE_NAMES:
+        nd = " / ".join("-" if prec["scenes_needed"][r][h] is None else str(prec["scenes_needed"][r][h])
+                        for h in HEIGHTS)
+        hh = "-" if hw is None else " / ".join("-" if hw[r][h] is None else f"{hw[r][h]:.3f}" for h in HEIGHTS)
+        md.append(f"| {r} | {nd} | {hh} |")
     md += ["", "Scatter of one scene's LDR (standard deviation across scenes, small / moderate / large at "
                "0.5 / 1.0 / 1.8 m):", ""]
     for seed, rep in report["seeds"].items():

@@ -12,7 +12,11 @@ Definitions (exactly the paper's; ranges and levels live in detbench.eval.region
 
 Extras: the same counts for other minimum numbers of points (5 and 10 by default), LDR
 against the centre's distance along x (10 m bins, vehicles with |y| <= 15 m), the mean
-number of points on a detected vehicle, vehicles per frame.
+number of points on a detected vehicle, vehicles per frame, and the sampling uncertainty
+(`scene_uncertainty`): 95 % intervals of every LDR and of the paired differences between
+heights from a bootstrap over scenes. Frames of one scene are 0.5 s apart and strongly
+correlated, so scenes (not frames) are resampled; the per-scene scatter of LDR tells how
+many scenes a study needs for a given precision.
 
 `AbilityStudy` is a streaming accumulator: feed it frames from disk or from the simulator
 (`.add(frame)` or `.add([frame per height])`) and ask for `.report()` (a JSON-ready dict)
@@ -41,6 +45,7 @@ PAPER_TABLE_IV = {  # Height3 paper, Table IV (8000 frames): total, then (detect
     "moderate": (39455, {"0.5": (26407, 0.67), "1.0": (26216, 0.66), "1.8": (32074, 0.81)}),
     "large": (54097, {"0.5": (34296, 0.63), "1.0": (34339, 0.63), "1.8": (42185, 0.78)}),
 }
+DEFAULT_BOOTSTRAP = 1000  # bootstrap replicates of the scene resampling
 CELLS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)  # 9 (range, level)
 _LARGE_ALL = CELLS.index(("large", "all"))
 
@@ -106,6 +111,8 @@ class AbilityStudy:
         lane_width: metres, used only for boxes whose lane is LANE_UNKNOWN.
         keep_example: keep the instant whose heights differ most in detected vehicles (large
             range) for the bird's-eye figure; `example_frame_id` forces a given id instead.
+        bootstrap: replicates of the scene bootstrap behind extras["uncertainty"] (0 = none).
+        bootstrap_seed: seed of the bootstrap (the same counts and seed give the same intervals).
 
     Per frame the cost is one points_in_boxes call and a few vectorised numpy operations;
     the nine masks are computed once per instant and reused across heights.
@@ -113,13 +120,17 @@ class AbilityStudy:
 
     def __init__(self, thresholds: Sequence[int] = DEFAULT_THRESHOLDS, distance_bin: float = DEFAULT_BIN_M,
                  bottom_lift: float = BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
-                 example_frame_id: str | None = None):
+                 example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP, bootstrap_seed: int = 0):
         th = [int(t) for t in thresholds]
         if not th or th[0] != 1 or any(t < 1 for t in th) or len(set(th)) != len(th):
             raise ValueError(f"thresholds must start with 1 (the paper's rule) and hold distinct integers >= 1, "
                              f"got {list(thresholds)}")
         if not distance_bin > 0:
             raise ValueError(f"distance_bin must be positive metres, got {distance_bin}")
+        if int(bootstrap) < 0:
+            raise ValueError(f"bootstrap must be >= 0 replicates, got {bootstrap}")
+        self.bootstrap = int(bootstrap)
+        self.bootstrap_seed = int(bootstrap_seed)
         self.thresholds = np.asarray(th, dtype=np.int64)
         self.distance_bin = float(distance_bin)
         self.bottom_lift = float(bottom_lift)
@@ -134,6 +145,9 @@ class AbilityStudy:
         self._dist_detected: dict[str, np.ndarray] = {}  # (B,)
         self._frames: dict[str, int] = {}
         self._frame_ids: set[str] = set()
+        # per cluster (scene id, or the frame id when a frame has none): {height: (2, 9) total, detected}
+        self._clusters: dict[str, dict[str, np.ndarray]] = {}
+        self._frames_without_scene = 0
         self._cache_key = None
         self._cache = None
         self._group: ExampleFrames | None = None
@@ -193,12 +207,20 @@ class AbilityStudy:
             self._dist_detected[hk] = np.zeros(self.num_bins, np.int64)
             self._frames[hk] = 0
         self._frames[hk] += 1
+        if frame.frame_id not in self._frame_ids and not str(frame.scene_id or ""):
+            self._frames_without_scene += 1
         self._frame_ids.add(frame.frame_id)
+        cluster = str(frame.scene_id or "") or f"frame:{frame.frame_id}"
+        per_height = self._clusters.setdefault(cluster, {})
+        if hk not in per_height:
+            per_height[hk] = np.zeros((2, len(CELLS)), np.int64)
         if frame.num_boxes:
             mi = masks.astype(np.int64)  # (9, M)
             det = (counts[None, :] >= self.thresholds[:, None]).astype(np.int64)  # (T, M)
             self._total[hk] += mi.sum(axis=1)
             self._detected[hk] += det @ mi.T
+            per_height[hk][0] += mi.sum(axis=1)
+            per_height[hk][1] += mi @ det[0]
             self._points_sum[hk] += mi @ (counts * det[0])
             sel = bins >= 0
             if sel.any():
@@ -315,9 +337,86 @@ class AbilityStudy:
             "paper_table_iv": {r: {"total": tot, "heights": {h: {"detected": d, "ldr": l} for h, (d, l) in hs.items()}}
                                for r, (tot, hs) in PAPER_TABLE_IV.items()},
         }
+        extras["uncertainty"] = self.uncertainty()
         if source is not None:
             extras["source"] = source
         return {"num_frames": self.num_frames, "heights": self._table(0), "extras": extras}
+
+    def cluster_counts(self) -> tuple[list[str], list[str], np.ndarray]:
+        """(cluster ids, heights, counts (C, H, 2, 9)): total and detected (>= 1 point) per
+        cluster, height and cell. A cluster is a scene, or a lone frame that has no scene id;
+        a height missing from a cluster counts zero there."""
+        ids = sorted(self._clusters)
+        heights = self.heights
+        arr = np.zeros((len(ids), len(heights), 2, len(CELLS)), np.int64)
+        for i, c in enumerate(ids):
+            for j, hk in enumerate(heights):
+                if hk in self._clusters[c]:
+                    arr[i, j] = self._clusters[c][hk]
+        return ids, heights, arr
+
+    def uncertainty(self, confidence: float = 0.95) -> dict:
+        """Sampling uncertainty of the LDRs from a percentile bootstrap over scenes.
+
+        Returns {"method", "clusters" ("scene" or "frame" when some frames had no scene id),
+        "num_clusters", "replicates", "confidence", "heights": {h: {range: {level: {"ci95":
+        [lo, hi], "scene_std": s}}}}, "differences": {"<hi>-<lo>": {range: {level: {"diff",
+        "ci95"}}}}}. scene_std is the standard deviation of one scene's LDR (scenes with
+        vehicles in the cell); the standard error of a study of n such scenes is about
+        scene_std / sqrt(n). Differences pair the heights within each resampled scene (the
+        same traffic), so they are much tighter than the LDRs themselves. Values are null when
+        fewer than 2 clusters were seen or bootstrap is 0.
+        """
+        ids, heights, arr = self.cluster_counts()
+        n = len(ids)
+        out = {"method": "percentile bootstrap over scenes (scenes resampled with replacement; the heights of a "
+                         "scene stay together)",
+               "clusters": "frame" if self._frames_without_scene else "scene",
+               "num_clusters": n, "replicates": self.bootstrap, "confidence": confidence,
+               "heights": {}, "differences": {}}
+        ok = n >= 2 and self.bootstrap > 0
+        if not ok:
+            out["note"] = "needs at least 2 scenes and bootstrap > 0"
+        tot, det = arr[:, :, 0, :].astype(np.float64), arr[:, :, 1, :].astype(np.float64)  # (C, H, 9)
+        q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
+        if ok:
+            rng = np.random.default_rng(self.bootstrap_seed)
+            w = rng.multinomial(n, np.full(n, 1.0 / n), size=self.bootstrap).astype(np.float64)  # (B, C)
+            bt = np.einsum("bc,chk->bhk", w, tot)
+            bd = np.einsum("bc,chk->bhk", w, det)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                boot = np.where(bt > 0, bd / np.where(bt > 0, bt, 1.0), np.nan)  # (B, H, 9)
+                per_scene = np.where(tot > 0, det / np.where(tot > 0, tot, 1.0), np.nan)  # (C, H, 9)
+
+        def interval(samples: np.ndarray) -> list | None:
+            good = samples[np.isfinite(samples)]
+            if not ok or good.size < max(2, samples.size // 2):
+                return None
+            lo, hi = np.percentile(good, q)
+            return [round(float(lo), 6), round(float(hi), 6)]
+
+        def spread(values: np.ndarray) -> float | None:
+            good = values[np.isfinite(values)]
+            return round(float(good.std(ddof=1)), 6) if ok and good.size >= 2 else None
+
+        for j, hk in enumerate(heights):
+            out["heights"][hk] = {r: {lv: {"ci95": interval(boot[:, j, CELLS.index((r, lv))]) if ok else None,
+                                           "scene_std": spread(per_scene[:, j, CELLS.index((r, lv))]) if ok else None}
+                                      for lv in LEVELS} for r in RANGE_NAMES}
+        for a in range(len(heights)):
+            for b in range(a + 1, len(heights)):
+                key = f"{heights[b]}-{heights[a]}"
+                cells = {}
+                for r in RANGE_NAMES:
+                    cells[r] = {}
+                    for lv in LEVELS:
+                        k = CELLS.index((r, lv))
+                        ta, tb = tot[:, a, k].sum(), tot[:, b, k].sum()
+                        d = (ldr(det[:, b, k].sum(), tb) - ldr(det[:, a, k].sum(), ta))
+                        cells[r][lv] = {"diff": None if math.isnan(d) else round(d, 6),
+                                        "ci95": interval(boot[:, b, k] - boot[:, a, k]) if ok else None}
+                out["differences"][key] = cells
+        return out
 
 
 # ---------------------------------------------------------------------------- Markdown
@@ -409,6 +508,33 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
                    for h in heights]
             out.append(f"| {r.capitalize()} | {vpf[r]:.2f} | " + " | ".join(pts) + " |")
         out.append("")
+    unc = ex.get("uncertainty")
+    if unc and unc.get("num_clusters", 0) >= 2 and unc.get("replicates", 0) > 0:
+        pct = f"{100 * unc['confidence']:g} %"
+        what = "scenes" if unc["clusters"] == "scene" else "clusters (frames without a scene id count alone)"
+        out += [f"## Sampling uncertainty (all vehicles; {pct} intervals, bootstrap over {unc['num_clusters']} {what})",
+                "",
+                "Frames of one scene are correlated, so whole scenes are resampled. One scene's LDR scatters by "
+                "the scene std; a study of n scenes is uncertain by about scene std / sqrt(n). Differences "
+                "pair the heights on the same traffic.", "",
+                "| Range | " + " | ".join(f"{h} m LDR [{pct}] / scene std" for h in heights)
+                + "".join(f" | {k} m difference [{pct}]" for k in unc["differences"]) + " |",
+                "|" + "---|" * (1 + len(heights) + len(unc["differences"]))]
+
+        def ci(c) -> str:
+            return "-" if c is None else f"[{c[0]:.3f}, {c[1]:.3f}]"
+
+        for r in RANGE_NAMES:
+            vals = []
+            for h in heights:
+                u = unc["heights"][h][r]["all"]
+                std = "-" if u["scene_std"] is None else f"{u['scene_std']:.3f}"
+                vals.append(f"{_fmt_ldr(report['heights'][h][r]['all']['ldr'])} {ci(u['ci95'])} / {std}")
+            for k, d in unc["differences"].items():
+                dd = d[r]["all"]
+                vals.append("-" if dd["diff"] is None else f"{dd['diff']:+.3f} {ci(dd['ci95'])}")
+            out.append(f"| {r.capitalize()} | " + " | ".join(vals) + " |")
+        out.append("")
     paper = ex.get("paper_table_iv")
     if paper and set(heights) >= {"0.5", "1.0", "1.8"}:
         out += ["## Against the paper's Table IV (8000 CARLA frames)", "",
@@ -425,4 +551,4 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
 
 
 __all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "detected_counts", "stacked_masks", "frame_lanes",
-           "ldr", "CELLS", "BOTTOM_LIFT", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
+           "ldr", "CELLS", "BOTTOM_LIFT", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]

@@ -43,14 +43,25 @@ def _save(fig: Figure, path: str | os.PathLike, dpi: int = 120) -> Path:
     return atomic_save(path, write)
 
 
-def _grouped(report: dict, groups: list[str], cell) -> tuple[Figure, list]:
-    """Two panels, (a) number detected with the total as a grey bar, (b) LDR; `cell(h, g)` -> dict."""
+def _ci(report: dict, h: str, r: str, lv: str):
+    """The (lo, hi) 95 % scene-bootstrap interval of one LDR from the report, or None."""
+    unc = report.get("extras", {}).get("uncertainty") or {}
+    try:
+        return unc["heights"][h][r][lv]["ci95"]
+    except (KeyError, TypeError):
+        return None
+
+
+def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, list]:
+    """Two panels, (a) number detected with the total as a grey bar, (b) LDR; `cell(h, g)` -> dict;
+    `ci(h, g)` -> (lo, hi) or None draws the LDR's 95 % interval as an error bar."""
     heights = list(report["heights"])
     col = _colours(heights)
     fig = Figure(figsize=(11, 4.4))
     ax_n, ax_l = fig.subplots(1, 2)
     nb = len(heights) + 1
     width = 0.8 / nb
+    drew_ci = False
     x = np.arange(len(groups))
     totals = [cell(heights[0], g)["total"] for g in groups] if heights else []
     ax_n.bar(x - 0.4 + width / 2, totals, width, color="#bbbbbb", edgecolor="#777777", label="Total")
@@ -60,16 +71,27 @@ def _grouped(report: dict, groups: list[str], cell) -> tuple[Figure, list]:
         ldrs = [cell(h, g)["ldr"] for g in groups]
         ldrs = [np.nan if v is None else v for v in ldrs]
         bars = ax_l.bar(x - 0.4 + width * (i + 1.5), ldrs, width, color=col[h], label=f"{h} m")
-        for b, v in zip(bars, ldrs):
-            if not (v is None or math.isnan(v)):
-                ax_l.text(b.get_x() + b.get_width() / 2, v + 0.01, f"{v:.2f}", ha="center", va="bottom", fontsize=7)
+        intervals = [ci(h, g) if ci is not None else None for g in groups]
+        for b, v, iv in zip(bars, ldrs, intervals):
+            if v is None or math.isnan(v):
+                continue
+            top = v
+            if iv is not None:
+                xc = b.get_x() + b.get_width() / 2
+                ax_l.errorbar([xc], [v], yerr=[[max(v - iv[0], 0.0)], [max(iv[1] - v, 0.0)]], fmt="none",
+                              ecolor="#333333", elinewidth=0.8, capsize=2)
+                top = max(v, iv[1])
+                drew_ci = True
+            ax_l.text(b.get_x() + b.get_width() / 2, top + 0.01, f"{v:.2f}", ha="center", va="bottom", fontsize=7)
     for ax in (ax_n, ax_l):
         ax.set_xticks(x)
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
     ax_n.set_ylabel("vehicles (count, summed over frames)")
     ax_l.set_ylabel("LDR = detected / total")
-    ax_l.set_ylim(0, 1.08)
+    ax_l.set_ylim(0, 1.12)
+    if drew_ci:
+        ax_l.set_xlabel("error bars: 95 % interval of the LDR, bootstrap over scenes", fontsize=8)
     handles, labels = ax_n.get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper center", ncol=len(labels), fontsize=9, frameon=False,
                bbox_to_anchor=(0.5, 1.0))
@@ -79,7 +101,8 @@ def _grouped(report: dict, groups: list[str], cell) -> tuple[Figure, list]:
 def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "all") -> Path:
     """Paper Fig. 6: detected vehicles (a) and LDR (b) per height in each range, at `level`."""
     groups = list(RANGE_NAMES)
-    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, r: report["heights"][h][r][level])
+    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, r: report["heights"][h][r][level],
+                                 lambda h, r: _ci(report, h, r, level))
     labels = [f"{r}\n0-{RANGES[r][1]:g} m, |y|<={RANGES[r][2]:g} m" for r in groups]
     for ax in (ax_n, ax_l):
         ax.set_xticklabels(labels, fontsize=8)
@@ -94,7 +117,8 @@ def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "a
 def plot_ability_by_level(report: dict, path: str | os.PathLike, range_name: str = "large") -> Path:
     """Paper Fig. 7: detected vehicles (a) and LDR (b) per height and importance level in one range."""
     groups = list(LEVELS)
-    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, lv: report["heights"][h][range_name][lv])
+    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, lv: report["heights"][h][range_name][lv],
+                                 lambda h, lv: _ci(report, h, range_name, lv))
     for ax in (ax_n, ax_l):
         ax.set_xticklabels([_LEVEL_NAMES[g] for g in groups])
     ax_n.set_title(f"(a) LiDAR-detected vehicles by importance ({range_name} range)", fontsize=10)
