@@ -101,10 +101,40 @@ def test_precision_from_scene_scatter():
     assert cc.precision(scenes[:1], paper, 0.05, None)["scene_std"]["small"]["1.8"] is None
 
 
+def _scenes_at(ldr: np.ndarray, vehicles: float = 1000.0) -> np.ndarray:
+    """Scene counts (scenes, 3, 4) with the given per-scene LDRs (scenes, 3, 3)."""
+    return np.concatenate([np.full(ldr.shape[:2] + (1,), vehicles), np.round(ldr * vehicles)], axis=2)
+
+
+def test_block_pass_rate_counts_passing_draws():
+    paper, _ = cc.paper_arrays()
+    on = _scenes_at(np.repeat(paper[None], 20, axis=0))
+    assert cc.block_pass_rate(on, 10, 0.05, 0.03)["ok"] == 1.0
+    # every scene 0.08 low at 1.8 m in the large range: no draw passes, yet the other criteria hold
+    low = on.copy()
+    low[:, 2, 3] -= 80
+    r = cc.block_pass_rate(low, 10, 0.05, 0.03)
+    assert r["ok"] == 0.0 and r["within"] == 0.0
+    # half the scenes on the paper, half 0.2 high at 0.5 m small: a 2-scene study passes only when both of its
+    # scenes (drawn independently) are on it (one of each: mean +0.1, fails): P = 1/4
+    mixed = on.copy()
+    mixed[10:, 0, 1] += 200
+    r = cc.block_pass_rate(mixed, 2, 0.05, 0.03, replicates=4000)
+    assert r["ok"] == pytest.approx(0.25, abs=0.03)
+    assert r["within"] == r["ok"]
+    # a block longer than the scenes at hand: no estimate
+    assert cc.block_pass_rate(on[:3], 10, 0.05, 0.03)["ok"] is None
+
+
 def test_tiny_run_reports_precision(tmp_path):
     out = tmp_path / "cal"
     assert cc.main(["--seeds", "0", "--frames", "60", "--frames-per-scene", "20", "--block-frames", "40",
                     "--out", str(out), "--no-progress"]) == 0
     rep = json.loads((out / "calibration.json").read_text())
     assert rep["precision"]["scenes"] == 3 and rep["precision"]["scenes_per_block"] == 2
+    rates = rep["precision"]["pass_rate"]
+    assert sorted(rates) == ["40", "60"]  # the block and the whole run
+    rate = rates["40"]
+    assert rate["scenes_per_block"] == 2 and rate["replicates"] == 2000 and 0.0 <= rate["ok"] <= rate["within"] <= 1.0
+    assert 0.0 <= rates["60"]["ok"] <= rates["60"]["within"] <= 1.0 and rates["60"]["scenes_per_block"] == 3
     assert "Precision (all seeds' scenes)" in (out / "calibration.md").read_text()
