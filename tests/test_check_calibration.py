@@ -115,6 +115,8 @@ def test_block_pass_rate_counts_passing_draws():
     low[:, 2, 3] -= 80
     r = cc.block_pass_rate(low, 10, 0.05, 0.03)
     assert r["ok"] == 0.0 and r["within"] == 0.0
+    res = cc.check_counts(low.sum(0))
+    assert res["high_above_low"] and res["low_pair_close"] and not res["within_tolerance"]
     # half the scenes on the paper, half 0.2 high at 0.5 m small: a 2-scene study passes only when both of its
     # scenes (drawn independently) are on it (one of each: mean +0.1, fails): P = 1/4
     mixed = on.copy()
