@@ -13,12 +13,14 @@ import difflib
 import numpy as np
 import torch.nn as nn
 
+from .ct3d import CT3D
 from .pillarnet import PillarNet
 from .second import SECOND
 
 REGISTRY: dict[str, type[nn.Module]] = {
     "second": SECOND,
     "pillarnet": PillarNet,
+    "ct3d": CT3D,
 }
 
 

@@ -1,0 +1,102 @@
+"""CT3D-style two-stage detector (Sheng et al., "Improving 3D Object Detection with
+Channel-wise Transformer", ICCV 2021): SECOND's proposals refined by a channel-wise transformer.
+
+The model is SECOND (the class itself: no second copy of its stages) with a second stage:
+
+  points --SECOND (vfe, backbone3d, to_bev, backbone2d, head)--> anchor scores and boxes
+  --select_proposals (NMS; train / test budgets)--> RoIs (B, R, 7)
+  --sample_proposal_targets (training: fg / bg ratio, IoU thresholds)--> RoIs with targets
+  --CT3DRoIHead (cylinder points, keypoint encoding, self-attention encoder,
+     channel-wise decoder)--> (B, R, d) --RefineHead--> IoU-guided confidence + residual box
+  loss: SECOND's anchor loss + confidence BCE + residual smooth-L1 + corner loss
+  predict: refined boxes scored by the confidence branch (or, with
+     `set_output_stage("proposals")`, the first stage's own detections, for comparison)
+
+Configuration: configs/ct3d.yaml (SECOND's keys plus `roi_head:`). Both stages train
+jointly from the first step, as the published configuration.
+"""
+from __future__ import annotations
+
+import copy
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from detbench.data.batch import Batch, Detections
+from detbench.ops import ResidualBoxCoder
+
+from .second import SECOND
+from .stages import AnchorHeadOutput
+from .stages.ct3d_head import CT3DRoIHead
+from .stages.two_stage import (
+    PROPOSAL_DEFAULTS, TARGET_DEFAULTS, Proposals, RefineHead, RefineOutput, merge_config, predict_refined,
+    refine_loss, sample_proposal_targets, select_proposals,
+)
+
+ROI_HEAD_DEFAULTS = {
+    "num_points": 256, "radius_scale": 1.2, "hidden_dim": 256, "heads": 4, "enc_layers": 3,
+    "dim_feedforward": 512, "dropout": 0.1, "mlp_hidden": 64, "fc": [256, 256],
+    "proposals": PROPOSAL_DEFAULTS, "targets": TARGET_DEFAULTS,
+    "loss_weights": {"rpn": 1.0, "rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0},
+}
+
+
+class TwoStageOutput(NamedTuple):
+    rpn: AnchorHeadOutput  # the first stage's dense outputs
+    proposals: Proposals  # after NMS (before target sampling)
+    refine: RefineOutput  # the second stage on the RoIs
+
+
+class CT3D(SECOND):
+    name = "ct3d"
+    STAGES = {**SECOND.STAGES, "roi_head": ["roi_head", "refine"]}
+
+    def __init__(self, cfg: dict):
+        super().__init__(cfg)
+        rh = merge_config(ROI_HEAD_DEFAULTS, cfg.get("roi_head"), "ct3d roi_head")
+        self.rh = rh
+        self.proposal_cfg = merge_config(PROPOSAL_DEFAULTS, rh["proposals"], "ct3d roi_head.proposals")
+        self.target_cfg = merge_config(TARGET_DEFAULTS, rh["targets"], "ct3d roi_head.targets")
+        self.roi_head = CT3DRoIHead(rh["num_points"], rh["radius_scale"], rh["hidden_dim"], rh["heads"],
+                                    rh["enc_layers"], rh["dim_feedforward"], rh["dropout"], point_features=1,
+                                    mlp_hidden=rh["mlp_hidden"])
+        self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
+        self.coder = ResidualBoxCoder()
+        self.output_stage = "refined"
+
+    @staticmethod
+    def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
+        return SECOND.prepare_config(copy.deepcopy(model_cfg), train_boxes)
+
+    def set_output_stage(self, stage: str) -> None:
+        """'refined' (default): the second stage's boxes; 'proposals': the first stage's detections."""
+        if stage not in ("refined", "proposals"):
+            raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
+        self.output_stage = stage
+
+    def forward(self, batch: Batch) -> TwoStageOutput:
+        rpn = super().forward(batch)
+        boxes, scores = self.head.decode(rpn)
+        budget = self.proposal_cfg["train" if self.training else "test"]
+        props = select_proposals(boxes.detach(), scores.detach(), **budget)
+        targets = None
+        if self.training:
+            targets = sample_proposal_targets(props, batch.gt_boxes, batch.gt_mask, self.target_cfg)
+            rois, mask = targets.rois, targets.valid
+        else:
+            rois, mask = props.rois, props.mask
+        feats = self.roi_head(batch.points, rois)
+        cls, reg = self.refine(feats)
+        return TwoStageOutput(rpn, props, RefineOutput(cls, reg, rois, mask, targets))
+
+    def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
+        w = self.rh["loss_weights"]
+        rpn_total, rpn_parts = super().loss(out.rpn, batch)
+        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w)
+        return w["rpn"] * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
+
+    def predict(self, out: TwoStageOutput, batch: Batch) -> list[Detections]:
+        if self.output_stage == "proposals":
+            return super().predict(out.rpn, batch)
+        return predict_refined(out.refine, self.coder, self.head.post)

@@ -1,0 +1,396 @@
+"""The second stage shared by the two-stage detectors (PointRCNN, CT3D).
+
+OpenPCDet's `roi_head_template` and `proposal_target_layer` are the shape, written as plain
+functions and small modules with explicit tensors in and out:
+
+  first-stage boxes + scores --select_proposals--> RoIs (B, R, 7) per frame (NMS, train/test budgets)
+  RoIs + ground truth --sample_proposal_targets--> a fixed number of RoIs per frame with their
+      matched box, 3D IoU, regression mask and confidence target      (training only)
+  RoI features (model-specific) --RefineHead--> confidence logit + residual box per RoI
+  refine_loss: confidence (binary cross-entropy to the IoU-guided or binary target),
+      residual smooth-L1 and the corner loss on foreground RoIs
+  decode_refined: residuals -> boxes in the ego frame
+
+Box residuals live in the RoI's canonical frame (`to_canonical`): the ground truth is moved
+so the RoI's centre is the origin and its heading is +x, then coded with the residual coder
+against a box of the RoI's size at the origin. The heading target is folded into
+[-pi/2, pi/2] (a box regressed backwards is as good as forwards for 3D IoU), and the corner
+loss takes the smaller of the two corner distances (ground truth and ground truth turned by
+pi), as PointRCNN. Corner loss stability: the size residuals are clamped before `exp` (a
+box can grow or shrink by at most e^3 per refinement) and the corner distance goes through
+a Huber loss, so neither the loss nor its gradient can explode on a wild early prediction.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from detbench.data.batch import Detections
+from detbench.ops import ResidualBoxCoder, boxes_iou3d, boxes_to_corners_3d, nms_bev, normalize_heading
+
+from .losses import weighted_smooth_l1
+from .postprocess import select_detections
+
+LOG_SIZE_CLAMP = 3.0  # |log(size / roi size)| at most e^3 when decoding residuals
+# A padding RoI (frames with fewer proposals than slots): a car-sized box far from anything,
+# so its geometry stays finite; it is masked out of every loss and prediction.
+PAD_ROI = (1000.0, 0.0, 1.0, 4.0, 1.8, 1.5, 0.0)
+
+PROPOSAL_DEFAULTS = {
+    "train": {"pre_nms_top_k": 9000, "post_nms_top_k": 512, "nms_threshold": 0.8},
+    "test": {"pre_nms_top_k": 1024, "post_nms_top_k": 100, "nms_threshold": 0.7},
+}
+TARGET_DEFAULTS = {
+    "roi_per_image": 128,   # RoIs per frame the head is trained on
+    "fg_ratio": 0.5,        # share of foreground RoIs among them (when there are enough)
+    "reg_fg_thresh": 0.55,  # 3D IoU from which a RoI is foreground and regressed
+    "cls_fg_thresh": 0.75,  # confidence target 1 from this IoU ...
+    "cls_bg_thresh": 0.25,  # ... 0 below this one; in between linear (roi_iou) or ignored (binary)
+    "cls_bg_thresh_lo": 0.1,  # below: easy background; between lo and reg_fg: hard background
+    "hard_bg_ratio": 0.8,   # share of hard background among the background RoIs
+    "cls_score_type": "roi_iou",  # roi_iou: IoU-guided soft target (CT3D); binary: PointRCNN's
+    "gt_jitter_copies": 0,  # jittered copies of each ground-truth box added as candidate RoIs
+    "gt_jitter": [0.3, 0.3, 0.2, 0.1, 0.1, 0.1, 0.2],  # std of the jitter: x y z (m), log sizes, heading (rad)
+}
+
+
+class Proposals(NamedTuple):
+    rois: torch.Tensor  # (B, R, 7) boxes, PAD_ROI where mask is False
+    scores: torch.Tensor  # (B, R) first-stage confidence in [0, 1] (0 for padding)
+    mask: torch.Tensor  # (B, R) bool, True for real proposals
+
+
+class RoiTargets(NamedTuple):
+    rois: torch.Tensor  # (B, S, 7) sampled RoIs
+    gt_of_rois: torch.Tensor  # (B, S, 7) the ground-truth box each RoI is matched to (zeros if none)
+    iou: torch.Tensor  # (B, S) 3D IoU of RoI and its matched box
+    reg_mask: torch.Tensor  # (B, S) bool: foreground, regressed (IoU >= reg_fg_thresh)
+    cls_target: torch.Tensor  # (B, S) float confidence target in [0, 1]
+    cls_mask: torch.Tensor  # (B, S) bool: contributes to the confidence loss
+    valid: torch.Tensor  # (B, S) bool: a real RoI (False for padding of empty frames)
+
+
+class RefineOutput(NamedTuple):
+    cls_logits: torch.Tensor  # (B, R) confidence logits of the refined boxes
+    box_deltas: torch.Tensor  # (B, R, 7) residuals in the RoI's canonical frame
+    rois: torch.Tensor  # (B, R, 7) the RoIs refined
+    roi_mask: torch.Tensor  # (B, R) bool, real RoIs
+    targets: RoiTargets | None  # training targets of these RoIs (None in evaluation)
+
+
+def merge_config(defaults: dict, given: dict | None, where: str) -> dict:
+    """`defaults` updated by `given`; an unknown key is an error naming `where`."""
+    given = dict(given or {})
+    unknown = sorted(set(given) - set(defaults))
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {sorted(defaults)}")
+    out = dict(defaults)
+    for k, v in given.items():
+        out[k] = {**defaults[k], **v} if isinstance(defaults[k], dict) and isinstance(v, dict) else v
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# proposals
+# --------------------------------------------------------------------------------------
+@torch.no_grad()
+def select_proposals(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: int, post_nms_top_k: int,
+                     nms_threshold: float, valid: torch.Tensor | None = None) -> Proposals:
+    """Per frame: the `pre_nms_top_k` best candidates, rotated BEV NMS, at most `post_nms_top_k`.
+
+    boxes (B, A, 7), scores (B, A) in [0, 1], valid (B, A) bool or None (all valid).
+    Returns padded `Proposals` with R = post_nms_top_k slots, best first. Non-finite boxes
+    are never proposed.
+    """
+    b = boxes.shape[0]
+    r = int(post_nms_top_k)
+    device = boxes.device
+    rois = torch.tensor(PAD_ROI, dtype=torch.float32, device=device).repeat(b, r, 1)
+    out_scores = torch.zeros(b, r, dtype=torch.float32, device=device)
+    mask = torch.zeros(b, r, dtype=torch.bool, device=device)
+    for i in range(b):
+        ok = torch.isfinite(boxes[i]).all(dim=1) & torch.isfinite(scores[i])
+        if valid is not None:
+            ok &= valid[i]
+        idx = ok.nonzero(as_tuple=True)[0]
+        if idx.numel() == 0:
+            continue
+        s = scores[i, idx].float()
+        if s.numel() > pre_nms_top_k:
+            s, order = s.topk(int(pre_nms_top_k))
+            idx = idx[order]
+        cand = boxes[i, idx].float().clone()
+        cand[:, 3:6] = cand[:, 3:6].clamp(min=1e-2)
+        cand[:, 6] = normalize_heading(cand[:, 6])
+        kept = nms_bev(cand, s, nms_threshold, max_keep=r).to(device)
+        k = kept.numel()
+        rois[i, :k] = cand[kept]
+        out_scores[i, :k] = s[kept]
+        mask[i, :k] = True
+    return Proposals(rois, out_scores, mask)
+
+
+# --------------------------------------------------------------------------------------
+# proposal targets
+# --------------------------------------------------------------------------------------
+def _jitter_gt(gt: torch.Tensor, copies: int, std: list, gen: torch.Generator | None) -> torch.Tensor:
+    if copies <= 0 or gt.shape[0] == 0:
+        return gt.new_zeros(0, 7)
+    rep = gt.repeat(copies, 1)
+    noise = torch.randn(rep.shape, generator=gen, device="cpu").to(gt.device) * torch.tensor(std, device=gt.device)
+    out = rep.clone()
+    out[:, :3] += noise[:, :3]
+    out[:, 3:6] = rep[:, 3:6] * torch.exp(noise[:, 3:6])
+    out[:, 6] = normalize_heading(rep[:, 6] + noise[:, 6])
+    return out
+
+
+def _pick(idx: torch.Tensor, n: int, gen: torch.Generator | None, replace: bool) -> torch.Tensor:
+    """n entries of idx: a random subset (without replacement when possible) or random draws."""
+    if n <= 0 or idx.numel() == 0:
+        return idx[:0]
+    if replace or n > idx.numel():
+        return idx[torch.randint(idx.numel(), (n,), generator=gen).to(idx.device)]
+    return idx[torch.randperm(idx.numel(), generator=gen)[:n].to(idx.device)]
+
+
+def confidence_targets(iou: torch.Tensor, cfg: dict) -> tuple[torch.Tensor, torch.Tensor]:
+    """(target in [0, 1], mask) of the confidence branch for RoIs with 3D IoU `iou`.
+
+    roi_iou (CT3D, the IoU-guided score): 1 at IoU >= cls_fg_thresh, 0 at IoU <= cls_bg_thresh,
+    linear in between; every RoI counts. binary (PointRCNN): 1 from cls_fg_thresh, 0 below
+    cls_bg_thresh, RoIs in between are ignored.
+    """
+    fg, bg = float(cfg["cls_fg_thresh"]), float(cfg["cls_bg_thresh"])
+    if cfg["cls_score_type"] == "roi_iou":
+        target = ((iou - bg) / max(fg - bg, 1e-6)).clamp(0.0, 1.0)
+        return target, torch.ones_like(iou, dtype=torch.bool)
+    if cfg["cls_score_type"] == "binary":
+        target = (iou >= fg).float()
+        return target, (iou >= fg) | (iou < bg)
+    raise ValueError(f"cls_score_type must be 'roi_iou' or 'binary', got {cfg['cls_score_type']!r}")
+
+
+@torch.no_grad()
+def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mask: torch.Tensor, cfg: dict,
+                            generator: torch.Generator | None = None) -> RoiTargets:
+    """Sample `roi_per_image` RoIs per frame and give each its training targets.
+
+    Candidates are the frame's proposals (plus `gt_jitter_copies` jittered copies of each
+    ground-truth box). Foreground: 3D IoU >= reg_fg_thresh; background: the rest, of which
+    "hard" lies in [cls_bg_thresh_lo, reg_fg_thresh). With both kinds present,
+    min(round(fg_ratio * S), #fg) foreground RoIs are drawn without replacement and the rest
+    is background, hard_bg_ratio of it hard (each kind drawn with replacement, the other kind
+    filling in when one is missing). With foreground only, S draws with replacement; with
+    background only, S background draws. A frame with no candidate at all gets padding
+    RoIs (valid False). Random draws use `generator` (a CPU torch.Generator) when given.
+    """
+    cfg = merge_config(TARGET_DEFAULTS, cfg, "proposal targets")
+    b = proposals.rois.shape[0]
+    s = int(cfg["roi_per_image"])
+    device = proposals.rois.device
+    pad = torch.tensor(PAD_ROI, dtype=torch.float32, device=device)
+    rois = pad.repeat(b, s, 1)
+    gt_of = torch.zeros(b, s, 7, device=device)
+    ious = torch.zeros(b, s, device=device)
+    valid = torch.zeros(b, s, dtype=torch.bool, device=device)
+    n_fg_want = int(round(float(cfg["fg_ratio"]) * s))
+    for i in range(b):
+        gt = gt_boxes[i][gt_mask[i]].float()
+        cand = torch.cat([proposals.rois[i][proposals.mask[i]].float(),
+                          _jitter_gt(gt, int(cfg["gt_jitter_copies"]), cfg["gt_jitter"], generator)])
+        if cand.shape[0] == 0:
+            continue
+        if gt.shape[0]:
+            iou = boxes_iou3d(cand, gt).float().to(device)
+            max_iou, assign = iou.max(dim=1)
+        else:
+            max_iou = torch.zeros(cand.shape[0], device=device)
+            assign = torch.zeros(cand.shape[0], dtype=torch.long, device=device)
+        fg = (max_iou >= cfg["reg_fg_thresh"]).nonzero(as_tuple=True)[0]
+        hard = ((max_iou < cfg["reg_fg_thresh"]) & (max_iou >= cfg["cls_bg_thresh_lo"])).nonzero(as_tuple=True)[0]
+        easy = (max_iou < cfg["cls_bg_thresh_lo"]).nonzero(as_tuple=True)[0]
+        n_bg_avail = hard.numel() + easy.numel()
+        if fg.numel() and n_bg_avail:
+            take_fg = _pick(fg, min(n_fg_want, fg.numel()), generator, replace=False)
+        elif fg.numel():
+            take_fg = _pick(fg, s, generator, replace=True)
+        else:
+            take_fg = fg[:0]
+        n_bg = s - take_fg.numel()
+        if n_bg > 0 and n_bg_avail:
+            n_hard = int(round(n_bg * float(cfg["hard_bg_ratio"]))) if easy.numel() else n_bg
+            n_hard = n_hard if hard.numel() else 0
+            take_bg = torch.cat([_pick(hard, n_hard, generator, replace=True),
+                                 _pick(easy, n_bg - n_hard, generator, replace=True)])
+        else:
+            take_bg = fg[:0]
+        take = torch.cat([take_fg, take_bg])
+        k = take.numel()
+        rois[i, :k] = cand[take]
+        ious[i, :k] = max_iou[take]
+        if gt.shape[0]:
+            gt_of[i, :k] = gt[assign[take]]
+        valid[i, :k] = True
+    reg_mask = valid & (ious >= cfg["reg_fg_thresh"])
+    cls_target, cls_mask = confidence_targets(ious, cfg)
+    return RoiTargets(rois, gt_of, ious, reg_mask, cls_target, cls_mask & valid, valid)
+
+
+# --------------------------------------------------------------------------------------
+# canonical frame and residual coding
+# --------------------------------------------------------------------------------------
+def rotate_z(xyz: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Rotate points (..., N, 3 or 2+) about z by `angle` (...) radians, counter-clockwise."""
+    c, s = torch.cos(angle)[..., None], torch.sin(angle)[..., None]
+    x, y = xyz[..., 0], xyz[..., 1]
+    out = xyz.clone()
+    out[..., 0] = x * c - y * s
+    out[..., 1] = x * s + y * c
+    return out
+
+
+def to_canonical(points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
+    """Points (..., N, 3+) in the ego frame -> the frame of RoIs (..., 7): centre at 0, heading +x."""
+    out = points.clone()
+    out[..., :3] = points[..., :3] - rois[..., None, :3]
+    return rotate_z(out, -rois[..., 6])
+
+
+def from_canonical(points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
+    """Inverse of `to_canonical`."""
+    out = rotate_z(points, rois[..., 6])
+    out[..., :3] = out[..., :3] + rois[..., None, :3]
+    return out
+
+
+def _local_anchor(rois: torch.Tensor) -> torch.Tensor:
+    a = torch.zeros_like(rois)
+    a[..., 3:6] = rois[..., 3:6]
+    return a
+
+
+def fold_heading(h: torch.Tensor) -> torch.Tensor:
+    """Heading difference folded into [-pi/2, pi/2] (a box turned by pi is the same box)."""
+    h = normalize_heading(h)
+    h = torch.where(h > math.pi / 2, h - math.pi, h)
+    return torch.where(h < -math.pi / 2, h + math.pi, h)
+
+
+def encode_refine_targets(gt: torch.Tensor, rois: torch.Tensor, coder: ResidualBoxCoder) -> torch.Tensor:
+    """Residuals (..., 7) of ground truth `gt` (..., 7) in the canonical frame of `rois` (..., 7)."""
+    local = gt.clone()
+    local[..., :3] = rotate_z((gt[..., :3] - rois[..., :3])[..., None, :], -rois[..., 6])[..., 0, :]
+    local[..., 6] = fold_heading(gt[..., 6] - rois[..., 6])
+    return coder.encode(local, _local_anchor(rois))
+
+
+def decode_refined(deltas: torch.Tensor, rois: torch.Tensor, coder: ResidualBoxCoder,
+                   canonical: bool = False) -> torch.Tensor:
+    """Boxes (..., 7) from residuals (..., 7) against `rois`; in the RoI frame if `canonical`."""
+    d = torch.cat([deltas[..., :3], deltas[..., 3:6].clamp(-LOG_SIZE_CLAMP, LOG_SIZE_CLAMP), deltas[..., 6:]], dim=-1)
+    local = coder.decode(d, _local_anchor(rois))
+    if canonical:
+        return local
+    out = local.clone()
+    out[..., :3] = rotate_z(local[..., None, :3], rois[..., 6])[..., 0, :] + rois[..., :3]
+    out[..., 6] = normalize_heading(local[..., 6] + rois[..., 6])
+    return out
+
+
+# --------------------------------------------------------------------------------------
+# losses
+# --------------------------------------------------------------------------------------
+def corner_loss(pred: torch.Tensor, gt: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
+    """Per-box corner loss (N,): mean Huber distance of the 8 corners, the smaller of gt and gt turned by pi."""
+    if pred.shape[0] == 0:
+        return pred.new_zeros(0)
+    pc = boxes_to_corners_3d(pred)
+    gc = boxes_to_corners_3d(gt)
+    flipped = gt.clone()
+    flipped[:, 6] = gt[:, 6] + math.pi
+    fc = boxes_to_corners_3d(flipped)
+    d = torch.minimum((pc - gc).norm(dim=-1), (pc - fc).norm(dim=-1))  # (N, 8)
+    return F.huber_loss(d, torch.zeros_like(d), delta=delta, reduction="none").mean(dim=1)
+
+
+def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None = None) -> tuple[torch.Tensor, dict]:
+    """Loss of the second stage: confidence BCE + residual smooth-L1 + corner loss.
+
+    The confidence loss averages over RoIs with a confidence target; the regression terms
+    average over foreground RoIs. Frames with no RoI (or no foreground) contribute 0.
+    """
+    t = out.targets
+    w = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **(weights or {})}
+    logits = out.cls_logits.float()
+    cm = t.cls_mask.float()
+    bce = F.binary_cross_entropy_with_logits(logits, t.cls_target, reduction="none")
+    loss_cls = (bce * cm).sum() / cm.sum().clamp(min=1.0)
+    fg = t.reg_mask
+    n_fg = fg.sum().clamp(min=1).float()
+    deltas = out.box_deltas.float()
+    target = encode_refine_targets(t.gt_of_rois, t.rois, coder)
+    target = torch.where(fg[..., None], target, torch.zeros_like(target))
+    loss_reg = weighted_smooth_l1(deltas, target, fg.float()) / n_fg
+    if fg.any():
+        pred_local = decode_refined(deltas[fg], t.rois[fg], coder, canonical=True)
+        gt_local = t.gt_of_rois[fg].clone()
+        gt_local[:, :3] = rotate_z((gt_local[:, :3] - t.rois[fg][:, :3])[:, None, :], -t.rois[fg][:, 6])[:, 0, :]
+        gt_local[:, 6] = gt_local[:, 6] - t.rois[fg][:, 6]
+        loss_corner = corner_loss(pred_local, gt_local).sum() / n_fg
+    else:
+        loss_corner = deltas.sum() * 0.0
+    total = w["rcnn_cls"] * loss_cls + w["rcnn_reg"] * loss_reg + w["rcnn_corner"] * loss_corner
+    parts = {"loss_rcnn_cls": float(loss_cls.detach()), "loss_rcnn_reg": float(loss_reg.detach()),
+             "loss_rcnn_corner": float(loss_corner.detach()), "num_fg_rois": float(fg.sum()) / max(fg.shape[0], 1)}
+    return total, parts
+
+
+# --------------------------------------------------------------------------------------
+# the refinement head and prediction
+# --------------------------------------------------------------------------------------
+class RefineHead(nn.Module):
+    """Confidence and residual-box branches on one feature vector per RoI.
+
+    Each branch: `len(fc)` fully connected layers (BatchNorm-free: LayerNorm is stable with
+    few RoIs) with ReLU and dropout, then a linear output. The box branch's last layer starts
+    near zero (std 0.001) so the first refinements are small.
+    """
+
+    def __init__(self, in_channels: int, fc: list[int], dropout: float = 0.1, code_size: int = 7):
+        super().__init__()
+        self.cls = self._branch(in_channels, fc, dropout, 1)
+        self.reg = self._branch(in_channels, fc, dropout, code_size)
+        nn.init.normal_(self.reg[-1].weight, std=0.001)
+        nn.init.zeros_(self.reg[-1].bias)
+
+    @staticmethod
+    def _branch(cin: int, fc: list[int], dropout: float, cout: int) -> nn.Sequential:
+        layers: list[nn.Module] = []
+        for c in fc:
+            layers += [nn.Linear(cin, c), nn.LayerNorm(c), nn.ReLU(inplace=True)]
+            if dropout > 0:
+                layers.append(nn.Dropout(dropout))
+            cin = c
+        layers.append(nn.Linear(cin, cout))
+        return nn.Sequential(*layers)
+
+    def forward(self, features: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """features (..., C) -> (cls logits (...), box residuals (..., code_size))."""
+        return self.cls(features).squeeze(-1), self.reg(features)
+
+
+@torch.no_grad()
+def predict_refined(out: RefineOutput, coder: ResidualBoxCoder, post: dict) -> list[Detections]:
+    """Decoded refined boxes, sigmoid confidence, the detector's final NMS, per frame."""
+    boxes = decode_refined(out.box_deltas.float(), out.rois.float(), coder)
+    scores = torch.sigmoid(out.cls_logits.float())
+    dets = []
+    for i in range(boxes.shape[0]):
+        m = out.roi_mask[i]
+        dets.append(select_detections(boxes[i][m], scores[i][m], **post))
+    return dets
