@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 import pytest
 import torch
@@ -397,3 +398,27 @@ def test_cuda_matches_cpu():
     assert all(torch.equal(x, y.cpu()) for x, y in zip(a, b))
     a, b = three_nn(xyz, c, cnt, [512, 256]), three_nn(xyz.cuda(), c.cuda(), cnt, [512, 256])
     assert all(torch.equal(x, y.cpu()) for x, y in zip(a, b))
+
+
+def test_bench_points_tool_writes_reports(tmp_path, capsys):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "bench_points.py"
+    spec = importlib.util.spec_from_file_location("bench_points", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    threads = (torch.get_num_threads(), numba.get_num_threads())
+    try:  # main() sets both thread counts; give them back to the other tests
+        assert mod.main(["--out", str(tmp_path), "--points", "600", "--samples", "128", "--rois", "4",
+                         "--channels", "8", "--repeats", "1", "--threads", "1", "--frames", "2"]) == 0
+    finally:
+        torch.set_num_threads(threads[0])
+        numba.set_num_threads(threads[1])
+    report = json.loads((tmp_path / "bench_points.json").read_text())
+    assert report["units"].startswith("milliseconds") and report["fps_ms"] > 0
+    assert any(r.get("equal_to_numba") is True for r in report["cases"])
+    md = (tmp_path / "bench_points.md").read_text()
+    assert "FPS 600 -> 128" in md and "median ms" in md
+    assert "ms per frame" in capsys.readouterr().out
