@@ -8,7 +8,8 @@ or cache loading is excluded), per call on the whole batch of --frames scans:
     0.5/1.0, 1.0/2.0, 2.0/4.0 m; 16/32 samples): FPS + ball query + grouping of xyz;
   - the four feature-propagation levels back to --points (three_nn_interpolate, C channels);
   - RoI point pooling of --rois car-sized RoIs per scan (512 points, 1.0 m extra, C features).
-The load average of the machine is recorded before and after (the machine may be shared).
+The load average of the machine is recorded before and after (the machine may be shared);
+OMP_WAIT_POLICY defaults to PASSIVE here (set it in the environment to measure otherwise).
 Writes bench_points.json and bench_points.md to --out.
 
 Usage: python tools/bench_points.py [--out DIR] [--frames N] [--points N] [--samples N] ...  (see --help)
@@ -23,6 +24,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Idle OpenMP threads sleep instead of spinning (as tests/conftest.py): on a busy 2-core machine
+# the torch steps (grouping, interpolation, pooling gathers) were measured 10-20x slower with
+# spinning threads. Set before torch is imported; an explicit OMP_WAIT_POLICY wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402
@@ -93,7 +98,7 @@ def main(argv=None) -> int:
         "channels": args.channels, "rois_per_frame": args.rois, "threads": args.threads,
         "numba_threads": numba.get_num_threads(), "device": str(device), "torch": torch.__version__,
         "numba": numba.__version__, "cpu": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
-        "repeats": args.repeats, "units": "milliseconds per call on the whole batch (median and best)",
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"), "repeats": args.repeats, "units": "milliseconds per call on the whole batch (median and best)",
         "load_average_1_5_15min_before": [round(v, 2) for v in load_before], "cases": [],
     }
 
@@ -177,7 +182,7 @@ def markdown(r: dict) -> str:
         f"- batch: {r['frames']} scan(s) x {r['points_per_frame']} points; FPS samples {r['samples']}; "
         f"C = {r['channels']}; RoIs per scan {r['rois_per_frame']}",
         f"- numba threads {r['numba_threads']}, torch threads {r['threads']}, device {r['device']}, torch {r['torch']}, "
-        f"numba {r['numba']}, {r['cpus']} CPUs",
+        f"numba {r['numba']}, {r['cpus']} CPUs, OMP_WAIT_POLICY {r.get('omp_wait_policy')}",
         f"- times in milliseconds per call on the whole batch: median and best of {r['repeats']} runs after a warm-up",
         f"- load average (1 min) before / after: {r['load_average_1_5_15min_before'][0]} / "
         f"{r['load_average_1_5_15min_after'][0]} (a shared machine slows every row)",
