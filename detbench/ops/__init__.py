@@ -1,7 +1,9 @@
-"""Box geometry on CPU (numba) and GPU (torch): points in boxes, rotated IoU, NMS, box coding.
+"""Box geometry on CPU (numba) and GPU (torch): points in boxes, rotated IoU, NMS, box coding;
+voxelization; PointNet++ / PointRCNN point operations (detbench.ops.points).
 
 Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (see DESIGN.md).
-numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device.
+numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device (the point
+operations take tensors or arrays and always return tensors).
 """
 from detbench.ops.box_coder import (
     ResidualBoxCoder,
@@ -24,6 +26,20 @@ from detbench.ops.iou import (
     overlap_bev_pair_nb,
 )
 from detbench.ops.nms import nms_bev
+from detbench.ops.points import (
+    BallQuery,
+    RoIPoints,
+    ball_query,
+    farthest_point_sample,
+    from_canonical,
+    group_neighbours,
+    group_points,
+    roi_point_pool,
+    three_interpolate,
+    three_nn,
+    three_nn_interpolate,
+    to_canonical,
+)
 from detbench.ops.voxelize import (
     HardVoxels,
     dynamic_voxelize,
