@@ -11,7 +11,7 @@ functions and small modules with explicit tensors in and out:
       residual smooth-L1 and the corner loss on foreground RoIs
   decode_refined: residuals -> boxes in the ego frame
 
-Box residuals live in the RoI's canonical frame (`to_canonical`): the ground truth is moved
+Box residuals live in the RoI's canonical frame (`detbench.ops.points.to_canonical`): the ground truth is moved
 so the RoI's centre is the origin and its heading is +x, then coded with the residual coder
 against a box of the RoI's size at the origin. The heading target is folded into
 [-pi/2, pi/2] (a box regressed backwards is as good as forwards for 3D IoU), and the corner
@@ -31,6 +31,7 @@ import torch.nn.functional as F
 
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou3d, boxes_to_corners_3d, nms_bev, normalize_heading
+from detbench.ops.points import from_canonical, to_canonical  # noqa: F401  (re-exported: the RoI frame)
 
 from .losses import weighted_smooth_l1
 from .postprocess import select_detections
@@ -251,20 +252,6 @@ def rotate_z(xyz: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     out = xyz.clone()
     out[..., 0] = x * c - y * s
     out[..., 1] = x * s + y * c
-    return out
-
-
-def to_canonical(points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
-    """Points (..., N, 3+) in the ego frame -> the frame of RoIs (..., 7): centre at 0, heading +x."""
-    out = points.clone()
-    out[..., :3] = points[..., :3] - rois[..., None, :3]
-    return rotate_z(out, -rois[..., 6])
-
-
-def from_canonical(points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
-    """Inverse of `to_canonical`."""
-    out = rotate_z(points, rois[..., 6])
-    out[..., :3] = out[..., :3] + rois[..., None, :3]
     return out
 
 
