@@ -15,12 +15,14 @@ import torch.nn as nn
 
 from .ct3d import CT3D
 from .pillarnet import PillarNet
+from .pointrcnn import PointRCNN
 from .second import SECOND
 
 REGISTRY: dict[str, type[nn.Module]] = {
     "second": SECOND,
     "pillarnet": PillarNet,
     "ct3d": CT3D,
+    "pointrcnn": PointRCNN,
 }
 
 

@@ -23,7 +23,7 @@ def run(args, cwd=ROOT):
     return proc
 
 
-@pytest.mark.parametrize("model", ["second", "pillarnet"])
+@pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
 def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model):
     out = tmp_path / "run"
     run(["tools/train.py", "--model", model, "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset),
@@ -60,7 +60,7 @@ def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
     run(["tools/benchmark.py", "--preset", "smoke", "--data", str(tiny_dataset), "--frames", "2", "--warmup", "1",
          "--threads", "1", "--out", str(tmp_path / "b")])
     res = json.loads((tmp_path / "b" / "benchmark.json").read_text())["results"]
-    assert {r["model"] for r in res} >= {"second", "pillarnet"}
+    assert {r["model"] for r in res} >= {"second", "pillarnet", "pointrcnn", "ct3d"}
     for r in res:
         lat = r["latency_ms"]
         stages = [v for k, v in lat.items() if k not in ("total", "points")]

@@ -72,6 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --ckpt: evaluate at this height instead of the training height (cross-height)")
     src.add_argument("--device", default="cpu", help="with --ckpt: cpu, cuda or cuda:N")
     src.add_argument("--batch-size", type=int, default=4, help="with --ckpt: frames per forward pass")
+    src.add_argument("--stage", default="refined", choices=("refined", "proposals"),
+                     help="with --ckpt of a two-stage model (pointrcnn, ct3d): 'proposals' evaluates the first "
+                          "stage's boxes alone (same final NMS and score threshold), to see what the second stage "
+                          "adds")
     src.add_argument("--model", default=None,
                      help="model name stored in the report (needed later by --combine); default: the "
                           "checkpoint's model when known, else none")
@@ -121,8 +125,11 @@ def load_dataset(root: Path, height: float, split: str):
 
 
 def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_size: int = 4,
-                                progress: bool = True):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
+                                progress: bool = True, stage: str = "refined"):
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name).
+
+    `stage` 'proposals' asks a two-stage model for its first stage's boxes alone.
+    """
     import models
     from detbench.train.checkpoint import CheckpointError
     from detbench.train.inference import predict_frames
@@ -131,6 +138,11 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_
         model, ck = models.load_from_checkpoint(ckpt, device)
     except CheckpointError as e:
         raise ToolError(str(e)) from None
+    if stage != "refined":
+        if not hasattr(model, "set_output_stage"):
+            raise ToolError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
+                            f"two-stage models (pointrcnn, ct3d)")
+        model.set_output_stage(stage)
     preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
                            batch_size=batch_size, progress=progress)
     return preds, ck["model_name"]
@@ -160,7 +172,8 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         from detbench.data.frame import height_key
 
         run_dir = Path(args.ckpt).resolve().parent.parent
-        args.out = run_dir / f"eval_h{height_key(args.height)}_{args.split}"
+        stage = "" if args.stage == "refined" else f"_{args.stage}"
+        args.out = run_dir / f"eval_h{height_key(args.height)}_{args.split}{stage}"
 
 
 def write_report(report: dict, out: Path, title: str) -> list[Path]:
@@ -195,7 +208,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
             raise ToolError(str(e)) from None
     else:
         preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, args.device, args.batch_size,
-                                                        not args.no_progress)
+                                                        not args.no_progress, args.stage)
         skipped = []
         model = model or ckpt_model
         pred_dir = args.out / "pred"
@@ -218,10 +231,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.ckpt is not None:
         full["trained_height"] = args.trained_height
         full["predictions_dir"] = str(args.out / "pred")
+        full["stage"] = args.stage
     if args.pred is not None:
         full["prediction_files"] = len(preds)
         full["files_of_other_splits_skipped"] = len(skipped)
     title = f"Detection results{' of ' + model if model else ''} at {args.height:g} m ({args.split} split)"
+    if args.ckpt is not None and args.stage != "refined":
+        title += f", {args.stage} of the first stage alone"
     paths = write_report(full, args.out, title)
     for line in summary_lines(full):
         print(line)

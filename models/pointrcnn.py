@@ -1,0 +1,131 @@
+"""PointRCNN (Shi, Wang and Li, "PointRCNN: 3D Object Proposal Generation and Detection from
+Point Cloud", CVPR 2019): the point-based two-stage detector, in plain torch on detbench.ops.points.
+
+The model is the composition of shared stages, read top to bottom:
+
+  points --sample_frame_points (fixed budget per frame, far points first)--> (B * N, 4)
+  --PointNet2MSG (set abstraction down, feature propagation up)--> a feature per point
+  --PointHead--> foreground logit + a box per point (residual coding on the mean vehicle size)
+  --select_proposals (NMS; train / test budgets)--> RoIs
+  --sample_proposal_targets (training: fg / bg ratio, IoU thresholds)--> RoIs with targets
+  --PointRCNNRoIHead (RoI point pooling, canonical coordinates + depth + score, set
+     abstraction inside each RoI)--> (B, R, C) --RefineHead--> confidence + residual box
+  loss: point focal loss + point box smooth-L1 + confidence BCE + residual smooth-L1 + corner loss
+  predict: refined boxes scored by the confidence branch (or, with
+     `set_output_stage("proposals")`, the first stage's boxes through the same final NMS)
+
+Both stages train jointly end to end (OpenPCDet's way; the paper trained them one after the
+other). Configuration: configs/pointrcnn.yaml (`model:` section); `point_head.mean_size:
+auto` is resolved from the training boxes and stored in the checkpoint's config.
+"""
+from __future__ import annotations
+
+import copy
+from typing import NamedTuple
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+from detbench.data.batch import Batch, Detections
+from detbench.ops import ResidualBoxCoder
+
+from .stages.point_head import PointHead, PointHeadOutput, point_targets
+from .stages.pointnet2 import PointNet2MSG, sample_frame_points
+from .stages.pointrcnn_head import PointRCNNRoIHead
+from .stages.postprocess import select_detections
+from .stages.two_stage import (
+    PROPOSAL_DEFAULTS, TARGET_DEFAULTS, Proposals, RefineHead, RefineOutput, merge_config, predict_refined,
+    refine_loss, sample_proposal_targets, select_proposals,
+)
+
+
+class PointRCNNOutput(NamedTuple):
+    xyz: torch.Tensor  # (B, N, 3) the sampled points
+    valid: torch.Tensor  # (B, N) bool, False for filler points of empty frames
+    point: PointHeadOutput  # per-point logits and box residuals
+    proposals: Proposals  # after NMS (before target sampling)
+    refine: RefineOutput  # the second stage on the RoIs
+
+
+class PointRCNN(nn.Module):
+    name = "pointrcnn"
+    STAGES = {"backbone": ["backbone"], "point_head": ["point_head"], "roi_head": ["roi_head", "refine"]}
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        self.cfg = cfg
+        s, bb, ph, rh = cfg["sampling"], cfg["backbone"], cfg["point_head"], cfg["roi_head"]
+        self.num_points, self.far_threshold = int(s["num_points"]), float(s["far_threshold"])
+        if isinstance(ph["mean_size"], str):
+            raise ValueError("PointRCNN: point_head.mean_size is still 'auto'; resolve it from the training data "
+                             "(tools/train.py does) or give [length, width, height] in metres")
+        npoints = [None if v in (None, -1) else int(v) for v in bb["npoints"]]
+        self.backbone = PointNet2MSG(1, npoints, bb["radii"], bb["nsamples"], bb["mlps"], bb["fp_mlps"])
+        self.point_head = PointHead(self.backbone.out_channels, ph["cls_fc"], ph["reg_fc"], ph["mean_size"],
+                                    ph["extra_width"])
+        self.proposal_cfg = merge_config(PROPOSAL_DEFAULTS, rh["proposals"], "pointrcnn roi_head.proposals")
+        self.target_cfg = merge_config(TARGET_DEFAULTS, rh["targets"], "pointrcnn roi_head.targets")
+        sa_np = [None if v in (None, -1) else int(v) for v in rh["sa_npoints"]]
+        self.roi_head = PointRCNNRoIHead(self.backbone.out_channels, rh["num_points"], rh["pool_extra_width"],
+                                         rh["depth_normalizer"], rh["xyz_up"], sa_np, rh["sa_radii"],
+                                         rh["sa_nsamples"], rh["sa_mlps"])
+        self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
+        self.coder = ResidualBoxCoder()
+        self.loss_weights = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **rh.get("loss_weights", {})}
+        self.post = dict(cfg["post"])
+        self.output_stage = "refined"
+
+    @staticmethod
+    def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
+        """Resolve `point_head.mean_size: auto` to the mean (length, width, height) of the training boxes (m)."""
+        cfg = copy.deepcopy(model_cfg)
+        if cfg["point_head"].get("mean_size", "auto") != "auto":
+            return cfg
+        sizes = np.asarray(train_boxes, dtype=np.float64).reshape(-1, 7)[:, 3:6]
+        if len(sizes) == 0:
+            raise ValueError("PointRCNN: point_head.mean_size is 'auto' but the training split has no LiDAR-detected "
+                             "vehicles to size it from; give point_head.mean_size explicitly")
+        cfg["point_head"]["mean_size"] = [round(float(v), 3) for v in sizes.mean(axis=0)]
+        return cfg
+
+    def set_output_stage(self, stage: str) -> None:
+        """'refined' (default): the second stage's boxes; 'proposals': the first stage's boxes."""
+        if stage not in ("refined", "proposals"):
+            raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
+        self.output_stage = stage
+
+    def forward(self, batch: Batch) -> PointRCNNOutput:
+        b, n = batch.batch_size, self.num_points
+        gen = None if self.training else torch.Generator().manual_seed(0)  # evaluation: the same points every time
+        sp = sample_frame_points(batch.points, b, n, self.far_threshold, generator=gen)
+        xyz = sp.points[:, :3].contiguous()
+        feats = self.backbone(xyz, sp.points[:, 3:4].contiguous(), n)
+        point = self.point_head(feats, b)
+        boxes, scores = self.point_head.decode(point, xyz.reshape(b, n, 3))
+        valid = sp.valid.reshape(b, n)
+        budget = self.proposal_cfg["train" if self.training else "test"]
+        props = select_proposals(boxes.detach(), scores.detach(), valid=valid, **budget)
+        targets = None
+        if self.training:
+            targets = sample_proposal_targets(props, batch.gt_boxes, batch.gt_mask, self.target_cfg)
+            rois, mask = targets.rois, targets.valid
+        else:
+            rois, mask = props.rois, props.mask
+        roi_feats = self.roi_head(xyz, feats, scores.reshape(-1), rois, n)
+        cls, reg = self.refine(roi_feats)
+        return PointRCNNOutput(xyz.reshape(b, n, 3), valid, point, props, RefineOutput(cls, reg, rois, mask, targets))
+
+    def loss(self, out: PointRCNNOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
+        t = point_targets(out.xyz, out.valid, batch.gt_boxes, batch.gt_mask, self.point_head.extra_width)
+        point_total, point_parts = self.point_head.loss(out.point, t, out.xyz)
+        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, self.loss_weights)
+        return point_total + rcnn_total, {**point_parts, **rcnn_parts}
+
+    @torch.no_grad()
+    def predict(self, out: PointRCNNOutput, batch: Batch) -> list[Detections]:
+        if self.output_stage == "proposals":
+            boxes, scores = self.point_head.decode(out.point, out.xyz)
+            return [select_detections(boxes[i][out.valid[i]], scores[i][out.valid[i]], **self.post)
+                    for i in range(boxes.shape[0])]
+        return predict_refined(out.refine, self.coder, self.post)
