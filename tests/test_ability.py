@@ -59,6 +59,22 @@ def test_bottom_lift_point_at_4cm_not_counted_6cm_counted():
     assert cell(st3.report(), "1.8", "small", "all")["detected"] == 0
 
 
+def test_one_lidar_detected_rule_for_every_counter():
+    """The rule's functions count with DETECTED_BOTTOM_LIFT, and the simulator's config uses the same lift."""
+    from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, detected_point_counts, lidar_detected
+    from detbench.sim import load_sim_config, sim_presets
+
+    assert (DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS) == (0.05, 1)
+    boxes = np.asarray([car(10, 0), car(20, 0), car(30, 0)], np.float32)
+    pts = np.asarray([[10.0, 0.0, 0.04, 0.5], [20.0, 0.0, 0.06, 0.5], [20.0, 0.5, 1.0, 0.5]], np.float32)
+    assert detected_point_counts(pts, boxes).tolist() == [0, 2, 0]
+    assert lidar_detected(pts, boxes).tolist() == [False, True, False]
+    assert lidar_detected(pts, boxes, min_points=3).tolist() == [False, False, False]
+    assert lidar_detected(pts, boxes[:0]).shape == (0,)
+    for preset in sim_presets():
+        assert load_sim_config(preset)["output"]["count_bottom_lift_m"] == DETECTED_BOTTOM_LIFT
+
+
 def test_rotated_box_footprint():
     # a car turned 90 degrees is 2 m long in x and 4 m wide in y
     st = AbilityStudy()
@@ -251,15 +267,6 @@ def test_analyze_tool_reports_bad_frame(tmp_path):
     assert rep["num_frames"] == 3 and len(rep["extras"]["source"]["skipped"]) == 1
 
 
-def _sim_available():
-    try:
-        from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
 def test_analyze_tool_simulated_end_to_end(tmp_path):
     out = tmp_path / "sim"
     assert analyze_main(["--simulate", 6, "--heights", 0.5, 1.0, 1.8, "--seed", 3, "--out", out,
@@ -276,7 +283,6 @@ def test_analyze_tool_simulated_end_to_end(tmp_path):
         assert (out / name).is_file(), name
 
 
-@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
 def test_simulator_counts_match_points_in_boxes(tmp_path):
     """The fast path (simulator hit counts, no points) and full clouds + points_in_boxes give the same report."""
     common = ["--simulate", 3, "--heights", 0.5, 1.8, "--seed", 11, "--no-progress", "--no-figures"]

@@ -10,7 +10,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import check_calibration as cc  # noqa: E402
 
 from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
-from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+from detbench.data.regions import RANGE_NAMES  # noqa: E402
 
 
 def paper_counts() -> np.ndarray:

@@ -44,7 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.config import ConfigError  # noqa: E402
 from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
-from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+from detbench.data.regions import RANGE_NAMES  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 HEIGHTS = ("0.5", "1.0", "1.8")

@@ -72,7 +72,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.data.simulated import default_dataset
     from detbench.eval.evaluate import evaluate_predictions
-    from detbench.eval.regions import RANGE_NAMES
+    from detbench.data.regions import RANGE_NAMES
     from detbench.train import (AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed,
                                 main_process_first, train)
     from detbench.train.inference import predict_frames

@@ -18,7 +18,7 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
-from detbench.eval.regions import LEVELS, RANGE_NAMES
+from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.utils.io import atomic_save
 
 METRIC_FIELDS: tuple[str, ...] = ("total", "lidar_detected", "ldr", "tp", "fp", "recall", "ap_r40")

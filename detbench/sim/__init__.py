@@ -15,10 +15,11 @@ timestamp) with three extras filled by the ray caster:
 
 - `hit_counts` (M,) int64: for each box, the number of points inside it with the box
   bottom raised by `count_bottom_lift` metres (config `output.count_bottom_lift_m`,
-  0.05 by default, i.e. the paper's LiDAR-detected rule). It is computed on the final
-  float32 points and float32 boxes with the same test as
-  `detbench.ops.points_in_boxes(points, boxes, bottom_lift=0.05)[0]`, so the two agree
-  exactly (tests/test_sim_counts.py proves it on simulated frames).
+  0.05 in configs/sim.yaml, i.e. `detbench.data.regions.DETECTED_BOTTOM_LIFT`, the paper's
+  LiDAR-detected rule). It is computed on the final float32 points and float32 boxes with
+  the same test as `detbench.data.regions.detected_point_counts(points, boxes)`, so the two agree
+  exactly (tests/test_ability.py::test_simulator_counts_match_points_in_boxes proves it on
+  simulated frames).
 - `point_box` (N,) int64: the box containing each point under that rule, or -1.
 - `rays_cast`: rays traced for the frame.
 
