@@ -50,6 +50,7 @@ def load_from_checkpoint(path, device="cpu"):
     The model is rebuilt from the config stored in the checkpoint (weights_only loading),
     so nothing else is needed; errors name the file and the fix.
     """
+    # imported on use: detbench.train loads the whole training stack (TensorBoard, DDP helpers)
     from detbench.train.checkpoint import CheckpointError, load_checkpoint, load_model_weights
 
     ckpt = load_checkpoint(path)

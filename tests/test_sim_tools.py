@@ -17,14 +17,15 @@ def _load(name):
 
 
 def test_plan_frames():
-    sim = _load("simulate")
-    assert sim.plan_frames(10, None, None, 200) == (10, 200)
-    assert sim.plan_frames(None, 3, 5, 200) == (15, 5)
-    assert sim.plan_frames(100, 4, None, 200) == (100, 25)
+    from detbench.sim.dataset import plan_frames
+
+    assert plan_frames(10, None, None, 200) == (10, 200)
+    assert plan_frames(None, 3, 5, 200) == (15, 5)
+    assert plan_frames(100, 4, None, 200) == (100, 25)
     with pytest.raises(ValueError, match="--frames"):
-        sim.plan_frames(None, None, None, 200)
+        plan_frames(None, None, None, 200)
     with pytest.raises(ValueError, match="does not fit"):
-        sim.plan_frames(100, 2, 10, 200)
+        plan_frames(100, 2, 10, 200)
 
 
 def test_simulate_writes_a_readable_dataset(tmp_path):

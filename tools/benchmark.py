@@ -93,7 +93,7 @@ def worker(args) -> dict:
     import torch
 
     from detbench.data.batch import collate
-    from detbench.data.simulated import default_dataset
+    from detbench.sim.dataset import default_dataset
     from detbench.train.inference import frame_sample
     from detbench.train.run_config import load_run_config
 

@@ -251,7 +251,7 @@ def _match_kernel(iou_flat, iou_off, pred_off, gt_off, gt_eval, pred_in_range, p
 def _iou_function(kind: str):
     if kind not in IOU_KINDS:
         raise ValueError(f"unknown iou_kind {kind!r}; use one of {', '.join(IOU_KINDS)}")
-    from detbench.ops import boxes_iou3d, boxes_iou_bev
+    from detbench.ops import boxes_iou3d, boxes_iou_bev  # on first use: detbench.ops loads torch
 
     return boxes_iou3d if kind == "3d" else boxes_iou_bev
 

@@ -18,6 +18,7 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
+from detbench.data.frame import height_key
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.utils.io import atomic_save
 
@@ -41,8 +42,6 @@ def _frac(v: float | None, digits: int = 3) -> str:
 def _height_str(h: Any) -> str:
     if h is None:
         return "?"
-    from detbench.data.frame import height_key
-
     return f"{height_key(h)} m"
 
 

@@ -40,14 +40,19 @@ type and its length_m/width_m/height_m.
 Hand-made scenes for tests and experiments: `detbench.sim.raycast.make_scene` builds a
 scene from explicit vehicles (parts), occluders and an ego body; `cast_lidar` casts one
 LiDAR on it. `detbench.sim.vehicles.build_parts` makes the parts of a shape.
+
+Datasets on disk (`detbench.sim.dataset`): `simulate_dataset` writes one in the detbench
+layout; `default_dataset(data_cfg)` is the cached simulated dataset every command uses
+without `--data`.
 """
 from detbench.sim.lidar import PRESETS as LIDAR_PRESETS, LidarConfig, lidar_preset
 from detbench.sim.raycast import CastResult, SceneObjects, cast_lidar, make_scene
 from detbench.sim.simulator import HighwaySimulator, SimFrame, check_sim_config, load_sim_config, sim_presets
 from detbench.sim.vehicles import VehicleCatalog, build_parts
+from detbench.sim.dataset import default_dataset, simulate_dataset
 
 __all__ = [
     "HighwaySimulator", "SimFrame", "LidarConfig", "lidar_preset", "LIDAR_PRESETS", "load_sim_config",
     "check_sim_config", "sim_presets", "cast_lidar", "make_scene", "SceneObjects", "CastResult",
-    "VehicleCatalog", "build_parts",
+    "VehicleCatalog", "build_parts", "default_dataset", "simulate_dataset",
 ]

@@ -40,6 +40,7 @@ from numba import njit, prange
 
 from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim.lidar import LidarConfig
+from detbench.sim.vehicles import label_box_local
 
 KIND_VEHICLE = 0
 KIND_OCCLUDER = 1
@@ -521,8 +522,6 @@ def make_scene(vehicles=(), occluders=(), ego: tuple[float, float, float] | None
     ego: optional (length, width, height) of the ego body, placed behind the sensor
       (x in [-length, 0), centred on y = 0): it blocks rays and gives no points.
     """
-    from detbench.sim.vehicles import label_box_local
-
     poses, labels, part_list, kinds, refl, bidx = [], [], [], [], [], []
     nveh = 0
     for v in vehicles:

@@ -22,6 +22,7 @@ from typing import Sequence
 import numpy as np
 from torch.utils.data import Dataset
 
+from detbench.data import Height3Dataset
 from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range, crop_to_range
 from detbench.data.batch import Sample
 from detbench.data.frame import Frame, height_key
@@ -81,8 +82,6 @@ class TrainingSet(Dataset):
         `augment.gt_sampling.database_dir`, else ROOT/gt_database/<height>. In a distributed
         run call this inside `main_process_first(info)`.
         """
-        from detbench.data import Height3Dataset
-
         augment = augment or AugmentConfig.none()
         frames = Height3Dataset(root, height, split)
         db = None
