@@ -152,7 +152,7 @@ def test_damaged_database_error_names_file(tmp_path, frames):
 
 def test_gt_sampling_never_overlaps_and_pasted_points_lie_in_their_boxes(tmp_path, frames):
     db = build_gt_database(frames, tmp_path / "db", progress=False)
-    cfg = GTSamplingConfig(enabled=True, sample_count=8, filter_by_min_points=5)
+    cfg = GTSamplingConfig.from_dict({"enabled": True, "sample_count": 8, "filter_by_min_points": 5})
     sampler = GTSampler(db, cfg)
     total_added = 0
     for seed in range(20):

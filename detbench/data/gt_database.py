@@ -35,7 +35,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from detbench.config import ConfigError, validate
+from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.frame import Frame
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS
 from detbench.ops import boxes_iou_bev, points_in_boxes
@@ -51,26 +51,21 @@ DB_VERSION = 1
 INDEX_FILE = "gt_database.json"
 ARRAYS_FILE = "gt_database.npz"
 
-GT_SAMPLING_DEFAULTS: dict[str, Any] = {
-    "enabled": True,
-    "sample_count": 15,  # OpenPCDet SAMPLE_GROUPS ['Car:15']
-    "limit_whole_scene": True,  # OpenPCDet LIMIT_WHOLE_SCENE: fill the frame up to sample_count
-    "filter_by_min_points": 5,  # OpenPCDet PREPARE.filter_by_min_points ['Car:5']
-    "remove_extra_width": [0.0, 0.0, 0.0],  # metres added to dx, dy, dz when removing frame points
-    "database_dir": None,  # folder of the database; null = chosen by the caller
-}
+# configs/default.yaml `augment.gt_sampling:`, each key documented there
+GT_SAMPLING_DEFAULTS: dict[str, Any] = shipped_defaults("augment")["gt_sampling"]
 
 
 @dataclass(frozen=True)
 class GTSamplingConfig:
-    """Ground-truth sampling settings (see GT_SAMPLING_DEFAULTS for the YAML names)."""
+    """Ground-truth sampling settings: the `augment.gt_sampling` section, parsed by `from_dict`
+    (names, defaults and units: configs/default.yaml)."""
 
-    enabled: bool = False
-    sample_count: int = 15
-    limit_whole_scene: bool = True
-    filter_by_min_points: int = 5
-    remove_extra_width: tuple[float, float, float] = (0.0, 0.0, 0.0)  # metres
-    database_dir: str | None = None
+    enabled: bool
+    sample_count: int
+    limit_whole_scene: bool
+    filter_by_min_points: int
+    remove_extra_width: tuple[float, float, float]  # metres
+    database_dir: str | None
 
     @classmethod
     def from_dict(cls, cfg: Mapping | None, where: str = "augment.gt_sampling") -> "GTSamplingConfig":

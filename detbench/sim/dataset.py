@@ -21,22 +21,13 @@ from typing import Callable, Sequence
 
 from tqdm import tqdm
 
+from detbench.config import shipped_defaults
 from detbench.data.frame import height_key
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
 
-DATA_DEFAULTS = {
-    "root": None,  # a dataset on disk; null = the simulated default dataset below
-    "sim_preset": "paper",  # configs/sim.yaml preset of the simulated default dataset
-    "sim_overrides": [],  # simulator --set overrides, e.g. ["traffic.density_per_km_lane=20"]
-    "frames": 2000,  # frames (time steps) to simulate; every height sees the same traffic
-    "frames_per_scene": 200,  # frames per scene (2 Hz); the split is by scene
-    "heights": [0.5, 1.0, 1.8],  # mounting heights (m) simulated into the default dataset
-    "seed": 0,
-    "test_fraction": 0.3333333333333333,  # share of scenes in the test split
-    "cache_dir": None,  # null = $DETBENCH_CACHE, else ~/.cache/detbench
-}
+DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:

@@ -15,7 +15,7 @@ import math
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
@@ -25,7 +25,7 @@ from torch.utils.data import DataLoader, Sampler
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from detbench.config import ConfigError, validate
+from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.batch import Batch, Sample, collate
 from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
 from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buffers, wrap_model
@@ -36,29 +36,7 @@ from detbench.utils.io import read_json
 
 __all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "TrainConfig", "TrainResult", "train"]
 
-TRAIN_DEFAULTS: dict[str, Any] = {
-    "epochs": 20,
-    "batch_size": 4,  # frames per process per step
-    "workers": 2,  # DataLoader worker processes (0 = load in the main process)
-    "seed": 0,
-    "lr": 0.003,  # peak of the one-cycle schedule
-    "weight_decay": 0.01,
-    "betas": [0.9, 0.99],
-    "pct_start": 0.4,  # share of steps with rising lr
-    "div_factor": 10.0,  # start lr = lr / div_factor
-    "final_div_factor": 10000.0,  # end lr = start lr / final_div_factor
-    "momentum_range": [0.85, 0.95],  # Adam beta1, cycled opposite to the lr
-    "grad_clip": 10.0,  # max global gradient L2 norm; 0 = off
-    "amp": True,  # mixed precision, CUDA only (always off on CPU)
-    "keep_checkpoints": 3,  # newest N kept; 0 = all
-    "checkpoint_every_steps": 0,  # extra mid-epoch checkpoints; 0 = epoch ends only
-    "eval_every": 1,  # epochs between evaluation callbacks (the last epoch is always evaluated)
-    "log_every": 10,  # steps between TensorBoard loss points
-    "drop_last": False,  # drop a last partial batch
-    "find_unused_parameters": False,  # DDP option for models with conditionally used parameters
-    "tensorboard": True,
-    "bev_image": True,  # bird's-eye image of predictions vs ground truth per epoch in TensorBoard
-}
+TRAIN_DEFAULTS: dict[str, Any] = shipped_defaults("train")  # configs/default.yaml `train:`, each key documented there
 # train.* keys that may change between an interrupted run and its resume (they do not change results)
 RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
                     "checkpoint_every_steps")
@@ -66,29 +44,29 @@ RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_ev
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Typed view of the `train` config section (TRAIN_DEFAULTS documents each key and its unit)."""
+    """Typed view of the `train` config section; each key's default and unit is in configs/default.yaml."""
 
-    epochs: int = 20
-    batch_size: int = 4
-    workers: int = 2
-    seed: int = 0
-    lr: float = 0.003
-    weight_decay: float = 0.01
-    betas: tuple[float, float] = (0.9, 0.99)
-    pct_start: float = 0.4
-    div_factor: float = 10.0
-    final_div_factor: float = 10000.0
-    momentum_range: tuple[float, float] = (0.85, 0.95)
-    grad_clip: float = 10.0
-    amp: bool = True
-    keep_checkpoints: int = 3
-    checkpoint_every_steps: int = 0
-    eval_every: int = 1
-    log_every: int = 10
-    drop_last: bool = False
-    find_unused_parameters: bool = False
-    tensorboard: bool = True
-    bev_image: bool = True
+    epochs: int
+    batch_size: int  # frames per process per step
+    workers: int
+    seed: int
+    lr: float
+    weight_decay: float
+    betas: tuple[float, float]
+    pct_start: float
+    div_factor: float
+    final_div_factor: float
+    momentum_range: tuple[float, float]
+    grad_clip: float
+    amp: bool
+    keep_checkpoints: int
+    checkpoint_every_steps: int
+    eval_every: int
+    log_every: int
+    drop_last: bool
+    find_unused_parameters: bool
+    tensorboard: bool
+    bev_image: bool
 
     @classmethod
     def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
@@ -97,20 +75,10 @@ class TrainConfig:
         validate(d, TRAIN_DEFAULTS, where=where)
         v = {**TRAIN_DEFAULTS, **d}
         try:
-            cfg = cls(epochs=int(v["epochs"]), batch_size=int(v["batch_size"]), workers=int(v["workers"]),
-                      seed=int(v["seed"]), lr=float(v["lr"]), weight_decay=float(v["weight_decay"]),
-                      betas=(float(v["betas"][0]), float(v["betas"][1])), pct_start=float(v["pct_start"]),
-                      div_factor=float(v["div_factor"]), final_div_factor=float(v["final_div_factor"]),
-                      momentum_range=(float(v["momentum_range"][0]), float(v["momentum_range"][1])),
-                      grad_clip=float(v["grad_clip"]), amp=bool(v["amp"]),
-                      keep_checkpoints=int(v["keep_checkpoints"]),
-                      checkpoint_every_steps=int(v["checkpoint_every_steps"]), eval_every=int(v["eval_every"]),
-                      log_every=int(v["log_every"]), drop_last=bool(v["drop_last"]),
-                      find_unused_parameters=bool(v["find_unused_parameters"]), tensorboard=bool(v["tensorboard"]),
-                      bev_image=bool(v["bev_image"]))
+            cfg = cls(**{f.name: _as_field_type(f.type, v[f.name]) for f in fields(cls)})
         except (TypeError, ValueError, IndexError) as e:
-            raise ConfigError(f"{where}: a value has the wrong type ({e}); see TRAIN_DEFAULTS in "
-                              f"detbench/train/loop.py for each key's type") from None
+            raise ConfigError(f"{where}: a value has the wrong type ({e}); see the train section of "
+                              f"configs/default.yaml for each key's type") from None
         checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
                   ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
                   ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
@@ -122,6 +90,13 @@ class TrainConfig:
             if not ok:
                 raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
         return cfg
+
+
+def _as_field_type(annotation: str, value: Any) -> Any:
+    """A YAML value converted to a TrainConfig field's type, named by its annotation string."""
+    if annotation == "tuple[float, float]":
+        return float(value[0]), float(value[1])
+    return {"int": int, "float": float, "bool": bool}[annotation](value)
 
 
 @dataclass
