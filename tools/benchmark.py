@@ -125,7 +125,7 @@ def worker(args) -> dict:
     test = Height3Dataset(data_root, args.height, "test")
     n = args.frames + args.warmup
     samples = [frame_sample(test[i % len(test)], cfg_model["point_cloud_range"]) for i in range(n)]
-    stages = getattr(model, "STAGES", None) or {"forward": [c for c, _ in model.named_children()]}
+    stages = model.STAGES
     timer = StageTimer(model, stages, device)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     if device.type == "cuda":

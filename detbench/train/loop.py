@@ -1,6 +1,6 @@
 """The training loop: `train(model, train_set, cfg, out_dir, ...)`, readable top to bottom.
 
-One call trains (or resumes) a detector that follows the contract in detbench/train/__init__.py:
+One call trains (or resumes) a detector that follows the contract `Detector` (detbench/train/detector.py):
 AdamW + one-cycle LR stepped per batch, gradient clipping, mixed precision on CUDA only,
 seeded data order and augmentation, a checkpoint at every epoch end (and on Ctrl-C),
 TensorBoard + history.json + a console line per epoch, an optional evaluation callback, and
@@ -214,7 +214,7 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
     """Train `model` on `train_set`, or resume the run in `out_dir`.
 
     Args:
-        model: a detector (see detbench/train/__init__.py): forward(Batch), loss(outputs, Batch),
+        model: a `Detector` (detbench/train/detector.py): forward(Batch), loss(outputs, Batch),
             predict(outputs, Batch). Built by the caller after `seed_everything(cfg.seed)`;
             moved to the device here.
         train_set: a torch Dataset of `Sample`s indexed by (epoch, index) pairs (a `TrainingSet`)
