@@ -1,6 +1,5 @@
 """LiDAR detection-ability study: hand-made counting cases and the tools/analyze.py pipeline."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,17 +7,11 @@ import pytest
 from detbench.data import DatasetWriter, Frame, Sensor
 from detbench.eval.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def analyze_main(argv):
+@pytest.fixture
+def analyze_main(load_tool):
     """Run tools/analyze.py's main in this process (saves the interpreter and numba start-up)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("analyze_tool", ROOT / "tools" / "analyze.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main([str(a) for a in argv])
+    return lambda argv: load_tool("analyze").main([str(a) for a in argv])
 
 
 def car(x, y, heading=0.0, dz=1.5):
@@ -232,7 +225,7 @@ def _study_dataset(root, instants=4):
             w.add(frames)
 
 
-def test_analyze_tool_on_disk_dataset(tmp_path):
+def test_analyze_tool_on_disk_dataset(tmp_path, analyze_main):
     data = tmp_path / "ds"
     _study_dataset(data)
     out = tmp_path / "out"
@@ -255,7 +248,7 @@ def test_analyze_tool_on_disk_dataset(tmp_path):
     assert "| Range | Total | 0.5 m Number / LDR | 1.8 m Number / LDR |" in (out / "ability.md").read_text()
 
 
-def test_analyze_tool_reports_bad_frame(tmp_path):
+def test_analyze_tool_reports_bad_frame(tmp_path, analyze_main):
     data = tmp_path / "ds"
     _study_dataset(data)
     np.save(data / "points" / "1.8" / "0001_000.npy", np.zeros((2, 3), np.float32))
@@ -267,7 +260,7 @@ def test_analyze_tool_reports_bad_frame(tmp_path):
     assert rep["num_frames"] == 3 and len(rep["extras"]["source"]["skipped"]) == 1
 
 
-def test_analyze_tool_simulated_end_to_end(tmp_path):
+def test_analyze_tool_simulated_end_to_end(tmp_path, analyze_main):
     out = tmp_path / "sim"
     assert analyze_main(["--simulate", 6, "--heights", 0.5, 1.0, 1.8, "--seed", 3, "--out", out,
                          "--json", tmp_path / "r.json", "--no-progress"]) == 0
@@ -283,7 +276,7 @@ def test_analyze_tool_simulated_end_to_end(tmp_path):
         assert (out / name).is_file(), name
 
 
-def test_simulator_counts_match_points_in_boxes(tmp_path):
+def test_simulator_counts_match_points_in_boxes(tmp_path, analyze_main):
     """The fast path (simulator hit counts, no points) and full clouds + points_in_boxes give the same report."""
     common = ["--simulate", 3, "--heights", 0.5, 1.8, "--seed", 11, "--no-progress", "--no-figures"]
     assert analyze_main(common + ["--out", tmp_path / "a"]) == 0
