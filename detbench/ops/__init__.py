@@ -1,6 +1,6 @@
 """Box geometry on CPU (numba) and GPU (torch): points in boxes, rotated IoU, NMS, box coding.
 
-Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (see DESIGN.md).
+Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (docs/architecture.md, Conventions).
 numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device.
 """
 from detbench.ops.box_coder import (
