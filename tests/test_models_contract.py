@@ -19,16 +19,13 @@ from detbench.train.run_config import load_run_config
 CAR = np.array([20.0, 1.0, 0.8, 4.5, 1.9, 1.6, 0.3], np.float32)  # metres, radians
 
 
-def car_points(box: np.ndarray, n: int = 400, seed: int = 0) -> np.ndarray:
-    """(n, 4) points on the faces of `box`, intensity 0.5."""
-    rng = np.random.default_rng(seed)
-    x, y, z, dx, dy, dz, h = box
-    local = rng.uniform(-0.5, 0.5, (n, 3)) * [dx, dy, dz]
-    face = rng.integers(0, 3, n)
-    local[np.arange(n), face] = np.sign(local[np.arange(n), face]) * np.array([dx, dy, dz])[face] / 2
-    c, s = math.cos(h), math.sin(h)
-    xy = np.stack([x + c * local[:, 0] - s * local[:, 1], y + s * local[:, 0] + c * local[:, 1]], 1)
-    return np.concatenate([xy, z + local[:, 2:3], np.full((n, 1), 0.5)], 1).astype(np.float32)
+def car_points(box: np.ndarray, per_side: int = 8) -> np.ndarray:
+    """(per_side^3, 4) points on a lattice filling `box` (x, y, z, dx, dy, dz, heading), intensity 0.5."""
+    u = np.linspace(-0.45, 0.45, per_side)
+    local = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3) * box[3:6]
+    c, s = math.cos(box[6]), math.sin(box[6])
+    xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + box[:2]
+    return np.concatenate([xy, box[2] + local[:, 2:3], np.full((len(local), 1), 0.5)], 1).astype(np.float32)
 
 
 def two_frames() -> Batch:
