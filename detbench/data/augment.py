@@ -7,18 +7,12 @@ the generator from (seed, epoch, frame index) so a resumed run replays it exactl
 Order (OpenPCDet's): ground-truth sampling, flip across the x axis, rotation about z,
 scaling, then the crop to the model's point-cloud range.
 
-Config (YAML, the `augment` section; names follow OpenPCDet's DATA_AUGMENTOR entries;
-angles in degrees at this edge, radians inside). The defaults are those of
-configs/default.yaml (AUGMENT_DEFAULTS is that section):
-
-```yaml
-augment:
-  random_world_flip: {enabled: true, probability: 0.5}       # y -> -y, heading -> -heading
-  random_world_rotation: {enabled: true, world_rot_angle_deg: [-10.0, 10.0]}
-  random_world_scaling: {enabled: true, world_scale_range: [0.95, 1.05]}
-  gt_sampling: {enabled: true, sample_count: 15, limit_whole_scene: true,
-                filter_by_min_points: 5, remove_extra_width: [0.0, 0.0, 0.0], database_dir: null}
-```
+Config: the `augment` section (names follow OpenPCDet's DATA_AUGMENTOR entries; angles in
+degrees at this edge, radians inside) with the sub-sections random_world_flip {enabled,
+probability}, random_world_rotation {enabled, world_rot_angle_deg}, random_world_scaling
+{enabled, world_scale_range} and gt_sampling (detbench.data.gt_database). Its defaults,
+units and meanings are written once, in configs/default.yaml (AUGMENT_DEFAULTS is that
+section).
 """
 from __future__ import annotations
 
