@@ -8,17 +8,34 @@ as YAML (so `1e-3`, `true`, `[1, 2]` work).
 Validation is against a *reference* config (the defaults a tool ships): a key that is not
 in the reference is an error that names the key, the file it came from and the closest
 known key. Keys under a mapping listed in `open_keys` may be free-form.
+
+The YAML files users read are the one home of the defaults: `shipped_defaults(section)` is
+a section of configs/default.yaml (data, train, augment, eval), from which the library's
+typed configs (TrainConfig, AugmentConfig, GTSamplingConfig) and the simulated dataset take
+every missing key. `CONFIG_DIR` is configs/ installed with the package (the data package
+`detbench.configs`, see pyproject.toml) or, in a checkout, the top-level configs/.
 """
 from __future__ import annotations
 
 import copy
 import difflib
+import functools
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 import yaml
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+
+
+def _config_dir() -> Path:
+    """configs/ as installed with the package (detbench/configs), else the checkout's top-level configs/."""
+    here = Path(__file__).resolve().parent
+    installed = here / "configs"
+    return installed if installed.is_dir() else here.parent / "configs"
+
+
+CONFIG_DIR = _config_dir()
+DEFAULTS_FILE = "default.yaml"
 
 
 class ConfigError(ValueError):
@@ -79,6 +96,17 @@ def load_config(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     for b in bases:
         merged = deep_merge(merged, load_config(resolve_config_path(b, path.parent), _seen + (path,)))
     return deep_merge(merged, data)
+
+
+@functools.lru_cache(maxsize=1)
+def _shipped_defaults() -> dict:
+    return load_config(CONFIG_DIR / DEFAULTS_FILE)
+
+
+def shipped_defaults(section: str) -> dict:
+    """A copy of `section` (data | train | augment | eval) of configs/default.yaml: the defaults
+    every run starts from, and the values a typed config takes for keys it is not given."""
+    return copy.deepcopy(_shipped_defaults()[section])
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:

@@ -1,9 +1,11 @@
 """Detectors, one file each, built from the shared stages in models/stages.
 
 `REGISTRY` maps a model name to its class; `build_model(name, model_cfg)` builds one from
-the `model:` section of its config (configs/<name>.yaml). A class may define
-`prepare_config(model_cfg, train_boxes) -> model_cfg` to fill data-derived values (SECOND
-sizes its anchors from the training boxes); tools/train.py calls it once before building,
+the `model:` section of its config (configs/<name>.yaml). Every class follows the detector
+contract `detbench.train.detector.Detector` (forward, loss, predict, STAGES and
+`prepare_config(model_cfg, train_boxes) -> model_cfg`, which fills data-derived values:
+SECOND sizes its anchors from the training boxes); tests/test_models_contract.py checks
+each registered model. tools/train.py calls `prepare_model_config` once before building,
 and the result is stored in the checkpoint so evaluation rebuilds the same model.
 """
 from __future__ import annotations
@@ -36,9 +38,7 @@ def get_model_class(name: str) -> type[nn.Module]:
 
 def prepare_model_config(name: str, model_cfg: dict, train_boxes: np.ndarray) -> dict:
     """Fill data-derived values of `model_cfg` (a copy is returned)."""
-    cls = get_model_class(name)
-    prep = getattr(cls, "prepare_config", None)
-    return prep(model_cfg, train_boxes) if prep is not None else dict(model_cfg)
+    return get_model_class(name).prepare_config(model_cfg, train_boxes)
 
 
 def build_model(name: str, model_cfg: dict) -> nn.Module:
@@ -54,6 +54,7 @@ def load_from_checkpoint(path, device="cpu"):
     The model is rebuilt from the config stored in the checkpoint (weights_only loading),
     so nothing else is needed; errors name the file and the fix.
     """
+    # imported on use: detbench.train loads the whole training stack (TensorBoard, DDP helpers)
     from detbench.train.checkpoint import CheckpointError, load_checkpoint, load_model_weights
 
     ckpt = load_checkpoint(path)

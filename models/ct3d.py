@@ -30,16 +30,12 @@ from .second import SECOND
 from .stages import AnchorHeadOutput
 from .stages.ct3d_head import CT3DRoIHead
 from .stages.two_stage import (
-    PROPOSAL_DEFAULTS, TARGET_DEFAULTS, Proposals, RefineHead, RefineOutput, merge_config, predict_refined,
-    refine_loss, sample_proposal_targets, select_proposals,
+    TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
+    sample_proposal_targets, select_proposals,
 )
 
-ROI_HEAD_DEFAULTS = {
-    "num_points": 256, "radius_scale": 1.2, "hidden_dim": 256, "heads": 4, "enc_layers": 3,
-    "dim_feedforward": 512, "dropout": 0.1, "mlp_hidden": 64, "fc": [256, 256],
-    "proposals": PROPOSAL_DEFAULTS, "targets": TARGET_DEFAULTS,
-    "loss_weights": {"rpn": 1.0, "rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0},
-}
+ROI_HEAD_KEYS = ("num_points", "radius_scale", "hidden_dim", "heads", "enc_layers", "dim_feedforward", "dropout",
+                 "mlp_hidden", "fc", "proposals", "targets", "loss_weights")
 
 
 class TwoStageOutput(NamedTuple):
@@ -54,10 +50,12 @@ class CT3D(SECOND):
 
     def __init__(self, cfg: dict):
         super().__init__(cfg)
-        rh = merge_config(ROI_HEAD_DEFAULTS, cfg.get("roi_head"), "ct3d roi_head")
+        rh = require_keys(cfg.get("roi_head"), ROI_HEAD_KEYS, "ct3d model.roi_head")
         self.rh = rh
-        self.proposal_cfg = merge_config(PROPOSAL_DEFAULTS, rh["proposals"], "ct3d roi_head.proposals")
-        self.target_cfg = merge_config(TARGET_DEFAULTS, rh["targets"], "ct3d roi_head.targets")
+        self.proposal_cfg = proposal_budgets(rh["proposals"], "ct3d model.roi_head.proposals")
+        self.target_cfg = require_keys(rh["targets"], TARGET_KEYS, "ct3d model.roi_head.targets")
+        self.loss_weights = require_keys(rh["loss_weights"], ("rpn", "rcnn_cls", "rcnn_reg", "rcnn_corner"),
+                                         "ct3d model.roi_head.loss_weights")
         self.roi_head = CT3DRoIHead(rh["num_points"], rh["radius_scale"], rh["hidden_dim"], rh["heads"],
                                     rh["enc_layers"], rh["dim_feedforward"], rh["dropout"], point_features=1,
                                     mlp_hidden=rh["mlp_hidden"])
@@ -91,7 +89,7 @@ class CT3D(SECOND):
         return TwoStageOutput(rpn, props, RefineOutput(cls, reg, rois, mask, targets))
 
     def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
-        w = self.rh["loss_weights"]
+        w = self.loss_weights
         rpn_total, rpn_parts = super().loss(out.rpn, batch)
         rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w)
         return w["rpn"] * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}

@@ -14,18 +14,16 @@ A frame without a single point in the range gets no detections (there is nothing
 """
 from __future__ import annotations
 
+import copy
 from typing import NamedTuple
 
+import numpy as np
 import torch
 import torch.nn as nn
 
 from detbench.data.batch import Batch, Detections
 
-from .stages import VoxelGrid
-from .stages.center_head import CenterHead, CenterHeadOutput
-from .stages.pillar_encoder import DynamicPillarEncoder
-from .stages.pillarnet_neck import SpatialSemanticNeck
-from .stages.sparse_resnet2d import SparseResNet2d
+from .stages import CenterHead, CenterHeadOutput, DynamicPillarEncoder, SpatialSemanticNeck, SparseResNet2d, VoxelGrid
 
 CONFIG_FILE = "configs/pillarnet.yaml"
 
@@ -38,8 +36,9 @@ class PillarNetOutput(NamedTuple):
 class PillarNet(nn.Module):
     """PillarNet for one class (Vehicle). `cfg` is the `model:` section of configs/pillarnet.yaml.
 
-    Contract: `forward(batch) -> PillarNetOutput`, `loss(outputs, batch) -> (total, parts)`,
-    `predict(outputs, batch) -> list[Detections]` (one per frame, label 0 = Vehicle).
+    Contract (`detbench.train.detector.Detector`): `forward(batch) -> PillarNetOutput`,
+    `loss(outputs, batch) -> (total, parts)`, `predict(outputs, batch) -> list[Detections]`
+    (one per frame, label 0 = Vehicle), `prepare_config` (nothing to derive), `STAGES`.
     Stages: `vfe` (pillar encoder), `backbone` (sparse ResNet), `neck`, `head`.
     """
 
@@ -65,6 +64,11 @@ class PillarNet(nn.Module):
                      "od_iou_distance", "code_weights", "loss_weights")
         self.head = CenterHead(self.neck.out_channels, self.grid, SparseResNet2d.stride8,
                                **{k: _key(head, k, "model.head") for k in head_keys}, post=dict(post))
+
+    @staticmethod
+    def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
+        """A copy of `model_cfg`: PillarNet derives nothing from the training boxes (N, 7)."""
+        return copy.deepcopy(model_cfg)
 
     def forward(self, batch: Batch) -> PillarNetOutput:
         """Batch (points (P, 5) [batch_index, x, y, z, intensity]) -> head maps at 8x and pillars per frame."""

@@ -35,8 +35,8 @@ from .stages.pointnet2 import PointNet2MSG, sample_frame_points
 from .stages.pointrcnn_head import PointRCNNRoIHead
 from .stages.postprocess import select_detections
 from .stages.two_stage import (
-    PROPOSAL_DEFAULTS, TARGET_DEFAULTS, Proposals, RefineHead, RefineOutput, merge_config, predict_refined,
-    refine_loss, sample_proposal_targets, select_proposals,
+    TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
+    sample_proposal_targets, select_proposals,
 )
 
 
@@ -64,15 +64,16 @@ class PointRCNN(nn.Module):
         self.backbone = PointNet2MSG(1, npoints, bb["radii"], bb["nsamples"], bb["mlps"], bb["fp_mlps"])
         self.point_head = PointHead(self.backbone.out_channels, ph["cls_fc"], ph["reg_fc"], ph["mean_size"],
                                     ph["extra_width"])
-        self.proposal_cfg = merge_config(PROPOSAL_DEFAULTS, rh["proposals"], "pointrcnn roi_head.proposals")
-        self.target_cfg = merge_config(TARGET_DEFAULTS, rh["targets"], "pointrcnn roi_head.targets")
+        self.proposal_cfg = proposal_budgets(rh["proposals"], "pointrcnn model.roi_head.proposals")
+        self.target_cfg = require_keys(rh["targets"], TARGET_KEYS, "pointrcnn model.roi_head.targets")
         sa_np = [None if v in (None, -1) else int(v) for v in rh["sa_npoints"]]
         self.roi_head = PointRCNNRoIHead(self.backbone.out_channels, rh["num_points"], rh["pool_extra_width"],
                                          rh["depth_normalizer"], rh["xyz_up"], sa_np, rh["sa_radii"],
                                          rh["sa_nsamples"], rh["sa_mlps"])
         self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
         self.coder = ResidualBoxCoder()
-        self.loss_weights = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **rh.get("loss_weights", {})}
+        self.loss_weights = require_keys(rh["loss_weights"], ("rcnn_cls", "rcnn_reg", "rcnn_corner"),
+                                         "pointrcnn model.roi_head.loss_weights")
         self.post = dict(cfg["post"])
         self.output_stage = "refined"
 

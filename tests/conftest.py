@@ -1,7 +1,11 @@
-"""Shared pytest set-up: the `slow` marker is skipped unless --runslow is given."""
+"""Shared pytest set-up: the `slow` marker is skipped unless --runslow is given; `load_tool` fixture."""
+import importlib.util
 import os
+from pathlib import Path
 
 import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 # OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine spinning
@@ -20,3 +24,17 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if "slow" in item.keywords:
             item.add_marker(skip_slow)
+
+
+@pytest.fixture
+def load_tool():
+    """`load_tool("analyze")`: tools/analyze.py loaded as a fresh module, so a test runs its `main(argv)`
+    in this process (no interpreter and numba start-up per call). Tools hold argument parsing and
+    output; what they compute is library code, which tests import directly."""
+    def load(name: str):
+        spec = importlib.util.spec_from_file_location(f"detbench_tools_{name}", ROOT / "tools" / f"{name}.py")
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        return mod
+
+    return load

@@ -1,6 +1,5 @@
 """LiDAR detection-ability study: hand-made counting cases and the tools/analyze.py pipeline."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,17 +7,11 @@ import pytest
 from detbench.data import DatasetWriter, Frame, Sensor
 from detbench.eval.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def analyze_main(argv):
+@pytest.fixture
+def analyze_main(load_tool):
     """Run tools/analyze.py's main in this process (saves the interpreter and numba start-up)."""
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("analyze_tool", ROOT / "tools" / "analyze.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod.main([str(a) for a in argv])
+    return lambda argv: load_tool("analyze").main([str(a) for a in argv])
 
 
 def car(x, y, heading=0.0, dz=1.5):
@@ -57,6 +50,22 @@ def test_bottom_lift_point_at_4cm_not_counted_6cm_counted():
     st3 = AbilityStudy()
     st3.add(frame([car(10, 0)], [[10.0, 0.0, 1.51], [10.0, 1.2, 0.5]]))  # above the roof; beside the car
     assert cell(st3.report(), "1.8", "small", "all")["detected"] == 0
+
+
+def test_one_lidar_detected_rule_for_every_counter():
+    """The rule's functions count with DETECTED_BOTTOM_LIFT, and the simulator's config uses the same lift."""
+    from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, detected_point_counts, lidar_detected
+    from detbench.sim import load_sim_config, sim_presets
+
+    assert (DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS) == (0.05, 1)
+    boxes = np.asarray([car(10, 0), car(20, 0), car(30, 0)], np.float32)
+    pts = np.asarray([[10.0, 0.0, 0.04, 0.5], [20.0, 0.0, 0.06, 0.5], [20.0, 0.5, 1.0, 0.5]], np.float32)
+    assert detected_point_counts(pts, boxes).tolist() == [0, 2, 0]
+    assert lidar_detected(pts, boxes).tolist() == [False, True, False]
+    assert lidar_detected(pts, boxes, min_points=3).tolist() == [False, False, False]
+    assert lidar_detected(pts, boxes[:0]).shape == (0,)
+    for preset in sim_presets():
+        assert load_sim_config(preset)["output"]["count_bottom_lift_m"] == DETECTED_BOTTOM_LIFT
 
 
 def test_rotated_box_footprint():
@@ -216,7 +225,7 @@ def _study_dataset(root, instants=4):
             w.add(frames)
 
 
-def test_analyze_tool_on_disk_dataset(tmp_path):
+def test_analyze_tool_on_disk_dataset(tmp_path, analyze_main):
     data = tmp_path / "ds"
     _study_dataset(data)
     out = tmp_path / "out"
@@ -239,7 +248,7 @@ def test_analyze_tool_on_disk_dataset(tmp_path):
     assert "| Range | Total | 0.5 m Number / LDR | 1.8 m Number / LDR |" in (out / "ability.md").read_text()
 
 
-def test_analyze_tool_reports_bad_frame(tmp_path):
+def test_analyze_tool_reports_bad_frame(tmp_path, analyze_main):
     data = tmp_path / "ds"
     _study_dataset(data)
     np.save(data / "points" / "1.8" / "0001_000.npy", np.zeros((2, 3), np.float32))
@@ -251,16 +260,7 @@ def test_analyze_tool_reports_bad_frame(tmp_path):
     assert rep["num_frames"] == 3 and len(rep["extras"]["source"]["skipped"]) == 1
 
 
-def _sim_available():
-    try:
-        from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
-def test_analyze_tool_simulated_end_to_end(tmp_path):
+def test_analyze_tool_simulated_end_to_end(tmp_path, analyze_main):
     out = tmp_path / "sim"
     assert analyze_main(["--simulate", 6, "--heights", 0.5, 1.0, 1.8, "--seed", 3, "--out", out,
                          "--json", tmp_path / "r.json", "--no-progress"]) == 0
@@ -276,8 +276,7 @@ def test_analyze_tool_simulated_end_to_end(tmp_path):
         assert (out / name).is_file(), name
 
 
-@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
-def test_simulator_counts_match_points_in_boxes(tmp_path):
+def test_simulator_counts_match_points_in_boxes(tmp_path, analyze_main):
     """The fast path (simulator hit counts, no points) and full clouds + points_in_boxes give the same report."""
     common = ["--simulate", 3, "--heights", 0.5, 1.8, "--seed", 11, "--no-progress", "--no-figures"]
     assert analyze_main(common + ["--out", tmp_path / "a"]) == 0

@@ -11,9 +11,9 @@ from detbench.data.augment import (
 )
 from detbench.data.frame import Frame, Sensor
 from detbench.data.gt_database import (
-    INDEX_FILE, GTSampler, GTSamplingConfig, build_gt_database, build_or_load_gt_database, detected_mask,
-    load_gt_database,
+    INDEX_FILE, GTSampler, GTSamplingConfig, build_gt_database, build_or_load_gt_database, load_gt_database,
 )
+from detbench.data.regions import DETECTED_BOTTOM_LIFT, lidar_detected
 from detbench.ops import boxes_iou_bev, points_in_boxes
 
 PC_RANGE = [0.0, -20.0, -2.0, 80.0, 20.0, 4.0]
@@ -119,12 +119,12 @@ def frames():
 
 def test_database_holds_detected_vehicles_only(tmp_path, frames):
     db = build_gt_database(frames, tmp_path / "db", source={"test": 1}, progress=False)
-    n_detected = sum(int(detected_mask(f.points, f.boxes).sum()) for f in frames)
+    n_detected = sum(int(lidar_detected(f.points, f.boxes).sum()) for f in frames)
     assert len(db) == n_detected == 3 * len(frames)  # the hidden vehicle of each frame is left out
     for k in range(len(db)):
         pts = db.object_points(k)
         assert len(pts) == db.num_points[k] >= 1
-        counts, _ = points_in_boxes(pts, db.boxes[k:k + 1], bottom_lift=0.05)
+        counts, _ = points_in_boxes(pts, db.boxes[k:k + 1], bottom_lift=DETECTED_BOTTOM_LIFT)
         assert counts[0] == len(pts)
     back = load_gt_database(tmp_path / "db")
     assert np.array_equal(back.points, db.points) and back.frame_ids == db.frame_ids
@@ -152,12 +152,12 @@ def test_damaged_database_error_names_file(tmp_path, frames):
 
 def test_gt_sampling_never_overlaps_and_pasted_points_lie_in_their_boxes(tmp_path, frames):
     db = build_gt_database(frames, tmp_path / "db", progress=False)
-    cfg = GTSamplingConfig(enabled=True, sample_count=8, filter_by_min_points=5)
+    cfg = GTSamplingConfig.from_dict({"enabled": True, "sample_count": 8, "filter_by_min_points": 5})
     sampler = GTSampler(db, cfg)
     total_added = 0
     for seed in range(20):
         f = make_frame(100 + seed)
-        gt = f.boxes[detected_mask(f.points, f.boxes)]
+        gt = f.boxes[lidar_detected(f.points, f.boxes)]
         pts, boxes, added = sampler.sample(f.points, gt, np.random.default_rng(seed), avoid_boxes=f.boxes)
         total_added += added
         assert len(boxes) == len(gt) + added <= max(cfg.sample_count, len(gt))
@@ -186,7 +186,7 @@ def test_augment_frame_is_deterministic_per_seed(tmp_path, frames):
     cfg = AugmentConfig.from_dict({"gt_sampling": {"sample_count": 6}})
     sampler = GTSampler(db, cfg.gt_sampling)
     f = make_frame(7)
-    gt = f.boxes[detected_mask(f.points, f.boxes)]
+    gt = f.boxes[lidar_detected(f.points, f.boxes)]
     a = augment_frame(f.points, gt, np.random.default_rng([0, 1, 2]), cfg, sampler, f.boxes)
     b = augment_frame(f.points, gt, np.random.default_rng([0, 1, 2]), cfg, sampler, f.boxes)
     c = augment_frame(f.points, gt, np.random.default_rng([0, 2, 2]), cfg, sampler, f.boxes)

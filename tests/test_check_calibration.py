@@ -1,16 +1,17 @@
-"""tools/check_calibration.py: the Table IV criteria and a tiny end-to-end run."""
+"""detbench.eval.calibration (the Table IV criteria, precision, pass rates) and tools/check_calibration.py end to end."""
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
-import check_calibration as cc  # noqa: E402
+from detbench.data.regions import RANGE_NAMES
+from detbench.eval import calibration as cc
+from detbench.eval.ability import PAPER_TABLE_IV
 
-from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
-from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+
+@pytest.fixture
+def tool(load_tool):
+    return load_tool("check_calibration")
 
 
 def paper_counts() -> np.ndarray:
@@ -39,9 +40,9 @@ def test_each_criterion_can_fail():
     assert not res["ok"] and res["worst_abs_deviation"] is None
 
 
-def test_tiny_run_writes_json_and_markdown(tmp_path):
+def test_tiny_run_writes_json_and_markdown(tmp_path, tool):
     out = tmp_path / "cal"
-    rc = cc.main(["--seeds", "0", "--frames", "40", "--frames-per-scene", "20", "--block-frames", "20",
+    rc = tool.main(["--seeds", "0", "--frames", "40", "--frames-per-scene", "20", "--block-frames", "20",
                   "--out", str(out), "--no-progress"])
     assert rc == 0
     rep = json.loads((out / "calibration.json").read_text())
@@ -56,15 +57,15 @@ def test_tiny_run_writes_json_and_markdown(tmp_path):
     assert "| 0 | all (40) |" in (out / "calibration.md").read_text()
 
 
-def test_bad_arguments_exit_2(tmp_path, capsys):
-    assert cc.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30", "--out", str(tmp_path)]) == 2
+def test_bad_arguments_exit_2(tmp_path, capsys, tool):
+    assert tool.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30", "--out", str(tmp_path)]) == 2
     assert "multiple of the frames per scene" in capsys.readouterr().err
-    assert cc.main(["--set", "traffic.no_such_key=1", "--out", str(tmp_path)]) == 2
+    assert tool.main(["--set", "traffic.no_such_key=1", "--out", str(tmp_path)]) == 2
 
 
-def test_pooled_row_sums_the_seeds(tmp_path):
+def test_pooled_row_sums_the_seeds(tmp_path, tool):
     out = tmp_path / "cal"
-    assert cc.main(["--seeds", "0", "1", "--frames", "20", "--frames-per-scene", "20", "--block-frames", "0",
+    assert tool.main(["--seeds", "0", "1", "--frames", "20", "--frames-per-scene", "20", "--block-frames", "0",
                     "--out", str(out), "--no-progress"]) == 0
     rep = json.loads((out / "calibration.json").read_text())
     per_seed = [rep["seeds"][s]["runs"]["all"]["vehicles_per_frame"]["large"] for s in ("0", "1")]
@@ -128,9 +129,9 @@ def test_block_pass_rate_counts_passing_draws():
     assert cc.block_pass_rate(on[:3], 10, 0.05, 0.03)["ok"] is None
 
 
-def test_tiny_run_reports_precision(tmp_path):
+def test_tiny_run_reports_precision(tmp_path, tool):
     out = tmp_path / "cal"
-    assert cc.main(["--seeds", "0", "--frames", "60", "--frames-per-scene", "20", "--block-frames", "40",
+    assert tool.main(["--seeds", "0", "--frames", "60", "--frames-per-scene", "20", "--block-frames", "40",
                     "--out", str(out), "--no-progress"]) == 0
     rep = json.loads((out / "calibration.json").read_text())
     assert rep["precision"]["scenes"] == 3 and rep["precision"]["scenes_per_block"] == 2

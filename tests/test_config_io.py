@@ -114,3 +114,57 @@ def test_atomic_write_uses_normal_file_mode(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert (target.stat().st_mode & 0o777) == (0o666 & ~mask)
+
+
+def test_typed_configs_read_their_defaults_from_default_yaml():
+    """configs/default.yaml is the one home of the defaults: the typed configs name exactly its keys and,
+    given nothing, hold its values (fails when the YAML and a dataclass disagree)."""
+    import math
+    from dataclasses import fields
+
+    from detbench.data.augment import AUGMENT_DEFAULTS, AugmentConfig
+    from detbench.data.gt_database import GT_SAMPLING_DEFAULTS, GTSamplingConfig
+    from detbench.sim.dataset import DATA_DEFAULTS
+    from detbench.train.loop import TRAIN_DEFAULTS, TrainConfig
+
+    shipped = C.load_config(C.CONFIG_DIR / "default.yaml")
+    aug_yaml = shipped["augment"]
+    assert (TRAIN_DEFAULTS, AUGMENT_DEFAULTS, GT_SAMPLING_DEFAULTS, DATA_DEFAULTS) == \
+        (shipped["train"], aug_yaml, aug_yaml["gt_sampling"], shipped["data"])
+
+    def as_field(v):
+        return tuple(v) if isinstance(v, list) else v
+
+    train = TrainConfig.from_dict({})
+    assert [f.name for f in fields(TrainConfig)] == list(shipped["train"])
+    assert {k: getattr(train, k) for k in shipped["train"]} == {k: as_field(v) for k, v in shipped["train"].items()}
+
+    aug = AugmentConfig.from_dict({})
+    assert [f.name for f in fields(GTSamplingConfig)] == list(aug_yaml["gt_sampling"])
+    assert {k: getattr(aug.gt_sampling, k) for k in aug_yaml["gt_sampling"]} == \
+        {k: as_field(v) for k, v in aug_yaml["gt_sampling"].items()}
+    flip, rot, scl = (aug_yaml[k] for k in ("random_world_flip", "random_world_rotation", "random_world_scaling"))
+    assert set(aug_yaml) == {"random_world_flip", "random_world_rotation", "random_world_scaling", "gt_sampling"}
+    assert (set(flip), set(rot), set(scl)) == ({"enabled", "probability"}, {"enabled", "world_rot_angle_deg"},
+                                               {"enabled", "world_scale_range"})
+    assert (aug.flip, aug.flip_probability) == (flip["enabled"], flip["probability"])
+    assert (aug.rotation, aug.rotation_range) == (rot["enabled"], tuple(math.radians(d) for d in rot["world_rot_angle_deg"]))
+    assert (aug.scaling, aug.scale_range) == (scl["enabled"], tuple(scl["world_scale_range"]))
+    none = AugmentConfig.none()
+    assert not (none.flip or none.rotation or none.scaling or none.gt_sampling.enabled)
+
+
+def test_pyproject_lists_every_package_and_ships_the_configs():
+    """pyproject.toml lists its packages by hand (configs/ is mapped to detbench.configs): none may be missed."""
+    tomllib = pytest.importorskip("tomllib")
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    setup = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    on_disk = {".".join(p.parent.relative_to(root).parts) for top in ("detbench", "models")
+               for p in (root / top).rglob("__init__.py")}
+    assert set(setup["packages"]) == on_disk | {"detbench.configs"}
+    assert setup["package-dir"] == {"detbench.configs": "configs"}
+    shipped = {p.relative_to(root / "configs").as_posix() for p in (root / "configs").rglob("*.yaml")}
+    globs = setup["package-data"]["detbench.configs"]
+    assert shipped == {p.relative_to(root / "configs").as_posix() for g in globs for p in (root / "configs").glob(g)}

@@ -1,4 +1,5 @@
 """CT3D: cylinder point gathering, keypoint encoding, channel-wise attention, the model end to end."""
+import copy
 import math
 
 import numpy as np
@@ -12,12 +13,19 @@ from models.stages.ct3d_head import (
 )
 from test_second import TINY, batch_of, box_points
 
-TINY_CT3D = {**TINY, "name": "ct3d", "roi_head": {
-    "num_points": 16, "hidden_dim": 16, "heads": 2, "enc_layers": 1, "dim_feedforward": 32, "mlp_hidden": 16,
-    "fc": [32], "dropout": 0.0,
-    "proposals": {"train": {"pre_nms_top_k": 200, "post_nms_top_k": 32}, "test": {"pre_nms_top_k": 100,
-                                                                                  "post_nms_top_k": 16}},
-    "targets": {"roi_per_image": 16, "gt_jitter_copies": 2}}}
+def _tiny_ct3d() -> dict:
+    """TINY (test_second's grid) with the ct3d smoke preset's second stage, a few sizes smaller."""
+    cfg = copy.deepcopy(load_run_config("ct3d", "smoke")["model"])
+    cfg.update({k: copy.deepcopy(v) for k, v in TINY.items() if k != "name"})
+    rh = cfg["roi_head"]
+    rh.update({"fc": [32], "dropout": 0.0})
+    rh["proposals"]["train"].update(pre_nms_top_k=200, post_nms_top_k=32)
+    rh["proposals"]["test"].update(pre_nms_top_k=100, post_nms_top_k=16)
+    rh["targets"].update(roi_per_image=16, gt_jitter_copies=2)
+    return cfg
+
+
+TINY_CT3D = _tiny_ct3d()
 
 
 def random_scene(seed, n=400, r=6):
@@ -133,8 +141,8 @@ def test_presets_build_and_paper_follows_the_published_configuration():
         c = load_run_config("ct3d", preset)
         c["model"]["head"]["anchor_sizes"] = [[4.5, 1.9, 1.6]]
         assert models.build_model("ct3d", c["model"]).STAGES["roi_head"] == ["roi_head", "refine"]
-    with pytest.raises(ValueError, match="unknown key"):
-        models.build_model("ct3d", {**TINY_CT3D, "roi_head": {"num_pionts": 3}})
+    with pytest.raises(ValueError, match="unknown key.*num_pionts"):
+        models.build_model("ct3d", {**TINY_CT3D, "roi_head": {**TINY_CT3D["roi_head"], "num_pionts": 3}})
 
 
 @pytest.mark.slow

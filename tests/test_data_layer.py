@@ -439,15 +439,6 @@ def test_convert_openpcdet_custom_sensor_frame(tmp_path, capsys):
                       "--out", str(tmp_path / "bad")])
 
 
-def _sim_available():
-    try:
-        from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@pytest.mark.skipif(not _sim_available(), reason="detbench.sim is not available yet")
 def test_simulated_frames_round_trip(tmp_path):
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
 

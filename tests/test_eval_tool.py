@@ -1,5 +1,4 @@
 """tools/eval.py and the prediction-file readers: parsing, file errors, end to end on a tiny dataset."""
-import importlib.util
 import json
 import subprocess
 import sys
@@ -12,13 +11,6 @@ from detbench.eval import evaluate_predictions, parse_prediction_file, read_pred
 from detbench.eval.evaluate import format_prediction_lines
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def load_tool():
-    spec = importlib.util.spec_from_file_location("detbench_tools_eval", ROOT / "tools" / "eval.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 # ------------------------------------------------------------------ prediction files
@@ -86,8 +78,8 @@ def test_help_runs_as_script():
         assert opt in out.stdout
 
 
-def test_ckpt_errors_name_the_file(tmp_path, capsys):
-    tool = load_tool()
+def test_ckpt_errors_name_the_file(tmp_path, capsys, load_tool):
+    tool = load_tool("eval")
     rc = tool.main(["--ckpt", str(tmp_path / "m.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "m.pt: checkpoint not found" in err
@@ -101,8 +93,8 @@ def test_ckpt_errors_name_the_file(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
-def test_argument_errors(tmp_path, capsys):
-    tool = load_tool()
+def test_argument_errors(tmp_path, capsys, load_tool):
+    tool = load_tool("eval")
     assert tool.main(["--height", "1.8", "--pred", str(tmp_path), "--out", str(tmp_path)]) == 2
     assert "missing --data" in capsys.readouterr().err
     assert tool.main(["--data", str(tmp_path), "--height", "1.8", "--out", str(tmp_path)]) == 2
@@ -113,7 +105,7 @@ def test_argument_errors(tmp_path, capsys):
     assert "r.json: file not found" in capsys.readouterr().err
 
 
-def test_combine_cli(tmp_path, capsys):
+def test_combine_cli(tmp_path, capsys, load_tool):
     from detbench.eval import EvalFrame, evaluate
     from detbench.utils.io import atomic_write_json
 
@@ -124,7 +116,7 @@ def test_combine_cli(tmp_path, capsys):
             rep = evaluate([EvalFrame([car], [3], [0], [car] * found, [0.9] * found)])
             paths.append(atomic_write_json(tmp_path / model / str(h) / "report.json",
                                            {"model": model, "height": h, "split": "test", **rep}))
-    tool = load_tool()
+    tool = load_tool("eval")
     out = tmp_path / "comb"
     assert tool.main(["--combine", *map(str, paths), "--out", str(out)]) == 0
     assert "models A, B; heights 0.5 m, 1.8 m" in capsys.readouterr().out
@@ -184,7 +176,7 @@ def test_evaluate_predictions_on_dataset(tiny_dataset):
         evaluate_predictions(ds, {"9999_999": preds[ids[0]]}, progress=False)
 
 
-def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
+def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
     from detbench.data import Height3Dataset
 
     test_ids = Height3Dataset(tiny_dataset, 1.8, "test").frame_ids
@@ -195,7 +187,7 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
                                              "70 0 0.8 4 2 1.6 0 0.7\n")
     (pred / f"{train_ids[0]}.txt").write_text("10 0 0.8 4 2 1.6 0 0.9\n")
     out = tmp_path / "out"
-    tool = load_tool()
+    tool = load_tool("eval")
     rc = tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--split", "test", "--pred", str(pred),
                     "--out", str(out), "--model", "SECOND", "--no-progress"])
     stdout = capsys.readouterr().out
@@ -230,10 +222,8 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
     assert "0.5" in capsys.readouterr().err
 
 
-def test_bench_eval_small_run(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("detbench_tools_bench_eval", ROOT / "tools" / "bench_eval.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+def test_bench_eval_small_run(tmp_path, capsys, load_tool):
+    bench = load_tool("bench_eval")
     assert bench.main(["--frames", "40", "--repeats", "1", "--out", str(tmp_path)]) == 0
     assert "median" in capsys.readouterr().out
     res = json.loads((tmp_path / "bench_eval.json").read_text())

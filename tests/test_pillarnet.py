@@ -14,8 +14,9 @@ from detbench.data.batch import collate
 from detbench.ops import boxes_iou3d, boxes_iou3d_aligned
 from models.pillarnet import PillarNet
 from models.stages import VoxelGrid
-from models.stages.center_head import (CenterHead, CenterHeadOutput, build_center_targets, centernet_focal_loss,
-                                       decode_regression, gaussian_radius, od_iou_loss)
+from models.stages.center_head import (CenterHead, CenterHeadOutput, build_center_targets, decode_regression,
+                                       gaussian_radius)
+from models.stages.losses import centernet_focal_loss, od_iou_loss
 from models.stages.pillar_encoder import DynamicPillarEncoder
 
 ROOT = Path(__file__).resolve().parents[1]

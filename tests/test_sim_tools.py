@@ -1,36 +1,26 @@
-"""tools/simulate.py and tools/bench_sim.py (small runs)."""
-import importlib.util
+"""tools/simulate.py and tools/bench_sim.py (small runs), and the frame planning behind --frames / --scenes."""
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from detbench.sim.dataset import plan_frames
 
 
 def test_plan_frames():
-    sim = _load("simulate")
-    assert sim.plan_frames(10, None, None, 200) == (10, 200)
-    assert sim.plan_frames(None, 3, 5, 200) == (15, 5)
-    assert sim.plan_frames(100, 4, None, 200) == (100, 25)
+    assert plan_frames(10, None, None, 200) == (10, 200)
+    assert plan_frames(None, 3, 5, 200) == (15, 5)
+    assert plan_frames(100, 4, None, 200) == (100, 25)
     with pytest.raises(ValueError, match="--frames"):
-        sim.plan_frames(None, None, None, 200)
+        plan_frames(None, None, None, 200)
     with pytest.raises(ValueError, match="does not fit"):
-        sim.plan_frames(100, 2, 10, 200)
+        plan_frames(100, 2, 10, 200)
 
 
-def test_simulate_writes_a_readable_dataset(tmp_path):
+def test_simulate_writes_a_readable_dataset(tmp_path, load_tool):
     from detbench.data import Height3Dataset
 
-    sim = _load("simulate")
+    sim = load_tool("simulate")
     out = tmp_path / "ds"
     assert sim.main(["--out", str(out), "--scenes", "3", "--frames-per-scene", "2", "--heights", "0.5", "1.8",
                      "--seed", "5", "--no-progress", "--set", "traffic.density_per_km_lane=14"]) == 0
@@ -52,16 +42,16 @@ def test_simulate_writes_a_readable_dataset(tmp_path):
     np.testing.assert_allclose(g.boxes, first[1].boxes, atol=1e-3)
 
 
-def test_simulate_rejects_bad_input(tmp_path):
-    sim = _load("simulate")
+def test_simulate_rejects_bad_input(tmp_path, load_tool):
+    sim = load_tool("simulate")
     with pytest.raises(SystemExit, match="density_per_km_lane"):
         sim.main(["--out", str(tmp_path / "x"), "--frames", "2", "--set", "traffic.density_per_km_lan=3"])
     with pytest.raises(SystemExit, match="heights must differ"):
         sim.main(["--out", str(tmp_path / "x"), "--frames", "2", "--lidars", "arcfox-as-hi", "avatr-3"])
 
 
-def test_bench_sim_small_run(tmp_path):
-    bench = _load("bench_sim")
+def test_bench_sim_small_run(tmp_path, load_tool):
+    bench = load_tool("bench_sim")
     assert bench.main(["--frames", "3", "--frames-per-scene", "3", "--heights", "1.0", "--out", str(tmp_path),
                        "--no-progress"]) == 0
     rep = json.loads((tmp_path / "bench_sim.json").read_text())

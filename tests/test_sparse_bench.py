@@ -1,7 +1,5 @@
 """tools/bench_sparse.py: command line, fallback scan, backbone topology, report files."""
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,18 +7,13 @@ import torch
 
 from detbench.sparse import SparseConvTensor
 
-ROOT = Path(__file__).resolve().parents[1]
+
+@pytest.fixture
+def bench(load_tool):
+    return load_tool("bench_sparse")
 
 
-def load_bench():
-    spec = importlib.util.spec_from_file_location("bench_sparse", ROOT / "tools" / "bench_sparse.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def test_help_lists_options_with_units(capsys):
-    bench = load_bench()
+def test_help_lists_options_with_units(capsys, bench):
     with pytest.raises(SystemExit) as exc:
         bench.main(["--help"])
     assert exc.value.code == 0
@@ -30,8 +23,7 @@ def test_help_lists_options_with_units(capsys):
     assert "metres" in text and "milliseconds" in text.lower()
 
 
-def test_synthetic_scan_geometry():
-    bench = load_bench()
+def test_synthetic_scan_geometry(bench):
     pts = bench.synthetic_scan(0)
     assert pts.dtype == np.float32 and pts.shape[1] == 4 and len(pts) > 10000
     r = np.hypot(pts[:, 0], pts[:, 1])
@@ -41,8 +33,7 @@ def test_synthetic_scan_geometry():
     assert pts[~ground, 2].max() < 1.9 and pts[:, 2].min() > -0.1
 
 
-def test_backbone_shapes_and_rulebook_reuse():
-    bench = load_bench()
+def test_backbone_shapes_and_rulebook_reuse(bench):
     net = bench.backbone(4).eval()
     g = torch.Generator().manual_seed(0)
     idx = torch.unique(torch.cat([torch.zeros(300, 1, dtype=torch.long),
@@ -57,8 +48,7 @@ def test_backbone_shapes_and_rulebook_reuse():
     assert len([m for m in net.modules() if hasattr(m, "indice_key")]) == 12
 
 
-def test_markdown_report():
-    bench = load_bench()
+def test_markdown_report(bench):
     r = {"source": "synthetic", "scans": 1, "points": [10], "voxel_size_m": [0.1, 0.1, 0.15],
          "range_m": [0, -15, -1, 150, 15, 4], "grid_xyz": [1500, 300, 33], "spatial_shape_zyx": [34, 300, 1500],
          "active_sites": 5, "device": "cpu", "threads": 2, "torch": "x", "repeats": 1, "flop_convention": "2/MAC",
@@ -69,8 +59,7 @@ def test_markdown_report():
 
 
 @pytest.mark.slow
-def test_full_run_writes_reports(tmp_path):
-    bench = load_bench()
+def test_full_run_writes_reports(tmp_path, bench):
     assert bench.main(["--out", str(tmp_path), "--source", "synthetic", "--repeats", "1", "--threads", "1",
                        "--dense-crop-x", "5"]) == 0
     data = json.loads((tmp_path / "bench_sparse.json").read_text())

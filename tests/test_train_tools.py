@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def tiny_dataset(tmp_path_factory):
-    from detbench.data.simulated import simulate_dataset
+    from detbench.sim.dataset import simulate_dataset
 
     root = tmp_path_factory.mktemp("data") / "sim"
     return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=3, frames_per_scene=3, progress=False)

@@ -6,13 +6,19 @@ import pytest
 import torch
 
 from detbench.ops import ResidualBoxCoder, boxes_iou3d
+from detbench.train.run_config import load_run_config
 from models.stages.two_stage import (
-    PAD_ROI, TARGET_DEFAULTS, Proposals, RefineOutput, confidence_targets, corner_loss, decode_refined,
+    PAD_ROI, Proposals, RefineOutput, confidence_targets, corner_loss, decode_refined,
     encode_refine_targets, fold_heading, from_canonical, refine_loss, sample_proposal_targets, select_proposals,
     to_canonical,
 )
 
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
+TARGETS = load_run_config("ct3d", "paper")["model"]["roi_head"]["targets"]  # the published values
+
+
+def targets_cfg(**over):
+    return {**TARGETS, **over}
 
 
 def proposals_of(rows, b=1):
@@ -44,7 +50,7 @@ def test_target_sampling_keeps_the_requested_ratio():
     hard = [shifted(CAR, dx) for dx in np.linspace(2.0, 2.8, 40)]  # 0.1 <= IoU < 0.55
     easy = [shifted(CAR, 30.0 + dx) for dx in range(40)]  # IoU 0
     props = proposals_of(fg + hard + easy)
-    cfg = {"roi_per_image": 64, "fg_ratio": 0.25, "hard_bg_ratio": 0.75}
+    cfg = targets_cfg(roi_per_image=64, fg_ratio=0.25, hard_bg_ratio=0.75)
     t = sample_proposal_targets(props, gt, torch.ones(1, 1, dtype=torch.bool), cfg)
     iou = t.iou[0]
     assert t.valid.all() and int((iou >= 0.55).sum()) == 16  # round(0.25 * 64)
@@ -63,14 +69,14 @@ def test_target_sampling_keeps_the_requested_ratio():
 
 def test_iou_guided_confidence_targets_on_hand_made_boxes():
     iou = torch.tensor([0.0, 0.25, 0.5, 0.75, 0.9])
-    target, mask = confidence_targets(iou, {**TARGET_DEFAULTS, "cls_score_type": "roi_iou"})
+    target, mask = confidence_targets(iou, targets_cfg(cls_score_type="roi_iou"))
     assert torch.allclose(target, torch.tensor([0.0, 0.0, 0.5, 1.0, 1.0])) and mask.all()
-    target, mask = confidence_targets(iou, {**TARGET_DEFAULTS, "cls_score_type": "binary"})
+    target, mask = confidence_targets(iou, targets_cfg(cls_score_type="binary", cls_fg_thresh=0.75, cls_bg_thresh=0.25))
     assert target.tolist() == [0, 0, 0, 1, 1] and mask.tolist() == [True, False, False, True, True]
     # a RoI equal to the car: target 1; shifted by half its length: IoU 1/3, target (1/3 - 0.25) / 0.5
     gt = torch.tensor([[CAR]])
     t = sample_proposal_targets(proposals_of([CAR, shifted(CAR, 2.25)]), gt, torch.ones(1, 1, dtype=torch.bool),
-                                {"roi_per_image": 2, "fg_ratio": 0.5})
+                                targets_cfg(roi_per_image=2, fg_ratio=0.5))
     pairs = sorted(zip(t.iou[0].tolist(), t.cls_target[0].tolist()))
     assert pairs[0] == (pytest.approx(1 / 3, abs=1e-4), pytest.approx((1 / 3 - 0.25) / 0.5, abs=1e-4))
     assert pairs[1] == (pytest.approx(1.0, abs=1e-5), pytest.approx(1.0))
@@ -119,10 +125,17 @@ def test_corner_loss_zero_for_the_box_and_its_half_turn_and_bounded_gradient():
 def test_refine_loss_finite_without_rois_or_foreground():
     coder = ResidualBoxCoder()
     empty = Proposals(torch.zeros(2, 0, 7), torch.zeros(2, 0), torch.zeros(2, 0, dtype=torch.bool))
-    t = sample_proposal_targets(empty, torch.zeros(2, 0, 7), torch.zeros(2, 0, dtype=torch.bool), {"roi_per_image": 4})
+    t = sample_proposal_targets(empty, torch.zeros(2, 0, 7), torch.zeros(2, 0, dtype=torch.bool),
+                                targets_cfg(roi_per_image=4))
     cls = torch.zeros(2, 4, requires_grad=True)
     reg = torch.zeros(2, 4, 7, requires_grad=True)
     total, parts = refine_loss(RefineOutput(cls, reg, t.rois, t.valid, t), coder)
     total.backward()
     assert torch.isfinite(total) and float(total.detach()) == 0.0 and parts["num_fg_rois"] == 0
     assert torch.isfinite(cls.grad).all() and torch.isfinite(reg.grad).all()
+
+
+def test_target_config_must_be_complete():
+    with pytest.raises(ValueError, match="missing key.*fg_ratio"):
+        sample_proposal_targets(proposals_of([CAR]), torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool),
+                                {k: v for k, v in TARGETS.items() if k != "fg_ratio"})

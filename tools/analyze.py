@@ -22,9 +22,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from detbench.data.frame import height_key  # noqa: E402
+from detbench.data.frame import DEFAULT_LANE_WIDTH, height_key  # noqa: E402
+from detbench.data.regions import RANGE_NAMES  # noqa: E402
 from detbench.eval.ability import DEFAULT_THRESHOLDS, AbilityStudy, ability_markdown  # noqa: E402
-from detbench.eval.regions import DEFAULT_LANE_WIDTH, RANGE_NAMES  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 

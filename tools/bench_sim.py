@@ -93,6 +93,7 @@ def _measure(sim_factory, lidars, frames, fps, with_points, progress):
 def _pib_time(sim_factory, lidars, frames, fps):
     """Seconds that detbench.ops.points_in_boxes takes on the same frames (the on-disk analysis path)."""
     try:
+        from detbench.data.regions import DETECTED_BOTTOM_LIFT
         from detbench.ops import points_in_boxes
     except ImportError:
         return None
@@ -100,7 +101,7 @@ def _pib_time(sim_factory, lidars, frames, fps):
     for step in sim_factory().run(frames, lidars, frames_per_scene=fps, with_points=True):
         for f in step:
             t = time.perf_counter()
-            points_in_boxes(f.points, f.boxes, bottom_lift=0.05)
+            points_in_boxes(f.points, f.boxes, bottom_lift=DETECTED_BOTTOM_LIFT)
             total += time.perf_counter() - t
     return total
 

@@ -93,7 +93,7 @@ def worker(args) -> dict:
     import torch
 
     from detbench.data.batch import collate
-    from detbench.data.simulated import default_dataset
+    from detbench.sim.dataset import default_dataset
     from detbench.train.inference import frame_sample
     from detbench.train.run_config import load_run_config
 
@@ -125,7 +125,7 @@ def worker(args) -> dict:
     test = Height3Dataset(data_root, args.height, "test")
     n = args.frames + args.warmup
     samples = [frame_sample(test[i % len(test)], cfg_model["point_cloud_range"]) for i in range(n)]
-    stages = getattr(model, "STAGES", None) or {"forward": [c for c, _ in model.named_children()]}
+    stages = model.STAGES
     timer = StageTimer(model, stages, device)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     if device.type == "cuda":

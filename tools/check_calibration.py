@@ -20,6 +20,9 @@ directly how often a fresh study meets every criterion at once (`pass_rate`, per
 length: the block and the whole run), from 2000 studies whose scenes are resampled with
 replacement from all seeds' scenes.
 
+The statistics live in detbench/eval/calibration.py; this tool runs the simulator, parses
+the arguments and writes the report.
+
 Examples:
   python tools/check_calibration.py                       # seeds 0 1 2, 8000 frames, blocks of 2000
   python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 2000
@@ -32,8 +35,6 @@ With --strict the exit code is 1 when any whole run fails a criterion.
 from __future__ import annotations
 
 import argparse
-import math
-import warnings
 import sys
 import time
 from pathlib import Path
@@ -43,71 +44,23 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.config import ConfigError  # noqa: E402
-from detbench.eval.ability import PAPER_TABLE_IV  # noqa: E402
-from detbench.eval.regions import RANGE_NAMES  # noqa: E402
+from detbench.data.regions import RANGE_NAMES  # noqa: E402
+from detbench.eval.calibration import (HEIGHTS, jsonable, ldr_grid, paper_arrays, pass_rates, precision,  # noqa: E402
+                                       scene_counts, scene_ldr_std, study_runs, summarize)
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
-HEIGHTS = ("0.5", "1.0", "1.8")
-PAPER_FRAMES = 8000
 
-
-def paper_arrays() -> tuple[np.ndarray, np.ndarray]:
-    """Table IV as arrays: LDR (3 ranges, 3 heights) and vehicles per frame (3 ranges)."""
-    ldr = np.array([[PAPER_TABLE_IV[r][1][h][1] for h in HEIGHTS] for r in RANGE_NAMES])
-    per_frame = np.array([PAPER_TABLE_IV[r][0] / PAPER_FRAMES for r in RANGE_NAMES])
-    return ldr, per_frame
-
-
-def check_counts(counts: np.ndarray, tolerance: float = 0.05, pair_tolerance: float = 0.03) -> dict:
-    """The criteria on summed counts (3 ranges, 1 + 3: total, then detected per height).
-
-    Returns LDR (3, 3), deviation from Table IV, the worst |deviation| and each criterion's
-    pass/fail. A range with no vehicle fails (its LDR is undefined).
-    """
-    counts = np.asarray(counts, dtype=np.float64)
-    total = counts[:, :1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ldr = np.where(total > 0, counts[:, 1:] / np.maximum(total, 1), np.nan)
-    paper, _ = paper_arrays()
-    dev = ldr - paper
-    finite = np.isfinite(ldr).all()
-    within = bool(finite and (np.abs(dev) <= tolerance + 1e-12).all())
-    order = bool(finite and (ldr[:, 2] > np.maximum(ldr[:, 0], ldr[:, 1])).all())
-    pair = bool(finite and (np.abs(ldr[:, 0] - ldr[:, 1]) <= pair_tolerance + 1e-12).all())
-    return {"ldr": ldr, "deviation": dev, "worst_abs_deviation": float(np.nanmax(np.abs(dev))) if finite else None,
-            "within_tolerance": within, "high_above_low": order, "low_pair_close": pair,
-            "ok": within and order and pair}
-
-
-def scene_counts(seed: int, frames: int, frames_per_scene: int | None, cfg: dict, progress: bool) -> np.ndarray:
-    """Counts per scene (scenes, 3 ranges, 1 + 3: total, then detected per height), all vehicles,
-    counted by one `AbilityStudy` per scene (the study's own rule, as in tools/analyze.py)."""
-    from detbench.eval.ability import AbilityStudy
+def simulated_scene_counts(seed: int, frames: int, frames_per_scene: int, cfg: dict, progress: bool) -> np.ndarray:
+    """Scene counts (scenes, 3, 4) of `frames` simulated instants at the paper's heights (hit counts, no points)."""
     from detbench.sim import HighwaySimulator, lidar_preset
 
     lidars = [lidar_preset(float(h)) for h in HEIGHTS]
-    studies: dict[int, AbilityStudy] = {}
-    it = HighwaySimulator(cfg, seed).run(frames, lidars, frames_per_scene=frames_per_scene, with_points=False)
+    steps = HighwaySimulator(cfg, seed).run(frames, lidars, frames_per_scene=frames_per_scene, with_points=False)
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(it, total=frames, desc=f"seed {seed}", unit="frame", leave=False)
-    for step in it:
-        study = studies.setdefault(int(step[0].scene_id), AbilityStudy(thresholds=(1,), keep_example=False))
-        study.add(step, counts=[f.hit_counts for f in step])
-    out = np.zeros((len(studies), len(RANGE_NAMES), 1 + len(HEIGHTS)), np.int64)
-    for k, scene in enumerate(sorted(studies)):
-        for i, r in enumerate(RANGE_NAMES):
-            cells = [studies[scene].cell(h, r, "all") for h in HEIGHTS]
-            out[k, i] = [cells[0]["total"]] + [c["detected"] for c in cells]
-    return out
-
-
-def summarize(block: np.ndarray, frames: int, tolerance: float, pair_tolerance: float) -> dict:
-    """`check_counts` on a block of scene counts (scenes, 3, 4), plus its vehicles per frame."""
-    res = check_counts(block.sum(0), tolerance, pair_tolerance)
-    res["vehicles_per_frame"] = {r: round(float(block[:, i, 0].sum() / frames), 3) for i, r in enumerate(RANGE_NAMES)}
-    return res
+        steps = tqdm(steps, total=frames, desc=f"seed {seed}", unit="frame", leave=False)
+    return scene_counts(steps)
 
 
 def _md_row(seed: str, name: str, frames: int, res: dict) -> str:
@@ -117,77 +70,6 @@ def _md_row(seed: str, name: str, frames: int, res: dict) -> str:
             + f" | {'-' if worst is None else f'{worst:.3f}'} | "
             + " / ".join(f"{v:.2f}" for v in res["vehicles_per_frame"].values())
             + f" | {'yes' if res['ok'] else 'no'} |")
-
-
-def _grid(values: np.ndarray) -> dict:
-    """A (3 ranges, 3 heights) array as {range: {height: value or None}}, rounded to 4 places."""
-    return {r: {h: (None if not np.isfinite(values[i, j]) else round(float(values[i, j]), 4))
-                for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)}
-
-
-def _jsonable(res: dict) -> dict:
-    return {k: (_grid(v) if isinstance(v, np.ndarray) else v) for k, v in res.items()}
-
-
-def precision(scenes: np.ndarray, paper_ldr: np.ndarray, tolerance: float, scenes_per_block: int | None) -> dict:
-    """How precise a study of n scenes is, from scene counts (scenes, 3 ranges, 4: total, detected x 3 heights).
-
-    scene_std: std (ddof 1) of one scene's LDR across scenes (scenes with vehicles in the range);
-    half_width_95_at_block: 1.96 std / sqrt(scenes_per_block); scenes_needed: the n with
-    1.96 std / sqrt(n) <= tolerance - |pooled LDR - paper| (None where the pooled LDR is off by
-    the tolerance or more). Normal approximation, per cell.
-    """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        per = scenes[:, :, 1:] / np.where(scenes[:, :, :1] > 0, scenes[:, :, :1], np.nan)
-        tot = scenes.sum(0)
-        pooled = tot[:, 1:] / np.where(tot[:, :1] > 0, tot[:, :1], np.nan)
-    std = np.full(per.shape[1:], np.nan)
-    valid = np.isfinite(per).sum(0) >= 2
-    if valid.any():
-        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # cells with fewer than 2 scenes stay NaN
-            std = np.where(valid, np.nanstd(per, axis=0, ddof=1), np.nan)
-    margin = tolerance - np.abs(pooled - paper_ldr)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        needed = np.where((margin > 0) & np.isfinite(std), np.ceil((1.96 * std / margin) ** 2), np.nan)
-    half = 1.96 * std / math.sqrt(scenes_per_block) if scenes_per_block else None
-    finite = std[np.isfinite(std)]
-    return {"scenes": int(scenes.shape[0]), "scenes_per_block": scenes_per_block,
-            "scene_std": _grid(std), "scene_std_range": [round(float(finite.min()), 4), round(float(finite.max()), 4)]
-            if finite.size else [None, None],
-            "pooled_ldr": _grid(pooled), "half_width_95_at_block": None if half is None else _grid(half),
-            "scenes_needed": {r: {h: (None if not np.isfinite(needed[i, j]) else max(int(needed[i, j]), 1))
-                                  for j, h in enumerate(HEIGHTS)} for i, r in enumerate(RANGE_NAMES)},
-            "method": "normal approximation per cell: half-width 1.96 std / sqrt(n); needed n from the margin "
-                      "tolerance - |pooled - paper|"}
-
-
-def block_pass_rate(scenes: np.ndarray, scenes_per_block: int, tolerance: float, pair_tolerance: float,
-                    replicates: int = 2000, seed: int = 0) -> dict:
-    """How often a study of `scenes_per_block` scenes meets every criterion, estimated from scene
-    counts (scenes, 3 ranges, 4: total, detected x 3 heights).
-
-    Draws `replicates` studies of that many scenes, each scene drawn independently (with
-    replacement) from the pooled scenes, i.e. a fresh study from the population the scenes
-    estimate (drawing distinct scenes would understate the spread by sqrt((N - n) / (N - 1))),
-    seeded so the figure is reproducible, and applies `check_counts` to each study's summed
-    counts, as a study of that length would be judged. Returns the share of studies meeting
-    every criterion (`ok`), and of those meeting the +-tolerance criterion alone (`within`);
-    None when there are fewer scenes than a study needs (too few to stand for the population).
-    """
-    n = int(scenes.shape[0])
-    if scenes_per_block < 1 or n < scenes_per_block:
-        return {"scenes_per_block": int(scenes_per_block), "replicates": 0, "ok": None, "within": None}
-    rng = np.random.default_rng(seed)
-    ok = within = 0
-    for _ in range(replicates):
-        res = check_counts(scenes[rng.integers(0, n, scenes_per_block)].sum(0), tolerance, pair_tolerance)
-        ok += res["ok"]
-        within += res["within_tolerance"]
-    return {"scenes_per_block": int(scenes_per_block), "replicates": int(replicates),
-            "ok": round(ok / replicates, 4), "within": round(within / replicates, 4),
-            "method": "share of simulated studies (scenes drawn with replacement from all seeds' scenes) "
-                      "whose summed counts meet the criteria"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -235,7 +117,7 @@ def main(argv=None) -> int:
               "pair_tolerance": args.pair_tolerance, "units": {"ldr": "fraction detected / total",
                                                                "vehicles_per_frame": "count per frame",
                                                                "seconds": "wall-clock s"},
-              "paper": {"ldr": _grid(paper_ldr),
+              "paper": {"ldr": ldr_grid(paper_ldr),
                         "vehicles_per_frame": {r: round(float(v), 3) for r, v in zip(RANGE_NAMES, paper_pf)}},
               "seeds": {}}
     md = [f"# Simulator calibration against Table IV ({args.preset} preset)", "",
@@ -250,21 +132,14 @@ def main(argv=None) -> int:
     all_scenes = []
     for seed in args.seeds:
         t0 = time.perf_counter()
-        S = scene_counts(seed, args.frames, fps, cfg, not args.no_progress)
+        S = simulated_scene_counts(seed, args.frames, fps, cfg, not args.no_progress)
         all_scenes.append(S)
         secs = time.perf_counter() - t0
-        runs = [("all", S, args.frames)]
-        if args.block_frames:
-            per = args.block_frames // fps
-            for b in range(S.shape[0] // per):
-                runs.append((f"block {b}", S[b * per:(b + 1) * per], args.block_frames))
-        seed_rep = {"seconds": round(secs, 1), "runs": {}}
-        with np.errstate(invalid="ignore", divide="ignore"):
-            per_scene_ldr = S[:, :, 1:] / np.where(S[:, :, :1] > 0, S[:, :, :1], np.nan)
-        seed_rep["scene_ldr_std"] = _grid(np.nanstd(per_scene_ldr, axis=0))
+        runs = study_runs(S, args.frames, fps, args.block_frames)
+        seed_rep = {"seconds": round(secs, 1), "runs": {}, "scene_ldr_std": scene_ldr_std(S)}
         for name, block, nf in runs:
             res = summarize(block, nf, args.tolerance, args.pair_tolerance)
-            seed_rep["runs"][name] = _jsonable(res)
+            seed_rep["runs"][name] = jsonable(res)
             if name == "all" and not res["ok"]:
                 any_fail = True
             md.append(_md_row(str(seed), name, nf, res))
@@ -278,7 +153,7 @@ def main(argv=None) -> int:
     if len(args.seeds) > 1:
         pooled_frames = args.frames * len(args.seeds)
         res = summarize(np.concatenate(all_scenes), pooled_frames, args.tolerance, args.pair_tolerance)
-        report["pooled"] = {"seeds": list(args.seeds), "frames": pooled_frames, **_jsonable(res)}
+        report["pooled"] = {"seeds": list(args.seeds), "frames": pooled_frames, **jsonable(res)}
         md.append(_md_row("pooled", "all seeds", pooled_frames, res))
         print(f"pooled over seeds {' '.join(map(str, args.seeds))}: worst |dLDR| "
               f"{None if res['worst_abs_deviation'] is None else round(res['worst_abs_deviation'], 3)}, "
@@ -286,9 +161,8 @@ def main(argv=None) -> int:
     scenes = np.concatenate(all_scenes)
     prec = precision(scenes, paper_ldr, args.tolerance, args.block_frames // fps if args.block_frames else None)
     # how often a fresh study meets the criteria, at the block length and at the run length (resampled scenes)
-    study_frames = sorted({args.frames} | ({args.block_frames} if args.block_frames else set()))
-    prec["pass_rate"] = {str(f): block_pass_rate(scenes, f // fps, args.tolerance, args.pair_tolerance)
-                         for f in study_frames if f % fps == 0}
+    study_frames = [args.frames] + ([args.block_frames] if args.block_frames else [])
+    prec["pass_rate"] = pass_rates(scenes, study_frames, fps, args.tolerance, args.pair_tolerance)
     report["precision"] = prec
     hw = prec["half_width_95_at_block"]
     need = [v for r in RANGE_NAMES for v in prec["scenes_needed"][r].values()]

@@ -67,26 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default_fps: int) -> tuple[int, int]:
-    """(total frames, frames per scene) from the command-line counts; raises ValueError if inconsistent."""
-    for name, v in (("--frames", frames), ("--scenes", scenes), ("--frames-per-scene", fps)):
-        if v is not None and v < 1:
-            raise ValueError(f"{name} must be a positive integer, got {v}")
-    if frames is None and scenes is None:
-        raise ValueError("give --frames N or --scenes K (or both)")
-    if fps is None:
-        fps = default_fps if (frames is None or scenes is None) else math.ceil(frames / scenes)
-    if frames is None:
-        frames = scenes * fps
-    elif scenes is not None and frames > scenes * fps:
-        raise ValueError(f"--frames {frames} does not fit in --scenes {scenes} of {fps} frames; raise one of them")
-    return int(frames), int(fps)
-
-
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from detbench.data.simulated import write_simulation
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+    from detbench.sim.dataset import plan_frames, write_simulation
 
     try:
         cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))

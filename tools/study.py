@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     t_start = time.perf_counter()
 
     # 1. data
-    from detbench.data.simulated import default_dataset
+    from detbench.sim.dataset import default_dataset
 
     data_cfg = dict(base_cfg["data"])
     if args.data:

@@ -70,9 +70,9 @@ def collect_train_boxes(train_set, limit: int = 400) -> np.ndarray:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from detbench.data.simulated import default_dataset
+    from detbench.data.regions import RANGE_NAMES
     from detbench.eval.evaluate import evaluate_predictions
-    from detbench.eval.regions import RANGE_NAMES
+    from detbench.sim.dataset import default_dataset
     from detbench.train import (AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed,
                                 main_process_first, train)
     from detbench.train.inference import predict_frames

@@ -7,29 +7,23 @@ the generator from (seed, epoch, frame index) so a resumed run replays it exactl
 Order (OpenPCDet's): ground-truth sampling, flip across the x axis, rotation about z,
 scaling, then the crop to the model's point-cloud range.
 
-Config (YAML, the `augment` section; names follow OpenPCDet's DATA_AUGMENTOR entries;
-angles in degrees at this edge, radians inside):
-
-```yaml
-augment:
-  random_world_flip: {enabled: true, probability: 0.5}       # y -> -y, heading -> -heading
-  random_world_rotation: {enabled: true, world_rot_angle_deg: [-10.0, 10.0]}
-  random_world_scaling: {enabled: true, world_scale_range: [0.95, 1.05]}
-  gt_sampling: {enabled: true, sample_count: 15, limit_whole_scene: true,
-                filter_by_min_points: 5, remove_extra_width: [0.0, 0.0, 0.0], database_dir: null}
-```
+Config: the `augment` section (names follow OpenPCDet's DATA_AUGMENTOR entries; angles in
+degrees at this edge, radians inside) with the sub-sections random_world_flip {enabled,
+probability}, random_world_rotation {enabled, world_rot_angle_deg}, random_world_scaling
+{enabled, world_scale_range} and gt_sampling (detbench.data.gt_database). Its defaults,
+units and meanings are written once, in configs/default.yaml (AUGMENT_DEFAULTS is that
+section).
 """
 from __future__ import annotations
 
-import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from detbench.config import ConfigError, validate
-from detbench.data.gt_database import GT_SAMPLING_DEFAULTS, GTSampler, GTSamplingConfig
+from detbench.config import ConfigError, shipped_defaults, validate
+from detbench.data.gt_database import GTSampler, GTSamplingConfig
 from detbench.ops import normalize_heading
 
 __all__ = [
@@ -37,12 +31,7 @@ __all__ = [
     "random_rotation", "random_scaling", "crop_to_range", "augment_frame", "check_point_cloud_range",
 ]
 
-AUGMENT_DEFAULTS: dict[str, Any] = {
-    "random_world_flip": {"enabled": True, "probability": 0.5},
-    "random_world_rotation": {"enabled": True, "world_rot_angle_deg": [-10.0, 10.0]},
-    "random_world_scaling": {"enabled": True, "world_scale_range": [0.95, 1.05]},
-    "gt_sampling": copy.deepcopy(GT_SAMPLING_DEFAULTS),
-}
+AUGMENT_DEFAULTS: dict[str, Any] = shipped_defaults("augment")  # configs/default.yaml `augment:`
 
 
 def _pair(value, name: str, where: str) -> tuple[float, float]:
@@ -57,20 +46,25 @@ def _pair(value, name: str, where: str) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    """Which augmentations run and their ranges (radians and unitless factors)."""
+    """Which augmentations run and their ranges (radians and unitless factors).
 
-    flip: bool = True
-    flip_probability: float = 0.5
-    rotation: bool = True
-    rotation_range: tuple[float, float] = (-math.radians(10.0), math.radians(10.0))  # radians
-    scaling: bool = True
-    scale_range: tuple[float, float] = (0.95, 1.05)
-    gt_sampling: GTSamplingConfig = field(default_factory=GTSamplingConfig)
+    Built by `from_dict` from the `augment` section (defaults: configs/default.yaml).
+    """
+
+    flip: bool
+    flip_probability: float
+    rotation: bool
+    rotation_range: tuple[float, float]  # radians
+    scaling: bool
+    scale_range: tuple[float, float]
+    gt_sampling: GTSamplingConfig
 
     @classmethod
     def none(cls) -> "AugmentConfig":
-        """Every augmentation off."""
-        return cls(flip=False, rotation=False, scaling=False, gt_sampling=GTSamplingConfig(enabled=False))
+        """Every augmentation off (the other settings at their defaults)."""
+        cfg = cls.from_dict({})
+        return replace(cfg, flip=False, rotation=False, scaling=False,
+                       gt_sampling=replace(cfg.gt_sampling, enabled=False))
 
     @classmethod
     def from_dict(cls, cfg: Mapping | None, where: str = "augment") -> "AugmentConfig":

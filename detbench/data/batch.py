@@ -5,7 +5,7 @@ TrainingSet[i] -> Sample (numpy, one frame) --collate--> Batch (torch, B frames)
 model.forward(Batch) -> outputs; model.predict(outputs, Batch) -> list[Detections], one per frame
 ```
 
-Shapes and units (ego ground frame, metres, radians; see DESIGN.md):
+Shapes and units (ego ground frame, metres, radians; docs/architecture.md, Conventions):
 
 - `Sample.points` (N, 4) float32 x, y, z, intensity; `Sample.gt_boxes` (M, 7) float32
   x, y, z, dx, dy, dz, heading.

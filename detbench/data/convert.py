@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 
 from detbench.data.errors import DatasetError, MissingFileError
-from detbench.data.frame import Sensor, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.data.layout import (
     FORMAT_NAME, FORMAT_VERSION, INFO_FILE, DatasetInfo, HeightInfo, SceneRule, assign_splits, check_frame_id,
-    default_lane_width, imageset_path, label_path, points_path,
+    imageset_path, label_path, points_path,
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
@@ -169,7 +169,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
     atomic_write_text(imageset_path(out, "test"), "".join(f + "\n" for f in test))
     heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame="sensor", points_ext=exts[k]) for k in srcs}
     info = DatasetInfo(heights=heights, classes=classes or ["car"], split=split, has_meta=False,
-                       lane_width=default_lane_width() if lane_width is None else float(lane_width),
+                       lane_width=DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width),
                        scene_rule=rule, num_frames=len(ids), format=FORMAT_NAME, version=FORMAT_VERSION,
                        source={"kind": "external", "converted_from": {k: str(v) for k, v in srcs.items()},
                                "labels_frame": labels_frame, "road_surface_z_m": road_z})

@@ -17,7 +17,7 @@ from typing import Iterator
 import numpy as np
 
 from detbench.data.errors import DatasetError, MissingFileError
-from detbench.data.frame import Frame, Sensor, height_key
+from detbench.data.frame import Frame, Sensor, height_key, lanes_from_lateral
 from detbench.data.layout import (
     INFO_FILE, SPLIT_CHOICES, DatasetInfo, HeightInfo, imageset_path, label_path, meta_path, points_path,
     read_info,
@@ -157,8 +157,6 @@ class Height3Dataset:
             scene_id = scene_of.get(frame_id) or self.info.scene_rule.scenes([frame_id])[frame_id]
             ts, ego = 0.0, {}
             track_ids = np.full(m, -1, dtype=np.int64)
-            from detbench.eval.regions import lanes_from_lateral  # lazy: eval.regions imports detbench.data
-
             lanes = lanes_from_lateral(boxes[:, 1], self.lane_width) if m else np.zeros(0, dtype=np.int64)
         return {"boxes": boxes, "classes": classes, "track_ids": track_ids, "lanes": lanes, "scene_id": scene_id,
                 "timestamp": ts, "ego": ego, "sensor": sensor}

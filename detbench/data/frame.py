@@ -8,7 +8,9 @@ Conventions (docs/architecture.md):
   heading counter-clockwise from +x in [-pi, pi);
 - lane: int64 (M,) relative to the ego lane: 0 ego lane, +1 left, -1 right, +-2 ... further
   lanes of the ego's carriageway, `LANE_OPPOSITE` for the opposite carriageway and
-  `LANE_UNKNOWN` where a dataset gives no lane and none could be derived.
+  `LANE_UNKNOWN` where a dataset gives no lane and none could be derived. Datasets without
+  lane ids get lanes from the lateral offset (`lanes_from_lateral`, lanes `DEFAULT_LANE_WIDTH`
+  wide).
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ import numpy as np
 
 LANE_OPPOSITE = 99
 LANE_UNKNOWN = -99
+DEFAULT_LANE_WIDTH = 3.5  # metres
 
 BOX_DIM = 7
 POINT_DIM = 4
@@ -35,6 +38,19 @@ def height_key(height: float) -> str:
         raise ValueError(f"mounting height must be a positive number of metres, got {height!r}")
     s = f"{h:.3f}".rstrip("0")
     return s + "0" if s.endswith(".") else s
+
+
+def lanes_from_lateral(y: np.ndarray, lane_width: float = DEFAULT_LANE_WIDTH, ego_offset: float = 0.0) -> np.ndarray:
+    """(M,) int64 relative lane index from the lateral offsets `y` (M,) in metres, for datasets without lane ids.
+
+    The ego is taken to drive in the middle of its lane (`ego_offset` shifts that centre,
+    metres, positive to the left); lane i covers y in [(i - 1/2) w, (i + 1/2) w) about it.
+    This is exact on straight roads and an approximation on curves.
+    """
+    if lane_width <= 0:
+        raise ValueError(f"lane_width must be positive, got {lane_width}")
+    y = np.asarray(y, dtype=np.float64) - ego_offset
+    return np.floor(y / lane_width + 0.5).astype(np.int64)
 
 
 @dataclass(frozen=True)
@@ -122,10 +138,3 @@ class Frame:
                 raise ValueError(f"{where}: {name} has {len(arr)} entries for {m} boxes")
         return self
 
-
-def empty_boxes() -> np.ndarray:
-    return np.zeros((0, BOX_DIM), dtype=np.float32)
-
-
-def empty_points() -> np.ndarray:
-    return np.zeros((0, POINT_DIM), dtype=np.float32)

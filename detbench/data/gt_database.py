@@ -13,9 +13,9 @@ OUT/gt_database.json   the index: format, version, source, fingerprint of the fr
 
 Both files are written atomically, the JSON last, so a folder without the JSON is an
 unfinished build and is rebuilt. An object's points are those inside its box with the
-bottom raised by `bottom_lift` (0.05 m, the LiDAR-detected rule), so no road points
-travel with a pasted vehicle; objects with no such point are not LiDAR-detected and are
-left out.
+bottom raised by `bottom_lift` (DETECTED_BOTTOM_LIFT, the LiDAR-detected rule of
+detbench.data.regions), so no road points travel with a pasted vehicle; objects with fewer
+such points than DETECTED_MIN_POINTS are not LiDAR-detected and are left out.
 
 Pasting (`GTSampler.sample`): draw vehicles, keep each where it was recorded (the road
 layout is shared by all frames), reject any whose bird's-eye-view box overlaps (IoU > 0) a
@@ -35,55 +35,37 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from detbench.config import ConfigError, validate
+from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.frame import Frame
+from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS
 from detbench.ops import boxes_iou_bev, points_in_boxes
 from detbench.utils.io import atomic_save, atomic_write_json, read_json
 
 __all__ = [
-    "DETECTED_BOTTOM_LIFT", "GT_SAMPLING_DEFAULTS", "GTSamplingConfig", "GTDatabase", "GTSampler",
-    "detected_mask", "build_gt_database", "load_gt_database", "build_or_load_gt_database", "frames_fingerprint",
+    "GT_SAMPLING_DEFAULTS", "GTSamplingConfig", "GTDatabase", "GTSampler", "build_gt_database", "load_gt_database",
+    "build_or_load_gt_database", "frames_fingerprint",
 ]
 
-DETECTED_BOTTOM_LIFT = 0.05  # metres; the study's LiDAR-detected rule
 DB_FORMAT = "detbench-gt-database"
 DB_VERSION = 1
 INDEX_FILE = "gt_database.json"
 ARRAYS_FILE = "gt_database.npz"
 
-GT_SAMPLING_DEFAULTS: dict[str, Any] = {
-    "enabled": True,
-    "sample_count": 15,  # OpenPCDet SAMPLE_GROUPS ['Car:15']
-    "limit_whole_scene": True,  # OpenPCDet LIMIT_WHOLE_SCENE: fill the frame up to sample_count
-    "filter_by_min_points": 5,  # OpenPCDet PREPARE.filter_by_min_points ['Car:5']
-    "remove_extra_width": [0.0, 0.0, 0.0],  # metres added to dx, dy, dz when removing frame points
-    "database_dir": None,  # folder of the database; null = chosen by the caller
-}
-
-
-def detected_mask(points: np.ndarray, boxes: np.ndarray, min_points: int = 1,
-                  bottom_lift: float = DETECTED_BOTTOM_LIFT) -> np.ndarray:
-    """(M,) bool: boxes with >= `min_points` points inside, bottom raised by `bottom_lift` metres.
-
-    With the defaults this is the study's LiDAR-detected rule. points (N, >=3), boxes (M, 7).
-    """
-    boxes = np.asarray(boxes).reshape(-1, 7)
-    if boxes.shape[0] == 0:
-        return np.zeros(0, dtype=bool)
-    counts, _ = points_in_boxes(points, boxes, bottom_lift=bottom_lift)
-    return np.asarray(counts) >= min_points
+# configs/default.yaml `augment.gt_sampling:`, each key documented there
+GT_SAMPLING_DEFAULTS: dict[str, Any] = shipped_defaults("augment")["gt_sampling"]
 
 
 @dataclass(frozen=True)
 class GTSamplingConfig:
-    """Ground-truth sampling settings (see GT_SAMPLING_DEFAULTS for the YAML names)."""
+    """Ground-truth sampling settings: the `augment.gt_sampling` section, parsed by `from_dict`
+    (names, defaults and units: configs/default.yaml)."""
 
-    enabled: bool = False
-    sample_count: int = 15
-    limit_whole_scene: bool = True
-    filter_by_min_points: int = 5
-    remove_extra_width: tuple[float, float, float] = (0.0, 0.0, 0.0)  # metres
-    database_dir: str | None = None
+    enabled: bool
+    sample_count: int
+    limit_whole_scene: bool
+    filter_by_min_points: int
+    remove_extra_width: tuple[float, float, float]  # metres
+    database_dir: str | None
 
     @classmethod
     def from_dict(cls, cfg: Mapping | None, where: str = "augment.gt_sampling") -> "GTSamplingConfig":
@@ -180,7 +162,7 @@ def build_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLike, sourc
         order = np.argsort(index, kind="stable")
         sorted_index = index[order]
         starts = np.searchsorted(sorted_index, np.arange(f.boxes.shape[0]), side="left")
-        for k in np.flatnonzero(counts >= 1):
+        for k in np.flatnonzero(counts >= DETECTED_MIN_POINTS):
             sel = order[starts[k]:starts[k] + counts[k]]
             p = f.points[sel].astype(np.float32, copy=True)
             p[:, :3] -= f.boxes[k, :3]

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from detbench.data.errors import DatasetError, MissingFileError
-from detbench.data.frame import Sensor, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.utils.io import read_json
 
 FORMAT_NAME = "detbench-height3"
@@ -40,15 +40,6 @@ SPLIT_CHOICES = ("train", "test", "all")
 POINT_EXTS = (".npy", ".bin")
 POINTS_FRAMES = ("ground", "sensor")
 DEFAULT_CLASSES = ("car", "suv", "van", "taxi", "truck")
-
-
-
-def default_lane_width() -> float:
-    """detbench.eval.regions.DEFAULT_LANE_WIDTH (3.5 m), imported lazily: eval.regions imports this package."""
-    from detbench.eval.regions import DEFAULT_LANE_WIDTH
-
-    return float(DEFAULT_LANE_WIDTH)
-
 
 _FRAME_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")
 
@@ -139,7 +130,7 @@ class DatasetInfo:
     classes: list[str] = field(default_factory=lambda: list(DEFAULT_CLASSES))
     split: dict = field(default_factory=dict)
     has_meta: bool = True
-    lane_width: float = field(default_factory=default_lane_width)  # metres, for lanes derived from y without meta
+    lane_width: float = DEFAULT_LANE_WIDTH  # metres, for lanes derived from y without meta
     scene_rule: SceneRule = field(default_factory=SceneRule)
     num_frames: int | None = None
     format: str = FORMAT_NAME
@@ -236,7 +227,7 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
     classes = d.get("classes", list(DEFAULT_CLASSES))
     if not isinstance(classes, list) or not all(isinstance(c, str) and c and " " not in c for c in classes):
         raise DatasetError("'classes' must be a list of class names without spaces", path=path)
-    lane_width = d.get("lane_width", default_lane_width())
+    lane_width = d.get("lane_width", DEFAULT_LANE_WIDTH)
     if not isinstance(lane_width, (int, float)) or isinstance(lane_width, bool) or not lane_width > 0 \
             or not math.isfinite(lane_width):
         raise DatasetError(f"'lane_width' must be a positive number of metres, got {lane_width!r}", path=path)

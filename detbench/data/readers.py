@@ -19,6 +19,7 @@ import numpy as np
 
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import BOX_DIM, POINT_DIM, Sensor
+from detbench.data.layout import check_frame_id
 from detbench.data.transforms import wrap_heading
 
 LABEL_COLUMNS = ("x", "y", "z", "dx", "dy", "dz", "heading", "class")
@@ -250,8 +251,6 @@ def meta_dict(frame, sensors: dict | None = None) -> dict:
 
 def read_imageset(path: str | os.PathLike) -> list[str]:
     """Frame ids of ROOT/ImageSets/<split>.txt (one a line; blank lines skipped; duplicates rejected)."""
-    from detbench.data.layout import check_frame_id
-
     path = Path(path)
     if not path.is_file():
         raise MissingFileError("split list not found; create ImageSets/train.txt and test.txt with one "

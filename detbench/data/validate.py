@@ -15,6 +15,7 @@ from pathlib import Path
 
 from detbench.data.errors import DatasetError
 from detbench.data.frame import height_key
+from detbench.data.dataset import Height3Dataset, split_ids
 from detbench.data.layout import LABELS_DIR, read_info
 
 
@@ -46,8 +47,6 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
     under the by-scene rule), every label, meta and points file (format, values, counts),
     and warns about label files no split lists. Stops collecting after `max_errors`.
     """
-    from detbench.data.dataset import Height3Dataset, split_ids
-
     root = Path(root)
     rep = ValidationReport(root=str(root))
 

@@ -19,10 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from detbench.data.errors import DatasetError
-from detbench.data.frame import Frame, Sensor, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, Frame, Sensor, height_key
 from detbench.data.layout import (
     DEFAULT_CLASSES, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
-    assign_splits, check_frame_id, default_lane_width, imageset_path, label_path, meta_path, points_path,
+    assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path,
 )
 from detbench.data.readers import format_labels, meta_dict
 from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text
@@ -81,7 +81,7 @@ class DatasetWriter:
         self.test_fraction = float(test_fraction)
         self.overwrite = overwrite
         self.points_ext = points_ext
-        self.lane_width = default_lane_width() if lane_width is None else float(lane_width)
+        self.lane_width = DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width)
         self._fixed_classes = classes is not None
         self.classes: list[str] = list(classes) if classes is not None else list(DEFAULT_CLASSES)
         self.sensors: dict[str, Sensor] = {}

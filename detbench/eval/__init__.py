@@ -1,4 +1,7 @@
-"""Evaluation: ranges and levels (regions), the detection evaluator, reports and figures."""
+"""Evaluation: the LiDAR detection-ability study, the detection evaluator, reports and figures.
+
+The paper's definitions they apply (ranges, levels, LiDAR-detected) live in detbench.data.regions.
+"""
 from detbench.eval.evaluate import (
     EvalFrame,
     Predictions,
@@ -20,5 +23,5 @@ from detbench.eval.report import (
     report_to_csv,
     report_to_markdown,
 )
-from detbench.eval.ability import AbilityStudy, ability_markdown, detected_counts
+from detbench.eval.ability import AbilityStudy, ability_markdown
 from detbench.eval.ability_plots import plot_bev, save_ability_figures

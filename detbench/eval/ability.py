@@ -1,9 +1,9 @@
 """LiDAR detection ability (the paper's Section IV): how many vehicles a LiDAR at each height hits.
 
-Definitions (exactly the paper's; ranges and levels live in detbench.eval.regions):
+Definitions (exactly the paper's; each lives in detbench.data.regions):
 - a vehicle is *LiDAR-detected* at a height when at least one point of that height's sweep
   lies inside its box with the box bottom raised by 0.05 m (so road points under the car
-  do not count): `points_in_boxes(points, boxes, bottom_lift=0.05)[0] >= 1`;
+  do not count): `detected_point_counts(points, boxes) >= DETECTED_MIN_POINTS`;
 - ranges by the box centre: small 0<=x<=50, |y|<=5; moderate 0<=x<=100, |y|<=10;
   large 0<=x<=150, |y|<=15 (metres, borders inclusive);
 - levels within a range: all; top3 = nearest vehicle in each of the ego, left and right
@@ -30,13 +30,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from detbench.data.frame import LANE_UNKNOWN, Frame, height_key
-from detbench.eval.regions import (
-    DEFAULT_LANE_WIDTH, LEVELS, RANGE_NAMES, RANGES, lanes_from_lateral, region_masks,
+from detbench.data.frame import DEFAULT_LANE_WIDTH, LANE_UNKNOWN, Frame, height_key, lanes_from_lateral
+from detbench.data.regions import (
+    DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, RANGES, detected_point_counts, region_masks,
 )
 
-BOTTOM_LIFT = 0.05  # metres: the paper's raised box bottom
-DEFAULT_THRESHOLDS = (1, 5, 10)  # minimum points inside a box to call it detected
+DEFAULT_THRESHOLDS = (DETECTED_MIN_POINTS, 5, 10)  # minimum points inside a box to call it detected
 DEFAULT_BIN_M = 10.0
 LDR_DISTANCE_MAX_M = 150.0  # x extent of the large range
 LDR_DISTANCE_HALF_WIDTH_M = 15.0  # |y| bound of the large range
@@ -68,16 +67,6 @@ def stacked_masks(boxes: np.ndarray, lanes: np.ndarray) -> np.ndarray:
     return np.stack([masks[c] for c in CELLS])
 
 
-def detected_counts(frame: Frame, bottom_lift: float = BOTTOM_LIFT) -> np.ndarray:
-    """(M,) int64 number of the frame's points inside each box with the bottom raised by `bottom_lift` m."""
-    from detbench.ops import points_in_boxes
-
-    if frame.num_boxes == 0:
-        return np.zeros(0, dtype=np.int64)
-    counts, _ = points_in_boxes(frame.points, frame.boxes, bottom_lift=bottom_lift)
-    return np.asarray(counts, dtype=np.int64)
-
-
 def frame_lanes(frame: Frame, lane_width: float = DEFAULT_LANE_WIDTH) -> np.ndarray:
     """The frame's lanes with LANE_UNKNOWN entries replaced by lanes from the lateral offset."""
     lanes = np.asarray(frame.lanes, dtype=np.int64)
@@ -104,10 +93,10 @@ class AbilityStudy:
 
     Args:
         thresholds: minimum numbers of points inside the (lifted) box for "detected"; the
-            first must be 1 (the paper's rule, reported under "heights"), the others go to
-            extras["min_points"].
+            first must be DETECTED_MIN_POINTS = 1 (the paper's rule, reported under "heights"),
+            the others go to extras["min_points"].
         distance_bin: width in metres of the x bins of LDR against distance.
-        bottom_lift: metres the box bottom is raised (0.05, the paper's value).
+        bottom_lift: metres the box bottom is raised (DETECTED_BOTTOM_LIFT = 0.05, the paper's value).
         lane_width: metres, used only for boxes whose lane is LANE_UNKNOWN.
         keep_example: keep the instant whose heights differ most in detected vehicles (large
             range) for the bird's-eye figure; `example_frame_id` forces a given id instead.
@@ -119,10 +108,10 @@ class AbilityStudy:
     """
 
     def __init__(self, thresholds: Sequence[int] = DEFAULT_THRESHOLDS, distance_bin: float = DEFAULT_BIN_M,
-                 bottom_lift: float = BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
+                 bottom_lift: float = DETECTED_BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
                  example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP, bootstrap_seed: int = 0):
         th = [int(t) for t in thresholds]
-        if not th or th[0] != 1 or any(t < 1 for t in th) or len(set(th)) != len(th):
+        if not th or th[0] != DETECTED_MIN_POINTS or any(t < 1 for t in th) or len(set(th)) != len(th):
             raise ValueError(f"thresholds must start with 1 (the paper's rule) and hold distinct integers >= 1, "
                              f"got {list(thresholds)}")
         if not distance_bin > 0:
@@ -194,7 +183,7 @@ class AbilityStudy:
             raise TypeError(f"AbilityStudy.add takes Frame objects, got {type(frame).__name__}")
         hk = height_key(frame.sensor.height)
         if counts is None:
-            counts = detected_counts(frame, self.bottom_lift)
+            counts = detected_point_counts(frame.points, frame.boxes, self.bottom_lift)
         elif counts.shape != (frame.num_boxes,):
             raise ValueError(f"frame {frame.frame_id}: counts has shape {counts.shape}, expected ({frame.num_boxes},)")
         masks, bins = self._geometry(frame)
@@ -248,7 +237,7 @@ class AbilityStudy:
                 self.example = g
             return
         in_large = g.in_large
-        det = [int(((c >= 1) & in_large).sum()) for c in g.counts.values()]
+        det = [int(((c >= DETECTED_MIN_POINTS) & in_large).sum()) for c in g.counts.values()]
         # the instant whose heights differ most; ties go to the one with more vehicles in range
         g.score = (max(det) - min(det)) * 1000 + int(in_large.sum()) if len(det) > 1 else int(in_large.sum())
         if self.example is None or g.score > self.example.score:
@@ -270,7 +259,7 @@ class AbilityStudy:
         """Distinct frame ids seen (an instant at three heights counts once)."""
         return len(self._frame_ids)
 
-    def cell(self, height: float | str, range_name: str, level: str, threshold: int = 1) -> dict:
+    def cell(self, height: float | str, range_name: str, level: str, threshold: int = DETECTED_MIN_POINTS) -> dict:
         """{"total", "detected", "ldr"} of one (height, range, level) for a minimum point count."""
         hk = height if isinstance(height, str) else height_key(height)
         i = CELLS.index((range_name, level))
@@ -460,7 +449,7 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
         out += [f"Source: {', '.join(f'{k}={v}' for k, v in src.items() if simple(v))}", ""]
     out += [f"{report['num_frames']} frames; heights {', '.join(h + ' m' for h in heights)}. A vehicle is "
             f"LiDAR-detected when at least one point lies inside its box with the bottom raised by "
-            f"{ex.get('definitions', {}).get('bottom_lift_m', BOTTOM_LIFT)} m; LDR = detected / total. "
+            f"{ex.get('definitions', {}).get('bottom_lift_m', DETECTED_BOTTOM_LIFT)} m; LDR = detected / total. "
             f"Number = detected vehicles summed over frames. Ranges by box centre (metres): small 0<=x<=50, |y|<=5; "
             f"moderate 0<=x<=100, |y|<=10; large 0<=x<=150, |y|<=15.", ""]
     if not heights:
@@ -550,5 +539,5 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
     return "\n".join(out)
 
 
-__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "detected_counts", "stacked_masks", "frame_lanes",
-           "ldr", "CELLS", "BOTTOM_LIFT", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
+__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "stacked_masks", "frame_lanes",
+           "ldr", "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]

@@ -22,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from detbench.eval.ability import ExampleFrames
-from detbench.eval.regions import LEVELS, RANGE_NAMES, RANGES
+from detbench.data.regions import LEVELS, RANGE_NAMES, RANGES
 from detbench.utils.io import atomic_save
 
 _PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"]

@@ -1,10 +1,11 @@
 """The detection evaluator of the Height3 paper (Section V): recall and AP@R40 by range and level.
 
 Every rule is written down, with examples, in docs/evaluation.md. In short, for each range
-(small / moderate / large) and level (all / top3 / top6) of `detbench.eval.regions`:
+(small / moderate / large) and level (all / top3 / top6) of `detbench.data.regions`:
 
 - the *evaluated* ground truth of a frame is the set of its vehicles in that range and level
-  that the LiDAR detected (>= 1 point inside the box with its bottom raised 0.05 m); every
+  that the LiDAR detected (`detbench.data.regions`: >= 1 point inside the box with its bottom
+  raised 0.05 m); every
   other ground-truth box of the frame is an *ignored* box;
 - predictions with score < `score_threshold` are dropped; the rest, highest score first
   (ties: input order), are matched greedily: a prediction takes the still-unmatched evaluated
@@ -32,7 +33,9 @@ from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 import numpy as np
 from numba import njit, prange
 
-from detbench.eval.regions import LEVELS, RANGE_NAMES, importance_mask, in_range
+from detbench.data.regions import (
+    DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
+)
 
 IOU_KINDS: tuple[str, ...] = ("3d", "bev")
 # An IoU counts as reaching the threshold when IoU >= threshold - IOU_EPS. The exact IoU of
@@ -96,8 +99,8 @@ class EvalFrame:
 
     gt_boxes: (N, 7) x, y, z, dx, dy, dz, heading (metres, radians), ego ground frame.
     gt_num_points: (N,) number of LiDAR points inside each box with its bottom raised 0.05 m
-        (`detbench.ops.points_in_boxes(points, boxes, bottom_lift=0.05)[0]`); a box with >= 1
-        point is LiDAR-detected.
+        (`detbench.data.regions.detected_point_counts(points, boxes)`); a box with >= 1
+        point (DETECTED_MIN_POINTS) is LiDAR-detected.
     gt_lane: (N,) lane relative to the ego (0 ego, +1 left, -1 right; any other value takes
         no part in Top-k).
     pred_boxes: (M, 7) predicted boxes, same layout as gt_boxes.
@@ -248,7 +251,7 @@ def _match_kernel(iou_flat, iou_off, pred_off, gt_off, gt_eval, pred_in_range, p
 def _iou_function(kind: str):
     if kind not in IOU_KINDS:
         raise ValueError(f"unknown iou_kind {kind!r}; use one of {', '.join(IOU_KINDS)}")
-    from detbench.ops import boxes_iou3d, boxes_iou_bev
+    from detbench.ops import boxes_iou3d, boxes_iou_bev  # on first use: detbench.ops loads torch
 
     return boxes_iou3d if kind == "3d" else boxes_iou_bev
 
@@ -318,7 +321,7 @@ def _prepare(frames: Sequence[EvalFrame], score_threshold: float) -> _Prepared:
                 a, b = gt_off[f], gt_off[f + 1]
                 if b > a and cand[a:b].any():
                     gt_level[a:b, p] = importance_mask(gt_boxes[a:b], gt_lane[a:b], cand[a:b], lv)
-    gt_eval = gt_level & (gt_points >= 1)[:, None]
+    gt_eval = gt_level & (gt_points >= DETECTED_MIN_POINTS)[:, None]
     return _Prepared(num_frames, gt_off, pred_off, gt_level, gt_eval, pred_boxes, pred_scores,
                      pred_in_range, gt_boxes)
 
@@ -492,22 +495,15 @@ def evaluate(
 # Datasets and prediction files
 # --------------------------------------------------------------------------------------------
 
-LIDAR_BOTTOM_LIFT = 0.05  # metres; the paper's LiDAR-detected rule (Section IV)
-
-
 def eval_frame_from_frame(frame, predictions: Predictions | tuple | None) -> EvalFrame:
     """EvalFrame of a `detbench.data.Frame` (boxes, lanes, points) and its predictions.
 
-    The point counts follow the LiDAR-detected rule: points inside each box with its bottom
-    raised LIDAR_BOTTOM_LIFT = 0.05 m. `predictions` is (boxes (M, 7), scores (M,)) or None.
+    The point counts follow the LiDAR-detected rule (`detbench.data.regions.detected_point_counts`:
+    points inside each box with its bottom raised 0.05 m). `predictions` is (boxes (M, 7),
+    scores (M,)) or None.
     """
-    from detbench.ops import points_in_boxes
-
     boxes = np.asarray(frame.boxes)
-    if len(boxes):
-        counts, _ = points_in_boxes(np.asarray(frame.points), boxes, bottom_lift=LIDAR_BOTTOM_LIFT)
-    else:
-        counts = np.zeros(0, dtype=np.int64)
+    counts = detected_point_counts(np.asarray(frame.points), boxes)
     if predictions is None:
         pb, ps = np.zeros((0, 7)), np.zeros(0)
     else:
@@ -648,5 +644,5 @@ __all__ = [
     "EvalFrame", "Predictions", "evaluate", "evaluate_predictions", "eval_frame_from_frame",
     "ap_r40", "ap_r40_ranked", "extra_key", "parse_prediction_file", "read_prediction_dir",
     "format_prediction_lines", "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS",
-    "LIDAR_BOTTOM_LIFT", "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",
+    "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",
 ]

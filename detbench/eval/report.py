@@ -18,7 +18,8 @@ import math
 from pathlib import Path
 from typing import Any, Sequence
 
-from detbench.eval.regions import LEVELS, RANGE_NAMES
+from detbench.data.frame import height_key
+from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.utils.io import atomic_save
 
 METRIC_FIELDS: tuple[str, ...] = ("total", "lidar_detected", "ldr", "tp", "fp", "recall", "ap_r40")
@@ -41,8 +42,6 @@ def _frac(v: float | None, digits: int = 3) -> str:
 def _height_str(h: Any) -> str:
     if h is None:
         return "?"
-    from detbench.data.frame import height_key
-
     return f"{height_key(h)} m"
 
 

@@ -1,7 +1,7 @@
 """Box geometry on CPU (numba) and GPU (torch): points in boxes, rotated IoU, NMS, box coding;
 voxelization; PointNet++ / PointRCNN point operations (detbench.ops.points).
 
-Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (see DESIGN.md).
+Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (docs/architecture.md, Conventions).
 numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device (the point
 operations take tensors or arrays and always return tensors).
 """

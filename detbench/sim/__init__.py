@@ -15,10 +15,11 @@ timestamp) with three extras filled by the ray caster:
 
 - `hit_counts` (M,) int64: for each box, the number of points inside it with the box
   bottom raised by `count_bottom_lift` metres (config `output.count_bottom_lift_m`,
-  0.05 by default, i.e. the paper's LiDAR-detected rule). It is computed on the final
-  float32 points and float32 boxes with the same test as
-  `detbench.ops.points_in_boxes(points, boxes, bottom_lift=0.05)[0]`, so the two agree
-  exactly (tests/test_sim_counts.py proves it on simulated frames).
+  0.05 in configs/sim.yaml, i.e. `detbench.data.regions.DETECTED_BOTTOM_LIFT`, the paper's
+  LiDAR-detected rule). It is computed on the final float32 points and float32 boxes with
+  the same test as `detbench.data.regions.detected_point_counts(points, boxes)`, so the two agree
+  exactly (tests/test_ability.py::test_simulator_counts_match_points_in_boxes proves it on
+  simulated frames).
 - `point_box` (N,) int64: the box containing each point under that rule, or -1.
 - `rays_cast`: rays traced for the frame.
 
@@ -39,14 +40,19 @@ type and its length_m/width_m/height_m.
 Hand-made scenes for tests and experiments: `detbench.sim.raycast.make_scene` builds a
 scene from explicit vehicles (parts), occluders and an ego body; `cast_lidar` casts one
 LiDAR on it. `detbench.sim.vehicles.build_parts` makes the parts of a shape.
+
+Datasets on disk (`detbench.sim.dataset`): `simulate_dataset` writes one in the detbench
+layout; `default_dataset(data_cfg)` is the cached simulated dataset every command uses
+without `--data`.
 """
 from detbench.sim.lidar import PRESETS as LIDAR_PRESETS, LidarConfig, lidar_preset
 from detbench.sim.raycast import CastResult, SceneObjects, cast_lidar, make_scene
 from detbench.sim.simulator import HighwaySimulator, SimFrame, check_sim_config, load_sim_config, sim_presets
 from detbench.sim.vehicles import VehicleCatalog, build_parts
+from detbench.sim.dataset import default_dataset, simulate_dataset
 
 __all__ = [
     "HighwaySimulator", "SimFrame", "LidarConfig", "lidar_preset", "LIDAR_PRESETS", "load_sim_config",
     "check_sim_config", "sim_presets", "cast_lidar", "make_scene", "SceneObjects", "CastResult",
-    "VehicleCatalog", "build_parts",
+    "VehicleCatalog", "build_parts", "default_dataset", "simulate_dataset",
 ]

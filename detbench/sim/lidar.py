@@ -36,7 +36,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from detbench.data.frame import Sensor
+from detbench.data.frame import Sensor, height_key
 
 PAPER_HEIGHTS = (0.5, 1.0, 1.8)
 
@@ -221,8 +221,6 @@ def lidar_preset(name_or_height: str | float, **changes) -> LidarConfig:
         if abs(h - ph) < 1e-9:
             base = PRESETS[f"h3-{ph:.1f}"]
             return base.replace(**changes) if changes else base
-    from detbench.data.frame import height_key
-
     return PRESETS["h3-1.0"].replace(height=h, name=f"h3-{height_key(h)}", **changes)
 
 

@@ -21,7 +21,8 @@ Pipeline for one LiDAR (`cast_lidar`), each stage a numba kernel:
 4. post (parallel): range noise along the ray, random and intensity drop-off, intensity,
    max range; a hit on the ego gives no point;
 5. count (parallel): for every kept point, the vehicle box that contains it with the box
-   bottom raised by `bottom_lift` (the same test as `detbench.ops.points_in_boxes`, run on
+   bottom raised by `bottom_lift` (by default DETECTED_BOTTOM_LIFT, the LiDAR-detected rule of
+   detbench.data.regions; the same test as `detbench.ops.points_in_boxes`, run on
    the float32 point and the float32 frame box), from the column's objects only: a point
    lies on its ray, so only objects of its column can contain it.
 
@@ -37,7 +38,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim.lidar import LidarConfig
+from detbench.sim.vehicles import label_box_local
 
 KIND_VEHICLE = 0
 KIND_OCCLUDER = 1
@@ -448,13 +451,13 @@ def point_in_box(x, y, z, table, m):
 
 # ---------------------------------------------------------------------------- driver
 def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_points: bool = True,
-               bottom_lift: float = 0.05, ground_reflectivity: float = 0.3, timings: dict | None = None) -> CastResult:
+               bottom_lift: float = DETECTED_BOTTOM_LIFT, ground_reflectivity: float = 0.3, timings: dict | None = None) -> CastResult:
     """Cast one LiDAR over a scene; see the module doc for the stages.
 
     key: 64-bit seed of this sweep's noise/drop-off (same key, same bytes).
     with_points: False skips the rays whose column holds no vehicle (they cannot change a
       count) and returns no points, only `counts`; the counts are identical either way.
-    bottom_lift: metres the box bottom is raised for counting (the study uses 0.05).
+    bottom_lift: metres the box bottom is raised for counting (default: the study's DETECTED_BOTTOM_LIFT).
     timings: if a dict is given, seconds per stage are added to it
       ("prepare", "cull", "cast", "post", "count").
     """
@@ -519,8 +522,6 @@ def make_scene(vehicles=(), occluders=(), ego: tuple[float, float, float] | None
     ego: optional (length, width, height) of the ego body, placed behind the sensor
       (x in [-length, 0), centred on y = 0): it blocks rays and gives no points.
     """
-    from detbench.sim.vehicles import label_box_local
-
     poses, labels, part_list, kinds, refl, bidx = [], [], [], [], [], []
     nveh = 0
     for v in vehicles:

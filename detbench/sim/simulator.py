@@ -19,6 +19,7 @@ import numpy as np
 
 from detbench.config import CONFIG_DIR, ConfigError, apply_overrides, deep_merge, load_config, validate
 from detbench.data.frame import LANE_OPPOSITE, Frame
+from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim.lidar import LidarConfig
 from detbench.sim.raycast import KIND_EGO, KIND_OCCLUDER, KIND_VEHICLE, cast_lidar, pack_scene, wrap_angle
 from detbench.sim.road import Road, RoadLayout
@@ -155,7 +156,7 @@ class SimFrame(Frame):
     """A `Frame` from the simulator, with the ray caster's per-box counts.
 
     hit_counts: (M,) int64 points inside each box with the box bottom raised by
-      `count_bottom_lift` metres (the study's rule when 0.05); filled also when the
+      `count_bottom_lift` metres (the study's rule when DETECTED_BOTTOM_LIFT); filled also when the
       simulator ran with `with_points=False` (then `points` is empty);
     point_box: (N,) int64 row of `boxes` containing each point under the same rule, or -1
       (empty without points);
@@ -164,7 +165,7 @@ class SimFrame(Frame):
 
     hit_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     point_box: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    count_bottom_lift: float = 0.05
+    count_bottom_lift: float = DETECTED_BOTTOM_LIFT
     rays_cast: int = 0
 
 

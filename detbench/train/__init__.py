@@ -1,40 +1,21 @@
 """Training infrastructure shared by every detector: data pipeline hand-offs, loop, checkpoints, DDP.
 
-The contract between detectors and this package (the loop uses nothing else)
----------------------------------------------------------------------------
-Data in (detbench.data.batch):
+The detector contract (the loop, inference and the benchmark use nothing else) is the
+`Detector` protocol in detbench/train/detector.py: forward(batch), loss(outputs, batch),
+predict(outputs, batch), STAGES and prepare_config(model_cfg, train_boxes); the hand-offs
+`Sample`, `Batch`, `Detections` are in detbench/data/batch.py.
 
-    Sample(points (N, 4) float32 x y z intensity, gt_boxes (M, 7) float32, frame_id: str)
-    collate(list[Sample]) -> Batch
-    Batch.points    (P, 5) float32 [batch_index, x, y, z, intensity], frames concatenated in order
-    Batch.gt_boxes  (B, Mmax, 7) float32 x y z dx dy dz heading, zero rows as padding
-    Batch.gt_mask   (B, Mmax) bool, True for real boxes (Mmax may be 0)
-    Batch.frame_ids list[str]; Batch.batch_size int; Batch.to(device); Batch.boxes_of(i) -> (Mi, 7)
-
-A detector is an `nn.Module` with three methods:
-
-    forward(batch: Batch) -> outputs                      any typed NamedTuple of tensors
-    loss(outputs, batch: Batch) -> (total: Tensor[], parts: dict[str, float])
-    predict(outputs, batch: Batch) -> list[Detections]    one per frame, in batch order
-
-    Detections(boxes (K, 7) float32, scores (K,) float32 in [0, 1], labels (K,) int64)
-
-Units: metres and radians in the ego ground frame (x forward, y left, z up; heading
-counter-clockwise from +x in [-pi, pi)). `loss` must be finite for empty frames (no points
-or no boxes), and `parts` must have the same keys at every step (they are averaged over
-ranks by key). The ground truth in a Batch is the LiDAR-detected vehicles (>= 1 point inside
-the box with its bottom raised 0.05 m), cropped to the model's point-cloud range.
-
-Typical use (tools/train.py)
-----------------------------
+Typical use (tools/train.py; `models` is the detector registry above this package)
+-----------------------------------------------------------------------------------
     info = init_distributed(args.device)
+    run_config = load_run_config("second", "smoke")                   # detbench.train.run_config
     cfg = TrainConfig.from_dict(run_config["train"])
-    seed_everything(cfg.seed)
-    model = build_model(run_config)                                    # the lead's registry
     with main_process_first(info):
-        train_set = TrainingSet.from_dataset(root, height, point_cloud_range,
+        train_set = TrainingSet.from_dataset(root, height, run_config["model"]["point_cloud_range"],
                                              augment=AugmentConfig.from_dict(run_config["augment"]),
                                              seed=cfg.seed)
+    run_config["model"] = models.prepare_model_config("second", run_config["model"], train_boxes)
+    model = models.build_model("second", run_config["model"])
     result = train(model, train_set, cfg, out_dir, model_name="second", run_config=run_config,
                    data_info={"source": str(root), "height": height}, dist_info=info,
                    resume=args.resume, eval_fn=my_eval)
@@ -52,6 +33,7 @@ from detbench.train.checkpoint import (
     restore_training, save_checkpoint, unwrap_model,
 )
 from detbench.train.dataset import TrainingSet, default_database_dir
+from detbench.train.detector import Detector
 from detbench.train.distributed import (
     DistInfo, barrier, cleanup, init_distributed, main_process_first, reduce_mean, wrap_model,
 )
@@ -62,7 +44,7 @@ from detbench.train.seed import capture_rng_state, restore_rng_state, sample_rng
 
 __all__ = [
     "Batch", "Detections", "Sample", "collate", "AugmentConfig", "AUGMENT_DEFAULTS",
-    "TrainingSet", "default_database_dir",
+    "TrainingSet", "default_database_dir", "Detector",
     "TrainConfig", "TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "TrainResult", "train",
     "CheckpointError", "CheckpointManager", "TrainState", "save_checkpoint", "load_checkpoint",
     "load_model_weights", "restore_training", "config_diff", "unwrap_model",

@@ -30,6 +30,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import torch
 from torch import nn
 
+from detbench.train.seed import restore_rng_state
 from detbench.utils.io import atomic_save
 
 __all__ = [
@@ -209,8 +210,6 @@ def restore_training(ckpt: Mapping, *, model: nn.Module, optimizer: torch.optim.
 
     The generators get the states saved by `rank` (rank 0's when the run had fewer ranks).
     """
-    from detbench.train.seed import restore_rng_state
-
     load_model_weights(model, ckpt, path)
     for name, obj in (("optimizer", optimizer), ("scheduler", scheduler), ("scaler", scaler)):
         if obj is None:

@@ -1,8 +1,8 @@
 """`TrainingSet`: frames -> training samples (LiDAR-detected ground truth, augmentation, crop).
 
 Per item, in order:
-1. ground truth = the frame's LiDAR-detected vehicles (>= 1 point inside the box with its
-   bottom raised 0.05 m), as the paper trains;
+1. ground truth = the frame's LiDAR-detected vehicles (`detbench.data.regions.lidar_detected`:
+   >= 1 point inside the box with its bottom raised 0.05 m), as the paper trains;
 2. when training: augmentation (detbench.data.augment) with a generator seeded from
    (seed, epoch, index), pasted vehicles kept clear of every vehicle of the frame;
 3. crop points and boxes to the model's point-cloud range.
@@ -22,12 +22,12 @@ from typing import Sequence
 import numpy as np
 from torch.utils.data import Dataset
 
+from detbench.data import Height3Dataset
 from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range, crop_to_range
 from detbench.data.batch import Sample
 from detbench.data.frame import Frame, height_key
-from detbench.data.gt_database import (
-    DETECTED_BOTTOM_LIFT, GTDatabase, GTSampler, build_or_load_gt_database, detected_mask,
-)
+from detbench.data.gt_database import GTDatabase, GTSampler, build_or_load_gt_database
+from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, lidar_detected
 from detbench.train.seed import sample_rng
 
 __all__ = ["TrainingSet", "default_database_dir"]
@@ -48,12 +48,14 @@ class TrainingSet(Dataset):
         gt_database: required when `augment.gt_sampling.enabled`.
         seed: seeds each sample's augmentation with the epoch and index.
         training: False disables augmentation (evaluation, previews).
-        min_points / bottom_lift: the LiDAR-detected rule (defaults: 1 point, 0.05 m).
+        min_points / bottom_lift: the LiDAR-detected rule (defaults: DETECTED_MIN_POINTS = 1 point,
+            DETECTED_BOTTOM_LIFT = 0.05 m; detbench.data.regions).
     """
 
     def __init__(self, frames: Sequence[Frame], point_cloud_range: Sequence[float], *,
                  augment: AugmentConfig | None = None, gt_database: GTDatabase | None = None, seed: int = 0,
-                 training: bool = True, min_points: int = 1, bottom_lift: float = DETECTED_BOTTOM_LIFT):
+                 training: bool = True, min_points: int = DETECTED_MIN_POINTS,
+                 bottom_lift: float = DETECTED_BOTTOM_LIFT):
         self.frames = frames
         self.point_cloud_range = check_point_cloud_range(point_cloud_range)
         self.augment = augment or AugmentConfig.none()
@@ -80,8 +82,6 @@ class TrainingSet(Dataset):
         `augment.gt_sampling.database_dir`, else ROOT/gt_database/<height>. In a distributed
         run call this inside `main_process_first(info)`.
         """
-        from detbench.data import Height3Dataset
-
         augment = augment or AugmentConfig.none()
         frames = Height3Dataset(root, height, split)
         db = None
@@ -116,7 +116,7 @@ class TrainingSet(Dataset):
         frame = self.frames[index]
         points = np.asarray(frame.points, dtype=np.float32)
         all_boxes = np.asarray(frame.boxes, dtype=np.float32).reshape(-1, 7)
-        gt = all_boxes[detected_mask(points, all_boxes, self.min_points, self.bottom_lift)]
+        gt = all_boxes[lidar_detected(points, all_boxes, self.min_points, self.bottom_lift)]
         if augment:
             rng = sample_rng(self.seed, epoch, index)
             points, gt = augment_frame(points, gt, rng, self.augment, self.sampler, avoid_boxes=all_boxes)

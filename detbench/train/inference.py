@@ -27,7 +27,7 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
     """{frame_id: (boxes (K, 7) float32, scores (K,) float32)} for every frame, in eval mode.
 
     `frames` is any sequence of Frames (e.g. a Height3Dataset split). The model follows the
-    detector contract (detbench/train/__init__.py). The model's train/eval mode is restored.
+    detector contract (`Detector`, detbench/train/detector.py). The model's train/eval mode is restored.
     """
     was_training = model.training
     model.eval()

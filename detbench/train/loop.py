@@ -1,10 +1,16 @@
 """The training loop: `train(model, train_set, cfg, out_dir, ...)`, readable top to bottom.
 
-One call trains (or resumes) a detector that follows the contract in detbench/train/__init__.py:
+One call trains (or resumes) a detector that follows the contract `Detector` (detbench/train/detector.py):
 AdamW + one-cycle LR stepped per batch, gradient clipping, mixed precision on CUDA only,
 seeded data order and augmentation, a checkpoint at every epoch end (and on Ctrl-C),
 TensorBoard + history.json + a console line per epoch, an optional evaluation callback, and
 DistributedDataParallel when launched by torchrun.
+
+`train` reads top to bottom: `_setup` (seed, model on its device, loader, optimizer,
+schedule, `_resume`), then per epoch `_train_epoch` (each batch one `_step`: forward, loss,
+backward, clip, optimizer and schedule; logging, mid-epoch checkpoints, the stop check) and
+`_end_epoch` (averaged losses, checkpoint, evaluation, logs). `_Run` carries the run's
+objects and its advancing `TrainState` between them.
 
 Outputs in `out_dir`: checkpoints/epoch_EEE.pt (last `keep_checkpoints` kept),
 tensorboard/ (event files), history.json (one record per epoch).
@@ -15,7 +21,7 @@ import math
 import signal
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping
 
@@ -25,7 +31,7 @@ from torch.utils.data import DataLoader, Sampler
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from detbench.config import ConfigError, validate
+from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.batch import Batch, Sample, collate
 from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
 from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buffers, wrap_model
@@ -36,29 +42,7 @@ from detbench.utils.io import read_json
 
 __all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "TrainConfig", "TrainResult", "train"]
 
-TRAIN_DEFAULTS: dict[str, Any] = {
-    "epochs": 20,
-    "batch_size": 4,  # frames per process per step
-    "workers": 2,  # DataLoader worker processes (0 = load in the main process)
-    "seed": 0,
-    "lr": 0.003,  # peak of the one-cycle schedule
-    "weight_decay": 0.01,
-    "betas": [0.9, 0.99],
-    "pct_start": 0.4,  # share of steps with rising lr
-    "div_factor": 10.0,  # start lr = lr / div_factor
-    "final_div_factor": 10000.0,  # end lr = start lr / final_div_factor
-    "momentum_range": [0.85, 0.95],  # Adam beta1, cycled opposite to the lr
-    "grad_clip": 10.0,  # max global gradient L2 norm; 0 = off
-    "amp": True,  # mixed precision, CUDA only (always off on CPU)
-    "keep_checkpoints": 3,  # newest N kept; 0 = all
-    "checkpoint_every_steps": 0,  # extra mid-epoch checkpoints; 0 = epoch ends only
-    "eval_every": 1,  # epochs between evaluation callbacks (the last epoch is always evaluated)
-    "log_every": 10,  # steps between TensorBoard loss points
-    "drop_last": False,  # drop a last partial batch
-    "find_unused_parameters": False,  # DDP option for models with conditionally used parameters
-    "tensorboard": True,
-    "bev_image": True,  # bird's-eye image of predictions vs ground truth per epoch in TensorBoard
-}
+TRAIN_DEFAULTS: dict[str, Any] = shipped_defaults("train")  # configs/default.yaml `train:`, each key documented there
 # train.* keys that may change between an interrupted run and its resume (they do not change results)
 RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
                     "checkpoint_every_steps")
@@ -66,29 +50,29 @@ RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_ev
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Typed view of the `train` config section (TRAIN_DEFAULTS documents each key and its unit)."""
+    """Typed view of the `train` config section; each key's default and unit is in configs/default.yaml."""
 
-    epochs: int = 20
-    batch_size: int = 4
-    workers: int = 2
-    seed: int = 0
-    lr: float = 0.003
-    weight_decay: float = 0.01
-    betas: tuple[float, float] = (0.9, 0.99)
-    pct_start: float = 0.4
-    div_factor: float = 10.0
-    final_div_factor: float = 10000.0
-    momentum_range: tuple[float, float] = (0.85, 0.95)
-    grad_clip: float = 10.0
-    amp: bool = True
-    keep_checkpoints: int = 3
-    checkpoint_every_steps: int = 0
-    eval_every: int = 1
-    log_every: int = 10
-    drop_last: bool = False
-    find_unused_parameters: bool = False
-    tensorboard: bool = True
-    bev_image: bool = True
+    epochs: int
+    batch_size: int  # frames per process per step
+    workers: int
+    seed: int
+    lr: float
+    weight_decay: float
+    betas: tuple[float, float]
+    pct_start: float
+    div_factor: float
+    final_div_factor: float
+    momentum_range: tuple[float, float]
+    grad_clip: float
+    amp: bool
+    keep_checkpoints: int
+    checkpoint_every_steps: int
+    eval_every: int
+    log_every: int
+    drop_last: bool
+    find_unused_parameters: bool
+    tensorboard: bool
+    bev_image: bool
 
     @classmethod
     def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
@@ -97,20 +81,10 @@ class TrainConfig:
         validate(d, TRAIN_DEFAULTS, where=where)
         v = {**TRAIN_DEFAULTS, **d}
         try:
-            cfg = cls(epochs=int(v["epochs"]), batch_size=int(v["batch_size"]), workers=int(v["workers"]),
-                      seed=int(v["seed"]), lr=float(v["lr"]), weight_decay=float(v["weight_decay"]),
-                      betas=(float(v["betas"][0]), float(v["betas"][1])), pct_start=float(v["pct_start"]),
-                      div_factor=float(v["div_factor"]), final_div_factor=float(v["final_div_factor"]),
-                      momentum_range=(float(v["momentum_range"][0]), float(v["momentum_range"][1])),
-                      grad_clip=float(v["grad_clip"]), amp=bool(v["amp"]),
-                      keep_checkpoints=int(v["keep_checkpoints"]),
-                      checkpoint_every_steps=int(v["checkpoint_every_steps"]), eval_every=int(v["eval_every"]),
-                      log_every=int(v["log_every"]), drop_last=bool(v["drop_last"]),
-                      find_unused_parameters=bool(v["find_unused_parameters"]), tensorboard=bool(v["tensorboard"]),
-                      bev_image=bool(v["bev_image"]))
+            cfg = cls(**{f.name: _as_field_type(f.type, v[f.name]) for f in fields(cls)})
         except (TypeError, ValueError, IndexError) as e:
-            raise ConfigError(f"{where}: a value has the wrong type ({e}); see TRAIN_DEFAULTS in "
-                              f"detbench/train/loop.py for each key's type") from None
+            raise ConfigError(f"{where}: a value has the wrong type ({e}); see the train section of "
+                              f"configs/default.yaml for each key's type") from None
         checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
                   ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
                   ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
@@ -122,6 +96,13 @@ class TrainConfig:
             if not ok:
                 raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
         return cfg
+
+
+def _as_field_type(annotation: str, value: Any) -> Any:
+    """A YAML value converted to a TrainConfig field's type, named by its annotation string."""
+    if annotation == "tuple[float, float]":
+        return float(value[0]), float(value[1])
+    return {"int": int, "float": float, "bool": bool}[annotation](value)
 
 
 @dataclass
@@ -239,7 +220,7 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
     """Train `model` on `train_set`, or resume the run in `out_dir`.
 
     Args:
-        model: a detector (see detbench/train/__init__.py): forward(Batch), loss(outputs, Batch),
+        model: a `Detector` (detbench/train/detector.py): forward(Batch), loss(outputs, Batch),
             predict(outputs, Batch). Built by the caller after `seed_everything(cfg.seed)`;
             moved to the device here.
         train_set: a torch Dataset of `Sample`s indexed by (epoch, index) pairs (a `TrainingSet`)
@@ -264,14 +245,75 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
         the last completed step is written (resume replays the rest exactly on CPU).
     """
     info = dist_info or DistInfo()
+    run = _setup(model, train_set, cfg, Path(out_dir), info, model_name=model_name, run_config=run_config,
+                 data_info=data_info, resume=resume, resume_ignore_keys=resume_ignore_keys, preview=preview)
+    interrupted = False
+    with _StopRequest(announce=info.is_main) as stop:
+        for epoch in range(run.state.epoch, cfg.epochs):
+            epoch_run = _train_epoch(run, epoch, stop, progress)
+            if epoch_run.interrupted:
+                interrupted = True
+                break
+            _end_epoch(run, epoch, epoch_run, eval_fn)
+            if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
+                interrupted = True
+                break
+
+    if interrupted and info.is_main:
+        tqdm.write(f"Interrupted after {run.state.epoch} epoch(s) + {run.state.step_in_epoch} batch(es); checkpoint "
+                   f"saved to {run.last_ckpt}. To resume: {resume_hint}")
+    run.logger.close()
+    return TrainResult(out_dir=run.out_dir, epochs_completed=run.state.epoch, global_step=run.state.global_step,
+                       last_checkpoint=run.last_ckpt if info.is_main else None, interrupted=interrupted,
+                       history=list(run.logger.history))
+
+
+# ---- set-up: model, data, optimizer, schedule, resume ---------------------------------------
+@dataclass
+class _Run:
+    """Everything one training run holds; `state` and `last_ckpt` advance as it goes."""
+
+    cfg: TrainConfig
+    info: DistInfo
+    out_dir: Path
+    core: nn.Module  # the model on its device
+    ddp_model: nn.Module  # `core`, wrapped by DistributedDataParallel when distributed
+    train_set: Any
+    batches: _EpochBatches
+    loader: DataLoader
+    loader_gen: torch.Generator
+    steps_per_epoch: int
+    optimizer: torch.optim.Optimizer
+    scheduler: Any
+    scaler: torch.amp.GradScaler
+    use_amp: bool
+    ckpts: CheckpointManager
+    logger: TrainLogger
+    preview: Sample | None
+    checkpoint_meta: dict  # model_name, config and data: stored in every checkpoint, checked on resume
+    state: TrainState
+    last_ckpt: Path | None = None
+
+    def save(self, state: TrainState) -> Path | None:
+        """Write a checkpoint of `state` (rank 0; every rank takes part). Returns its path on rank 0."""
+        rng_ranks = _gather_rng(self.info)  # every rank resumes its own generators
+        path = None
+        if self.info.is_main:
+            path = self.ckpts.save(state, model=self.core, optimizer=self.optimizer, scheduler=self.scheduler,
+                                   scaler=self.scaler, rng=rng_ranks, **self.checkpoint_meta)
+        barrier(self.info)
+        return path
+
+
+def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: DistInfo, *, model_name: str,
+           run_config: Mapping, data_info: Mapping, resume: bool, resume_ignore_keys: Iterable[str],
+           preview: Sample | None) -> _Run:
+    """Seed, move the model, build the loader, optimizer and schedule, then resume if asked."""
     device = info.device
-    out_dir = Path(out_dir)
     ckpts = CheckpointManager(out_dir / "checkpoints", keep_last=cfg.keep_checkpoints)
     if not resume and ckpts.latest() is not None:
         raise CheckpointError(f"{ckpts.directory} already holds checkpoints of an earlier run ({ckpts.latest().name}); "
                               f"add --resume to continue it, or choose another --out folder (or delete that one)")
-
-    # ---- model, data, optimizer, schedule -------------------------------------------------
     seed_everything(cfg.seed)
     core = model.to(device)
     sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
@@ -294,131 +336,145 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
     use_amp = cfg.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
 
-    # ---- resume ---------------------------------------------------------------------------
-    state = TrainState(seed=cfg.seed)
-    last_ckpt: Path | None = None
-    history: list[dict] = []
-    if resume and ckpts.latest() is not None:
-        last_ckpt = ckpts.latest()
-        ckpt = load_checkpoint(last_ckpt, model_name=model_name, config=run_config, data=data_info,
-                               ignore_keys=resume_ignore_keys)
-        state = restore_training(ckpt, model=core, optimizer=optimizer, scheduler=scheduler, scaler=scaler,
-                                 path=last_ckpt, rank=info.rank)
-        if (out_dir / "history.json").is_file():
-            history = [r for r in read_json(out_dir / "history.json").get("epochs", []) if r["epoch"] <= state.epoch]
-        if info.is_main:
-            done = " - already complete, nothing to do" if state.epoch >= cfg.epochs else ""
-            tqdm.write(f"resuming from {last_ckpt} ({state.epoch} epochs + {state.step_in_epoch} batches done){done}")
-    elif resume and info.is_main:
-        tqdm.write(f"--resume: no checkpoint in {ckpts.directory}; starting a new run")
-
+    meta = {"config": run_config, "data": data_info, "model_name": model_name}
+    state, last_ckpt, history = TrainState(seed=cfg.seed), None, []
+    if resume:
+        state, last_ckpt, history = _resume(ckpts, cfg, info, out_dir, meta, resume_ignore_keys, model=core,
+                                            optimizer=optimizer, scheduler=scheduler, scaler=scaler)
     ddp_model = wrap_model(core, info, cfg.find_unused_parameters)
     logger = TrainLogger(out_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                          purge_step=state.global_step + 1 if last_ckpt is not None else None)
     logger.set_history(history)
     if preview is None and len(train_set) > 0 and hasattr(train_set, "get"):
         preview = train_set.get(0, 0, augment=False)
+    return _Run(cfg=cfg, info=info, out_dir=out_dir, core=core, ddp_model=ddp_model, train_set=train_set,
+                batches=batches, loader=loader, loader_gen=loader_gen, steps_per_epoch=steps_per_epoch,
+                optimizer=optimizer, scheduler=scheduler, scaler=scaler, use_amp=use_amp, ckpts=ckpts, logger=logger,
+                preview=preview, checkpoint_meta=meta, state=state, last_ckpt=last_ckpt)
 
-    def save(st: TrainState) -> Path | None:
-        rng_ranks = _gather_rng(info)  # every rank takes part; each resumes its own generators
-        path = None
+
+def _resume(ckpts: CheckpointManager, cfg: TrainConfig, info: DistInfo, out_dir: Path, meta: dict,
+            ignore_keys: Iterable[str], **objects) -> tuple[TrainState, Path | None, list[dict]]:
+    """(state, checkpoint, history so far) of the newest checkpoint, restored into `objects`
+    (model, optimizer, scheduler, scaler); a fresh state when there is none."""
+    last_ckpt = ckpts.latest()
+    if last_ckpt is None:
         if info.is_main:
-            path = ckpts.save(st, model=core, optimizer=optimizer, scheduler=scheduler, scaler=scaler,
-                              config=run_config, data=data_info, model_name=model_name, rng=rng_ranks)
-        barrier(info)
-        return path
+            tqdm.write(f"--resume: no checkpoint in {ckpts.directory}; starting a new run")
+        return TrainState(seed=cfg.seed), None, []
+    ckpt = load_checkpoint(last_ckpt, model_name=meta["model_name"], config=meta["config"], data=meta["data"],
+                           ignore_keys=ignore_keys)
+    state = restore_training(ckpt, path=last_ckpt, rank=info.rank, **objects)
+    history = []
+    if (out_dir / "history.json").is_file():
+        history = [r for r in read_json(out_dir / "history.json").get("epochs", []) if r["epoch"] <= state.epoch]
+    if info.is_main:
+        done = " - already complete, nothing to do" if state.epoch >= cfg.epochs else ""
+        tqdm.write(f"resuming from {last_ckpt} ({state.epoch} epochs + {state.step_in_epoch} batches done){done}")
+    return state, last_ckpt, history
 
-    # ---- epochs ---------------------------------------------------------------------------
-    interrupted = False
-    with _StopRequest(announce=info.is_main) as stop:
-        for epoch in range(state.epoch, cfg.epochs):
-            batches.set_epoch(epoch, skip=state.step_in_epoch if epoch == state.epoch else 0)
-            loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
-            core.train()
-            sums: dict[str, float] = {}
-            n_steps, n_frames, t0 = 0, 0, time.perf_counter()
-            bar = tqdm(stop.start_iter(loader), total=len(batches), desc=f"epoch {epoch + 1}/{cfg.epochs}", unit="batch",
-                       disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
-            for batch in bar:
-                batch: Batch = batch.to(device, non_blocking=True)
-                with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
-                    outputs = ddp_model(batch)
-                    loss, parts = core.loss(outputs, batch)
-                optimizer.zero_grad(set_to_none=True)
-                scaler.scale(loss).backward()
-                if cfg.grad_clip > 0:
-                    scaler.unscale_(optimizer)
-                    torch.nn.utils.clip_grad_norm_(core.parameters(), cfg.grad_clip)
-                lr = optimizer.param_groups[0]["lr"]  # the rate this step used
-                scaler.step(optimizer)
-                scaler.update()
-                scheduler.step()
 
-                state = TrainState(epoch, state.step_in_epoch + 1, state.global_step + 1, cfg.seed)
-                n_steps += 1
-                n_frames += batch.batch_size
-                loss_value = float(loss.detach())
-                values = {"loss": loss_value, **{k: float(v) for k, v in parts.items()}}
-                for k, v in values.items():
-                    sums[k] = sums.get(k, 0.0) + v
-                if info.is_main and state.global_step % cfg.log_every == 0:
-                    logger.scalars({**values, "lr": lr}, state.global_step, prefix="train/")
-                bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{lr:.2e}", refresh=False)
+# ---- one epoch of steps ---------------------------------------------------------------------
+@dataclass
+class _EpochRun:
+    """What an epoch's steps leave for its end: loss sums, counts, the last learning rate."""
 
-                stop_now, nonfinite = _any_rank([stop.requested, not math.isfinite(loss_value) and not use_amp], info)
-                if nonfinite:
-                    raise FloatingPointError(
-                        f"loss is not finite at epoch {epoch + 1}, step {state.step_in_epoch} (frames "
-                        f"{batch.frame_ids}; parts {values}); the last good checkpoint is {ckpts.latest()}. Lower "
-                        f"train.lr or train.grad_clip, or check those frames")
-                at_epoch_end = state.step_in_epoch == steps_per_epoch
-                if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
-                                                      and state.global_step % cfg.checkpoint_every_steps == 0)):
-                    last_ckpt = save(state) or last_ckpt
-                    if stop_now:
-                        interrupted = True
-                        break
-            bar.close()
-            if interrupted:
+    lr: float
+    t0: float  # perf_counter at the epoch's start, seconds
+    sums: dict[str, float] = field(default_factory=dict)
+    n_steps: int = 0
+    n_frames: int = 0
+    interrupted: bool = False  # stopped mid-epoch (a checkpoint of the last step is written)
+
+
+def _step(run: _Run, batch: Batch) -> tuple[torch.Tensor, dict, float]:
+    """One optimisation step on `batch` (already on the device): (loss, loss parts, the lr it used)."""
+    with torch.autocast(device_type=run.info.device.type, dtype=torch.float16, enabled=run.use_amp):
+        outputs = run.ddp_model(batch)
+        loss, parts = run.core.loss(outputs, batch)
+    run.optimizer.zero_grad(set_to_none=True)
+    run.scaler.scale(loss).backward()
+    if run.cfg.grad_clip > 0:
+        run.scaler.unscale_(run.optimizer)
+        torch.nn.utils.clip_grad_norm_(run.core.parameters(), run.cfg.grad_clip)
+    lr = run.optimizer.param_groups[0]["lr"]  # the rate this step used
+    run.scaler.step(run.optimizer)
+    run.scaler.update()
+    run.scheduler.step()
+    return loss, parts, lr
+
+
+def _train_epoch(run: _Run, epoch: int, stop: _StopRequest, progress: bool) -> _EpochRun:
+    """The steps of `epoch` (from the resumed step on), with logging, mid-epoch checkpoints and the stop check."""
+    cfg, info = run.cfg, run.info
+    run.batches.set_epoch(epoch, skip=run.state.step_in_epoch if epoch == run.state.epoch else 0)
+    run.loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
+    run.core.train()
+    ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter())
+    bar = tqdm(stop.start_iter(run.loader), total=len(run.batches), desc=f"epoch {epoch + 1}/{cfg.epochs}",
+               unit="batch", disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
+    for batch in bar:
+        batch: Batch = batch.to(info.device, non_blocking=True)
+        loss, parts, ep.lr = _step(run, batch)
+
+        run.state = TrainState(epoch, run.state.step_in_epoch + 1, run.state.global_step + 1, cfg.seed)
+        ep.n_steps += 1
+        ep.n_frames += batch.batch_size
+        loss_value = float(loss.detach())
+        values = {"loss": loss_value, **{k: float(v) for k, v in parts.items()}}
+        for k, v in values.items():
+            ep.sums[k] = ep.sums.get(k, 0.0) + v
+        if info.is_main and run.state.global_step % cfg.log_every == 0:
+            run.logger.scalars({**values, "lr": ep.lr}, run.state.global_step, prefix="train/")
+        bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{ep.lr:.2e}", refresh=False)
+
+        stop_now, nonfinite = _any_rank([stop.requested, not math.isfinite(loss_value) and not run.use_amp], info)
+        if nonfinite:
+            raise FloatingPointError(
+                f"loss is not finite at epoch {epoch + 1}, step {run.state.step_in_epoch} (frames "
+                f"{batch.frame_ids}; parts {values}); the last good checkpoint is {run.ckpts.latest()}. Lower "
+                f"train.lr or train.grad_clip, or check those frames")
+        at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
+        if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
+                                              and run.state.global_step % cfg.checkpoint_every_steps == 0)):
+            run.last_ckpt = run.save(run.state) or run.last_ckpt
+            if stop_now:
+                ep.interrupted = True
                 break
+    bar.close()
+    return ep
 
-            # ---- epoch end: checkpoint, evaluation, logs ---------------------------------
-            state = TrainState(epoch + 1, 0, state.global_step, cfg.seed)
-            losses = reduce_mean({k: v / max(n_steps, 1) for k, v in sums.items()}, info)
-            seconds = time.perf_counter() - t0
-            frames_all = int(reduce_mean({"f": n_frames}, info)["f"] * info.world_size)
-            sync_buffers(core, info)  # every rank ends the epoch with the same BatchNorm statistics
-            last_ckpt = save(state) or last_ckpt
-            metrics: dict[str, float] = {}
-            if info.is_main:
-                rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
-                if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
-                    core.eval()
-                    with torch.no_grad():
-                        metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
-                if cfg.bev_image and logger.writer is not None and preview is not None:
-                    _log_preview(core, preview, train_set, logger, epoch + 1, state.global_step, device)
-                restore_rng_state(rng_before)
-                core.train()
-                logger.scalars({**losses, "lr": lr, "seconds": seconds, "epoch": epoch + 1}, state.global_step,
-                               prefix="epoch/")
-                logger.scalars(metrics, state.global_step, prefix="eval/")
-                logger.add_epoch({"epoch": epoch + 1, "global_step": state.global_step, "lr": lr,
-                                  "seconds": round(seconds, 3), "frames": frames_all, "losses": losses,
-                                  "metrics": metrics, "checkpoint": last_ckpt.name if last_ckpt else None})
-                tqdm.write(format_epoch_summary(epoch + 1, cfg.epochs, losses, lr, seconds, frames_all, metrics))
-            barrier(info)
-            if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
-                interrupted = True
-                break
 
-    if interrupted and info.is_main:
-        tqdm.write(f"Interrupted after {state.epoch} epoch(s) + {state.step_in_epoch} batch(es); checkpoint saved to "
-                   f"{last_ckpt}. To resume: {resume_hint}")
-    logger.close()
-    return TrainResult(out_dir=out_dir, epochs_completed=state.epoch, global_step=state.global_step,
-                       last_checkpoint=last_ckpt if info.is_main else None, interrupted=interrupted,
-                       history=list(logger.history))
+# ---- epoch end: checkpoint, evaluation, logs ---------------------------------------------------
+def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
+               eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None) -> None:
+    """Average the losses over ranks, checkpoint, evaluate (rank 0) and log the epoch."""
+    cfg, info, core = run.cfg, run.info, run.core
+    run.state = TrainState(epoch + 1, 0, run.state.global_step, cfg.seed)
+    losses = reduce_mean({k: v / max(ep.n_steps, 1) for k, v in ep.sums.items()}, info)
+    seconds = time.perf_counter() - ep.t0
+    frames_all = int(reduce_mean({"f": ep.n_frames}, info)["f"] * info.world_size)
+    sync_buffers(core, info)  # every rank ends the epoch with the same BatchNorm statistics
+    run.last_ckpt = run.save(run.state) or run.last_ckpt
+    if info.is_main:
+        metrics: dict[str, float] = {}
+        rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
+        if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+            core.eval()
+            with torch.no_grad():
+                metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
+        if cfg.bev_image and run.logger.writer is not None and run.preview is not None:
+            _log_preview(core, run.preview, run.train_set, run.logger, epoch + 1, run.state.global_step, info.device)
+        restore_rng_state(rng_before)
+        core.train()
+        step, lr = run.state.global_step, ep.lr
+        run.logger.scalars({**losses, "lr": lr, "seconds": seconds, "epoch": epoch + 1}, step, prefix="epoch/")
+        run.logger.scalars(metrics, step, prefix="eval/")
+        run.logger.add_epoch({"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
+                              "frames": frames_all, "losses": losses, "metrics": metrics,
+                              "checkpoint": run.last_ckpt.name if run.last_ckpt else None})
+        tqdm.write(format_epoch_summary(epoch + 1, cfg.epochs, losses, lr, seconds, frames_all, metrics))
+    barrier(info)
 
 
 def _log_preview(model: nn.Module, preview: Sample, train_set, logger: TrainLogger, epoch: int, step: int,

@@ -3,7 +3,8 @@
 Blocks of 3x3 convolutions at decreasing resolution; each block's output is brought back to
 a common resolution by a transposed convolution and the results are concatenated. With
 `layer_strides=(1, 2)` and `upsample_strides=(1, 2)` the output has the input's resolution
-and `sum(num_upsample_filters)` channels.
+and `sum(num_upsample_filters)` channels. Every convolution is followed by BatchNorm2d
+(`norm.dense_bn`) and ReLU.
 """
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ from typing import Sequence
 import torch
 import torch.nn as nn
 
+from .norm import dense_bn
+
 
 def _cbr(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
     return [nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
-            nn.BatchNorm2d(cout, eps=1e-3, momentum=0.01), nn.ReLU()]
+            dense_bn(cout), nn.ReLU()]
 
 
 class BEVBackbone(nn.Module):
@@ -45,7 +48,7 @@ class BEVBackbone(nn.Module):
                 de = nn.Conv2d(nf, nuf, 1, bias=False)
             else:
                 de = nn.ConvTranspose2d(nf, nuf, us, stride=us, bias=False)
-            self.deblocks.append(nn.Sequential(de, nn.BatchNorm2d(nuf, eps=1e-3, momentum=0.01), nn.ReLU()))
+            self.deblocks.append(nn.Sequential(de, dense_bn(nuf), nn.ReLU()))
             cin = nf
         self.out_channels = int(sum(num_upsample_filters))
 

@@ -11,8 +11,8 @@ compression to a BEV map. Layer by layer (c = channels):
   stage 4     SpConv s2 c2 -> c3 (z padding 0), SubM x (n4-1)   stride 8
   conv_out    SpConv (3,1,1) stride (2,1,1) c3 -> out  (squeezes z)
 
-Each convolution is followed by BatchNorm1d(eps=1e-3, momentum=0.01) and ReLU, as in the
-reference implementation. Submanifold layers of one stage share a rule book (indice_key).
+Each convolution is followed by BatchNorm1d (`norm.sparse_bn`: eps=1e-3, momentum=0.01) and
+ReLU, as in the reference implementation. Submanifold layers of one stage share a rule book (indice_key).
 """
 from __future__ import annotations
 
@@ -22,9 +22,11 @@ import torch.nn as nn
 
 from detbench.sparse import SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d, conv_output_shape
 
+from .norm import sparse_bn
+
 
 def _conv_bn_relu(conv: nn.Module, channels: int) -> SparseSequential:
-    return SparseSequential(conv, nn.BatchNorm1d(channels, eps=1e-3, momentum=0.01), nn.ReLU())
+    return SparseSequential(conv, sparse_bn(channels), nn.ReLU())
 
 
 class SparseBackbone8x(nn.Module):

@@ -28,7 +28,7 @@ from detbench.ops.voxelize import dynamic_voxelize, scatter_max, scatter_mean, u
 from detbench.sparse import SparseConvTensor
 
 from .grid import VoxelGrid
-from .sparse_resnet2d import sparse_bn
+from .norm import sparse_bn
 
 NUM_POINT_FEATURES = 9
 

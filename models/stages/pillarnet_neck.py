@@ -9,14 +9,14 @@ convolutions:
   x8  (B, c8, H, W) ---------------------------------------------------------------+
   cat (B, c8 + u, H, W) --Conv3x3--> (B, o, H, W) --n_fuse x Conv3x3--> (B, o, H, W)
 
-Every convolution is followed by BatchNorm2d (eps=1e-3, momentum=0.01) and ReLU.
+Every convolution is followed by BatchNorm2d (`norm.dense_bn`: eps=1e-3, momentum=0.01) and ReLU.
 """
 from __future__ import annotations
 
 import torch
 import torch.nn as nn
 
-from .sparse_resnet2d import dense_bn
+from .norm import dense_bn
 
 
 def _cbr(cin: int, cout: int) -> list[nn.Module]:

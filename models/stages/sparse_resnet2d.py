@@ -13,8 +13,8 @@ neck fuses. Layer by layer (c = channels, n = residual blocks per stage):
 A basic block is conv-BN-ReLU-conv-BN plus the identity, then ReLU (He et al. 2016);
 the sparse blocks use submanifold convolutions, so the active pillars stay the active
 pillars within a stage (the blocks of one stage share one rule book). Every convolution
-is followed by BatchNorm (eps=1e-3, momentum=0.01) as in the sparse detectors' reference
-code. The grid (Y, X) must divide by 16 (checked by the model via VoxelGrid.check_divisible).
+is followed by BatchNorm (models/stages/norm.py: eps=1e-3, momentum=0.01) as in the sparse
+detectors' reference code. The grid (Y, X) must divide by 16 (checked by the model via VoxelGrid.check_divisible).
 """
 from __future__ import annotations
 
@@ -24,19 +24,9 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from detbench.sparse import SafeBatchNorm1d, SparseConv2d, SparseConvTensor, SparseModule, SparseSequential, SubMConv2d
+from detbench.sparse import SparseConv2d, SparseConvTensor, SparseModule, SparseSequential, SubMConv2d
 
-BN_EPS, BN_MOMENTUM = 1e-3, 0.01
-
-
-def sparse_bn(channels: int) -> SafeBatchNorm1d:
-    """BatchNorm for the (N, C) features of a sparse tensor (the project's eps and momentum)."""
-    return SafeBatchNorm1d(channels, eps=BN_EPS, momentum=BN_MOMENTUM)
-
-
-def dense_bn(channels: int) -> nn.BatchNorm2d:
-    """BatchNorm2d for dense (B, C, H, W) maps (the project's eps and momentum)."""
-    return nn.BatchNorm2d(channels, eps=BN_EPS, momentum=BN_MOMENTUM)
+from .norm import dense_bn, sparse_bn
 
 
 class SparseBasicBlock2d(SparseModule):

@@ -41,22 +41,12 @@ LOG_SIZE_CLAMP = 3.0  # |log(size / roi size)| at most e^3 when decoding residua
 # so its geometry stays finite; it is masked out of every loss and prediction.
 PAD_ROI = (1000.0, 0.0, 1.0, 4.0, 1.8, 1.5, 0.0)
 
-PROPOSAL_DEFAULTS = {
-    "train": {"pre_nms_top_k": 9000, "post_nms_top_k": 512, "nms_threshold": 0.8},
-    "test": {"pre_nms_top_k": 1024, "post_nms_top_k": 100, "nms_threshold": 0.7},
-}
-TARGET_DEFAULTS = {
-    "roi_per_image": 128,   # RoIs per frame the head is trained on
-    "fg_ratio": 0.5,        # share of foreground RoIs among them (when there are enough)
-    "reg_fg_thresh": 0.55,  # 3D IoU from which a RoI is foreground and regressed
-    "cls_fg_thresh": 0.75,  # confidence target 1 from this IoU ...
-    "cls_bg_thresh": 0.25,  # ... 0 below this one; in between linear (roi_iou) or ignored (binary)
-    "cls_bg_thresh_lo": 0.1,  # below: easy background; between lo and reg_fg: hard background
-    "hard_bg_ratio": 0.8,   # share of hard background among the background RoIs
-    "cls_score_type": "roi_iou",  # roi_iou: IoU-guided soft target (CT3D); binary: PointRCNN's
-    "gt_jitter_copies": 0,  # jittered copies of each ground-truth box added as candidate RoIs
-    "gt_jitter": [0.3, 0.3, 0.2, 0.1, 0.1, 0.1, 0.2],  # std of the jitter: x y z (m), log sizes, heading (rad)
-}
+# The keys of a model's `roi_head.proposals.{train,test}` and `roi_head.targets` sections.
+# Their values live in the model's YAML (configs/pointrcnn.yaml, configs/ct3d.yaml), the one
+# home of every default; the meaning of each is documented there and in the functions below.
+PROPOSAL_KEYS = ("pre_nms_top_k", "post_nms_top_k", "nms_threshold")
+TARGET_KEYS = ("roi_per_image", "fg_ratio", "reg_fg_thresh", "cls_fg_thresh", "cls_bg_thresh", "cls_bg_thresh_lo",
+               "hard_bg_ratio", "cls_score_type", "gt_jitter_copies", "gt_jitter")
 
 
 class Proposals(NamedTuple):
@@ -83,16 +73,21 @@ class RefineOutput(NamedTuple):
     targets: RoiTargets | None  # training targets of these RoIs (None in evaluation)
 
 
-def merge_config(defaults: dict, given: dict | None, where: str) -> dict:
-    """`defaults` updated by `given`; an unknown key is an error naming `where`."""
-    given = dict(given or {})
-    unknown = sorted(set(given) - set(defaults))
-    if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {sorted(defaults)}")
-    out = dict(defaults)
-    for k, v in given.items():
-        out[k] = {**defaults[k], **v} if isinstance(defaults[k], dict) and isinstance(v, dict) else v
-    return out
+def require_keys(cfg: dict | None, keys: tuple[str, ...], where: str) -> dict:
+    """A copy of `cfg` after checking it holds exactly `keys`; errors name `where` and the key."""
+    cfg = dict(cfg or {})
+    missing, unknown = [k for k in keys if k not in cfg], sorted(set(cfg) - set(keys))
+    if missing or unknown:
+        raise ValueError(f"{where}: " + "; ".join(
+            ([f"missing key(s) {missing}"] if missing else []) + ([f"unknown key(s) {unknown}"] if unknown else []))
+            + f" (expected {list(keys)}; see the model's YAML in configs/)")
+    return cfg
+
+
+def proposal_budgets(cfg: dict, where: str) -> dict:
+    """{'train': {...}, 'test': {...}} NMS budgets from a model's `roi_head.proposals` section."""
+    cfg = require_keys(cfg, ("train", "test"), where)
+    return {k: require_keys(cfg[k], PROPOSAL_KEYS, f"{where}.{k}") for k in ("train", "test")}
 
 
 # --------------------------------------------------------------------------------------
@@ -189,8 +184,9 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
     filling in when one is missing). With foreground only, S draws with replacement; with
     background only, S background draws. A frame with no candidate at all gets padding
     RoIs (valid False). Random draws use `generator` (a CPU torch.Generator) when given.
+    `cfg` holds every key of TARGET_KEYS (a model's `roi_head.targets` section).
     """
-    cfg = merge_config(TARGET_DEFAULTS, cfg, "proposal targets")
+    cfg = require_keys(cfg, TARGET_KEYS, "proposal targets")
     b = proposals.rois.shape[0]
     s = int(cfg["roi_per_image"])
     device = proposals.rois.device
@@ -312,7 +308,7 @@ def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None
     average over foreground RoIs. Frames with no RoI (or no foreground) contribute 0.
     """
     t = out.targets
-    w = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **(weights or {})}
+    w = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **(weights or {})}  # unit weights unless given
     logits = out.cls_logits.float()
     cm = t.cls_mask.float()
     bce = F.binary_cross_entropy_with_logits(logits, t.cls_target, reduction="none")

@@ -1,4 +1,5 @@
-"""The paper's ranges (Section III-B) and importance levels (Section III-C), defined once.
+"""The paper's definitions on a frame's boxes, each in this one place: ranges (Section III-B),
+importance levels (Section III-C) and the LiDAR-detected rule (Section IV).
 
 Ranges are decided by the box centre in the ego ground frame (x forward, y left):
   small     0 <= x <= 50,  |y| <= 5
@@ -13,13 +14,21 @@ Importance levels within a range:
         vehicles in that range; a lane with no vehicle contributes nothing
   top6  the two nearest in each of those lanes
 Ties in distance are broken by the order of the boxes (the earlier box wins), so the
-choice is deterministic.
+choice is deterministic. Lanes follow the Frame's convention (detbench.data.frame).
+
+LiDAR-detected: a vehicle is detected at a height when at least `DETECTED_MIN_POINTS` (1)
+point of that height's sweep lies inside its box with the bottom face raised by
+`DETECTED_BOTTOM_LIFT` (0.05 m), so road points under the car do not count:
+`lidar_detected(points, boxes)`, or `detected_point_counts(points, boxes) >= k` for other
+minimum numbers of points. The ability study, the evaluator (the ground truth a detector is
+scored on), the training set and its ground-truth database all use these two functions; the
+simulator's fast path counts with its own numba kernel fed by the same constant
+(detbench.sim.raycast.count_table, proven equal by tests).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from detbench.data.frame import LANE_OPPOSITE, LANE_UNKNOWN
 
 RANGES: dict[str, tuple[float, float, float]] = {
     # name: (x_min, x_max, |y| max), metres
@@ -32,7 +41,8 @@ LEVELS: tuple[str, ...] = ("all", "top3", "top6")
 LEVEL_K: dict[str, int] = {"top3": 1, "top6": 2}  # vehicles kept per lane
 TOPK_LANES: tuple[int, ...] = (0, 1, -1)
 
-DEFAULT_LANE_WIDTH = 3.5  # metres
+DETECTED_BOTTOM_LIFT = 0.05  # metres the box bottom is raised when counting points inside
+DETECTED_MIN_POINTS = 1  # points inside the lifted box that make a vehicle LiDAR-detected
 
 
 def check_range_name(range_name: str) -> str:
@@ -89,21 +99,30 @@ def region_masks(xy: np.ndarray, lanes: np.ndarray) -> dict[tuple[str, str], np.
     return out
 
 
-def lanes_from_lateral(y: np.ndarray, lane_width: float = DEFAULT_LANE_WIDTH, ego_offset: float = 0.0) -> np.ndarray:
-    """Relative lane index from the lateral offset, for datasets without lane ids.
+def detected_point_counts(points, boxes, bottom_lift: float = DETECTED_BOTTOM_LIFT) -> np.ndarray:
+    """(M,) int64 number of `points` (N, >=3) inside each of `boxes` (M, 7) with the bottom raised
+    `bottom_lift` metres (numpy arrays; metres and radians in one frame).
 
-    The ego is taken to drive in the middle of its lane (`ego_offset` shifts that centre,
-    metres, positive to the left); lane i covers y in [(i - 1/2) w, (i + 1/2) w) about it.
-    This is exact on straight roads and an approximation on curves.
+    Compare with `DETECTED_MIN_POINTS` (or another minimum) to decide "detected".
     """
-    if lane_width <= 0:
-        raise ValueError(f"lane_width must be positive, got {lane_width}")
-    y = np.asarray(y, dtype=np.float64) - ego_offset
-    return np.floor(y / lane_width + 0.5).astype(np.int64)
+    from detbench.ops import points_in_boxes  # on first use: detbench.ops loads torch
+
+    boxes = np.asarray(boxes)
+    if len(boxes) == 0:
+        return np.zeros(0, dtype=np.int64)
+    counts, _ = points_in_boxes(points, boxes, bottom_lift=bottom_lift)
+    return np.asarray(counts, dtype=np.int64)
+
+
+def lidar_detected(points, boxes, min_points: int = DETECTED_MIN_POINTS,
+                   bottom_lift: float = DETECTED_BOTTOM_LIFT) -> np.ndarray:
+    """(M,) bool: the boxes (M, 7) with >= `min_points` of `points` (N, >=3) inside, bottom raised
+    `bottom_lift` metres. With the defaults this is the paper's LiDAR-detected rule."""
+    return detected_point_counts(points, boxes, bottom_lift) >= min_points
 
 
 __all__ = [
-    "RANGES", "RANGE_NAMES", "LEVELS", "LEVEL_K", "TOPK_LANES", "DEFAULT_LANE_WIDTH",
-    "LANE_OPPOSITE", "LANE_UNKNOWN",
-    "in_range", "importance_mask", "region_masks", "lanes_from_lateral", "check_range_name", "check_level",
+    "RANGES", "RANGE_NAMES", "LEVELS", "LEVEL_K", "TOPK_LANES", "DETECTED_BOTTOM_LIFT", "DETECTED_MIN_POINTS",
+    "in_range", "importance_mask", "region_masks", "check_range_name", "check_level",
+    "detected_point_counts", "lidar_detected",
 ]

@@ -1,0 +1,45 @@
+"""The import layering of docs/architecture.md, checked on the source (every import, also inside functions)."""
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# detbench's subpackages, lowest first; a module may import its own subpackage and lower ones
+LAYERS = {"utils": 0, "config": 0, "ops": 1, "sparse": 1, "data": 2, "sim": 3, "eval": 3, "train": 4}
+
+
+def _imports(path: Path) -> list[str]:
+    names = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.append(node.module)
+    return names
+
+
+def _part(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "detbench" and len(parts) > 1 else None
+
+
+def test_detbench_imports_only_lower_layers():
+    bad = []
+    for path in sorted((ROOT / "detbench").rglob("*.py")):
+        rel = path.relative_to(ROOT / "detbench")
+        own = rel.parts[0].removesuffix(".py")
+        if own not in LAYERS:
+            continue
+        for name in _imports(path):
+            if name.split(".")[0] in ("models", "tools"):
+                bad.append(f"{rel}: imports {name}")
+            other = _part(name)
+            if other in LAYERS and other != own and LAYERS[other] >= LAYERS[own]:
+                bad.append(f"detbench/{rel}: {own} imports {name} (layer {LAYERS[other]} >= {LAYERS[own]})")
+    assert not bad, "\n".join(bad)
+
+
+def test_models_never_import_tools():
+    bad = [f"{p.relative_to(ROOT)}: {n}" for p in sorted((ROOT / "models").rglob("*.py"))
+           for n in _imports(p) if n.split(".")[0] == "tools"]
+    assert not bad, "\n".join(bad)

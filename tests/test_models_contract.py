@@ -1,0 +1,85 @@
+"""Every registered detector follows the contract `detbench.train.detector.Detector`.
+
+Each model is built from its own configs/<name>.yaml with the smoke preset (the narrow
+widths), after `prepare_model_config`, and run once in training and once in eval mode on a
+two-frame batch: one frame with a vehicle, one with neither points nor boxes.
+"""
+import inspect
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import models
+from detbench.data.batch import Batch, Detections, Sample, collate
+from detbench.train.detector import Detector
+from detbench.train.run_config import load_run_config
+
+CAR = np.array([20.0, 1.0, 0.8, 4.5, 1.9, 1.6, 0.3], np.float32)  # metres, radians
+
+
+def car_points(box: np.ndarray, per_side: int = 8) -> np.ndarray:
+    """(per_side^3, 4) points on a lattice filling `box` (x, y, z, dx, dy, dz, heading), intensity 0.5."""
+    u = np.linspace(-0.45, 0.45, per_side)
+    local = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3) * box[3:6]
+    c, s = math.cos(box[6]), math.sin(box[6])
+    xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + box[:2]
+    return np.concatenate([xy, box[2] + local[:, 2:3], np.full((len(local), 1), 0.5)], 1).astype(np.float32)
+
+
+def two_frames() -> Batch:
+    return collate([Sample(car_points(CAR), CAR[None], "car"),
+                    Sample(np.zeros((0, 4), np.float32), np.zeros((0, 7), np.float32), "empty")])
+
+
+def smoke_model(name: str) -> torch.nn.Module:
+    cfg = load_run_config(name, "smoke")
+    model_cfg = models.prepare_model_config(name, cfg["model"], np.stack([CAR, CAR * [1, 1, 1, 1.1, 1, 1, 1]]))
+    torch.manual_seed(0)
+    return models.build_model(name, model_cfg)
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_class_declares_the_contract(name):
+    cls = models.REGISTRY[name]
+    assert issubclass(cls, torch.nn.Module)
+    for method, params in (("forward", ["batch"]), ("loss", ["outputs", "batch"]), ("predict", ["outputs", "batch"])):
+        assert len(inspect.signature(getattr(cls, method)).parameters) == 1 + len(params), f"{name}.{method}"
+    prep = inspect.getattr_static(cls, "prepare_config", None)
+    assert isinstance(prep, (staticmethod, classmethod)), f"{name}.prepare_config must be a static or class method"
+    assert list(inspect.signature(cls.prepare_config).parameters)[-2:] == ["model_cfg", "train_boxes"]
+    stages = inspect.getattr_static(cls, "STAGES", None)
+    assert isinstance(stages, dict) and stages and all(
+        isinstance(k, str) and isinstance(v, list) and v and all(isinstance(c, str) for c in v)
+        for k, v in stages.items()), f"{name}.STAGES must map stage names to lists of child module names"
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_model_follows_the_contract(name):
+    model = smoke_model(name)
+    assert isinstance(model, Detector)
+    children = dict(model.named_children())
+    listed = [c for cs in model.STAGES.values() for c in cs]
+    assert set(listed) <= set(children) and len(listed) == len(set(listed)), f"{name}.STAGES: {model.STAGES}"
+
+    batch = two_frames()
+    model.train()
+    total, parts = model.loss(model(batch), batch)
+    assert total.dim() == 0 and torch.isfinite(total) and total.requires_grad
+    assert parts and all(isinstance(k, str) and isinstance(v, float) and math.isfinite(v) for k, v in parts.items())
+    total.backward()
+    empty = collate([Sample(np.zeros((0, 4), np.float32), np.zeros((0, 7), np.float32), "empty")])
+    total_e, parts_e = model.loss(model(empty), empty)
+    assert torch.isfinite(total_e) and set(parts_e) == set(parts), "loss parts must keep their keys"
+
+    model.eval()
+    with torch.no_grad():
+        dets = model.predict(model(batch), batch)
+    assert isinstance(dets, list) and len(dets) == batch.batch_size
+    for d in dets:
+        assert isinstance(d, Detections)
+        k = d.boxes.shape[0]
+        assert d.boxes.shape == (k, 7) and d.scores.shape == (k,) and d.labels.shape == (k,)
+        assert d.boxes.dtype == torch.float32 and d.scores.dtype == torch.float32 and d.labels.dtype == torch.int64
+        assert bool(((d.scores >= 0) & (d.scores <= 1)).all())
