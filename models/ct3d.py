@@ -31,7 +31,7 @@ from .stages import AnchorHeadOutput
 from .stages.ct3d_head import CT3DRoIHead
 from .stages.two_stage import (
     TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
-    sample_proposal_targets, select_proposals,
+    rois_for_refinement,
 )
 
 ROI_HEAD_KEYS = ("num_points", "radius_scale", "hidden_dim", "heads", "enc_layers", "dim_feedforward", "dropout",
@@ -76,17 +76,10 @@ class CT3D(SECOND):
     def forward(self, batch: Batch) -> TwoStageOutput:
         rpn = super().forward(batch)
         boxes, scores = self.head.decode(rpn)
-        budget = self.proposal_cfg["train" if self.training else "test"]
-        props = select_proposals(boxes.detach(), scores.detach(), **budget)
-        targets = None
-        if self.training:
-            targets = sample_proposal_targets(props, batch.gt_boxes, batch.gt_mask, self.target_cfg)
-            rois, mask = targets.rois, targets.valid
-        else:
-            rois, mask = props.rois, props.mask
-        feats = self.roi_head(batch.points, rois)
-        cls, reg = self.refine(feats)
-        return TwoStageOutput(rpn, props, RefineOutput(cls, reg, rois, mask, targets))
+        r = rois_for_refinement(boxes, scores, None, batch.gt_boxes, batch.gt_mask, self.proposal_cfg,
+                                self.target_cfg, self.training)
+        cls, reg = self.refine(self.roi_head(batch.points, r.rois))
+        return TwoStageOutput(rpn, r.proposals, RefineOutput(cls, reg, r.rois, r.mask, r.targets))
 
     def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
         w = self.loss_weights

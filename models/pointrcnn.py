@@ -36,7 +36,7 @@ from .stages.pointrcnn_head import PointRCNNRoIHead
 from .stages.postprocess import select_detections
 from .stages.two_stage import (
     TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
-    sample_proposal_targets, select_proposals,
+    rois_for_refinement,
 )
 
 
@@ -105,17 +105,11 @@ class PointRCNN(nn.Module):
         point = self.point_head(feats, b)
         boxes, scores = self.point_head.decode(point, xyz.reshape(b, n, 3))
         valid = sp.valid.reshape(b, n)
-        budget = self.proposal_cfg["train" if self.training else "test"]
-        props = select_proposals(boxes.detach(), scores.detach(), valid=valid, **budget)
-        targets = None
-        if self.training:
-            targets = sample_proposal_targets(props, batch.gt_boxes, batch.gt_mask, self.target_cfg)
-            rois, mask = targets.rois, targets.valid
-        else:
-            rois, mask = props.rois, props.mask
-        roi_feats = self.roi_head(xyz, feats, scores.reshape(-1), rois, n)
-        cls, reg = self.refine(roi_feats)
-        return PointRCNNOutput(xyz.reshape(b, n, 3), valid, point, props, RefineOutput(cls, reg, rois, mask, targets))
+        r = rois_for_refinement(boxes, scores, valid, batch.gt_boxes, batch.gt_mask, self.proposal_cfg,
+                                self.target_cfg, self.training)
+        cls, reg = self.refine(self.roi_head(xyz, feats, scores.reshape(-1), r.rois, n))
+        return PointRCNNOutput(xyz.reshape(b, n, 3), valid, point, r.proposals,
+                               RefineOutput(cls, reg, r.rois, r.mask, r.targets))
 
     def loss(self, out: PointRCNNOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
         t = point_targets(out.xyz, out.valid, batch.gt_boxes, batch.gt_mask, self.point_head.extra_width)

@@ -238,6 +238,24 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
     return RoiTargets(rois, gt_of, ious, reg_mask, cls_target, cls_mask & valid, valid)
 
 
+class RoIs(NamedTuple):
+    proposals: Proposals  # after NMS
+    rois: torch.Tensor  # (B, R, 7) what the second stage refines: sampled RoIs (training) or the proposals
+    mask: torch.Tensor  # (B, R) bool, real RoIs
+    targets: RoiTargets | None  # training targets of the RoIs (None in evaluation)
+
+
+def rois_for_refinement(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor | None, gt_boxes: torch.Tensor,
+                        gt_mask: torch.Tensor, budgets: dict, target_cfg: dict, training: bool) -> RoIs:
+    """The step between the stages: proposals under the train or test budget, then (training)
+    target sampling; the first stage's boxes (B, A, 7) and scores (B, A) are detached."""
+    props = select_proposals(boxes.detach(), scores.detach(), valid=valid, **budgets["train" if training else "test"])
+    if not training:
+        return RoIs(props, props.rois, props.mask, None)
+    targets = sample_proposal_targets(props, gt_boxes, gt_mask, target_cfg)
+    return RoIs(props, targets.rois, targets.valid, targets)
+
+
 # --------------------------------------------------------------------------------------
 # canonical frame and residual coding
 # --------------------------------------------------------------------------------------
