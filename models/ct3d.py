@@ -35,7 +35,7 @@ from .stages.two_stage import (
 )
 
 ROI_HEAD_KEYS = ("num_points", "radius_scale", "hidden_dim", "heads", "enc_layers", "dim_feedforward", "dropout",
-                 "mlp_hidden", "fc", "proposals", "targets", "loss_weights")
+                 "mlp_hidden", "max_pool_skip", "fc", "proposals", "targets", "loss_weights")
 
 
 class TwoStageOutput(NamedTuple):
@@ -58,7 +58,7 @@ class CT3D(SECOND):
                                          "ct3d model.roi_head.loss_weights")
         self.roi_head = CT3DRoIHead(rh["num_points"], rh["radius_scale"], rh["hidden_dim"], rh["heads"],
                                     rh["enc_layers"], rh["dim_feedforward"], rh["dropout"], point_features=1,
-                                    mlp_hidden=rh["mlp_hidden"])
+                                    mlp_hidden=rh["mlp_hidden"], max_pool_skip=rh["max_pool_skip"])
         self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
         self.coder = ResidualBoxCoder()
         self.output_stage = "refined"

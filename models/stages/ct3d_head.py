@@ -189,7 +189,7 @@ class CT3DRoIHead(nn.Module):
 
     def __init__(self, num_points: int = 256, radius_scale: float = 1.2, hidden_dim: int = 256, heads: int = 4,
                  enc_layers: int = 3, dim_feedforward: int = 512, dropout: float = 0.1, point_features: int = 1,
-                 mlp_hidden: int = 64):
+                 mlp_hidden: int = 64, max_pool_skip: bool = False):
         super().__init__()
         self.num_points, self.radius_scale = int(num_points), float(radius_scale)
         cin = 27 + point_features
@@ -200,7 +200,8 @@ class CT3DRoIHead(nn.Module):
         self.encoder = nn.TransformerEncoder(layer, enc_layers, enable_nested_tensor=False) if enc_layers else None
         self.query = nn.Parameter(torch.randn(hidden_dim) * 0.02)
         self.decoder = ChannelWiseDecoderLayer(hidden_dim, heads, dim_feedforward, dropout)
-        self.out_channels = hidden_dim
+        self.max_pool_skip = bool(max_pool_skip)
+        self.out_channels = hidden_dim * (2 if self.max_pool_skip else 1)
 
     def forward(self, points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:
         """points (P, 5) of a Batch, rois (B, R, 7) -> features (B, R, hidden_dim)."""
@@ -215,4 +216,6 @@ class CT3DRoIHead(nn.Module):
             src = self.encoder(src)
         query = self.query.expand(b * r, -1)
         feat, _ = self.decoder(query, src)
+        if self.max_pool_skip:  # the encoded points' channel-wise maximum beside the decoder's output
+            feat = torch.cat([feat, src.max(dim=1).values if src.shape[0] else feat], dim=-1)
         return feat.reshape(b, r, -1)
