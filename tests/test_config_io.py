@@ -168,3 +168,35 @@ def test_pyproject_lists_every_package_and_ships_the_configs():
     shipped = {p.relative_to(root / "configs").as_posix() for p in (root / "configs").rglob("*.yaml")}
     globs = setup["package-data"]["detbench.configs"]
     assert shipped == {p.relative_to(root / "configs").as_posix() for g in globs for p in (root / "configs").glob(g)}
+
+
+@pytest.mark.slow
+def test_wheel_ships_the_configs_and_every_module(tmp_path):
+    """A wheel built from the source holds detbench/configs (default.yaml, presets/*.yaml, one YAML per
+    model) and every module of detbench and models, so an installed detbench runs without the checkout.
+    Built offline from a copy of the sources, so the checkout gets no build/ or egg-info."""
+    pytest.importorskip("setuptools")
+    import shutil
+    import subprocess
+    import sys
+    import zipfile
+    from pathlib import Path
+
+    from models import REGISTRY
+
+    root = Path(__file__).resolve().parents[1]
+    src = tmp_path / "src"
+    for name in ("detbench", "models", "configs"):
+        shutil.copytree(root / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(root / name, src / name)
+    proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
+                           "-q", "-w", str(tmp_path / "dist"), str(src)], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    (wheel,) = (tmp_path / "dist").glob("detbench-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    configs = {"detbench/configs/default.yaml"} | {f"detbench/configs/{m}.yaml" for m in REGISTRY}
+    configs |= {f"detbench/configs/presets/{p.name}" for p in (root / "configs" / "presets").glob("*.yaml")}
+    assert len(configs) > 5 and configs <= names, sorted(configs - names)
+    modules = {p.relative_to(root).as_posix() for top in ("detbench", "models") for p in (root / top).rglob("*.py")}
+    assert modules <= names, sorted(modules - names)

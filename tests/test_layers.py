@@ -1,4 +1,5 @@
-"""The import layering of docs/architecture.md, checked on the source (every import, also inside functions)."""
+"""The import layering of docs/architecture.md, checked on the source (every import, also inside functions),
+and its rule that models/stages/__init__.py exports every stage."""
 import ast
 from pathlib import Path
 
@@ -43,3 +44,12 @@ def test_models_never_import_tools():
     bad = [f"{p.relative_to(ROOT)}: {n}" for p in sorted((ROOT / "models").rglob("*.py"))
            for n in _imports(p) if n.split(".")[0] == "tools"]
     assert not bad, "\n".join(bad)
+
+
+def test_every_stage_module_is_exported():
+    """models/stages/__init__.py imports from every stage module (losses.py holds plain functions, not a stage)."""
+    stages = ROOT / "models" / "stages"
+    tree = ast.parse((stages / "__init__.py").read_text(encoding="utf-8"))
+    exported = {n.module for n in tree.body if isinstance(n, ast.ImportFrom) and n.level == 1}
+    modules = {p.stem for p in stages.glob("*.py")} - {"__init__", "losses"}
+    assert modules <= exported, f"not exported by models/stages/__init__.py: {sorted(modules - exported)}"

@@ -386,7 +386,6 @@ def test_numpy_inputs_and_input_errors():
         three_nn_interpolate(xyz, xyz[:5], torch.zeros((4, 2)))
 
 
-@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_matches_cpu():
     xyz = clouds(18, [3000, 2000])
@@ -400,15 +399,10 @@ def test_cuda_matches_cpu():
     assert all(torch.equal(x, y.cpu()) for x, y in zip(a, b))
 
 
-def test_bench_points_tool_writes_reports(tmp_path, capsys):
-    import importlib.util
+def test_bench_points_tool_writes_reports(tmp_path, capsys, load_tool):
     import json
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "tools" / "bench_points.py"
-    spec = importlib.util.spec_from_file_location("bench_points", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_tool("bench_points")
     threads = (torch.get_num_threads(), numba.get_num_threads())
     try:  # main() sets both thread counts; give them back to the other tests
         assert mod.main(["--out", str(tmp_path), "--points", "600", "--samples", "128", "--rois", "4",

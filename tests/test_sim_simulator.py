@@ -6,6 +6,7 @@ import pytest
 
 from detbench.config import ConfigError
 from detbench.data.frame import LANE_OPPOSITE, Frame
+from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim import HighwaySimulator, LidarConfig, lidar_preset, load_sim_config, sim_presets
 from detbench.sim.road import Road, RoadLayout
 
@@ -75,7 +76,7 @@ def test_hit_counts_equal_points_in_boxes(small_lidars):
     checked = 0
     for step, step2 in zip(with_pts, no_pts):
         for f, g in zip(step, step2):
-            counts, box_index = points_in_boxes(f.points, f.boxes, bottom_lift=0.05)
+            counts, box_index = points_in_boxes(f.points, f.boxes, bottom_lift=DETECTED_BOTTOM_LIFT)
             np.testing.assert_array_equal(counts, f.hit_counts)
             np.testing.assert_array_equal(box_index, f.point_box)
             np.testing.assert_array_equal(g.hit_counts, f.hit_counts)  # with_points=False: same counts
@@ -91,11 +92,12 @@ def test_lift_rule_on_wheels():
     rng = np.random.default_rng(0)
     car = build_parts("sedan", 4.5, 1.8, 1.45, rng)
     lidar = LidarConfig(height=0.3, vfov_deg=(-10.0, 10.0), channels=200, hfov_deg=20, h_samples=60)
-    res = cast_lidar(lidar, make_scene([(car, 8.0, 0.0, 0.0)]), bottom_lift=0.05)
+    res = cast_lidar(lidar, make_scene([(car, 8.0, 0.0, 0.0)]), bottom_lift=DETECTED_BOTTOM_LIFT)
     on_car = res.point_box == 0
     assert on_car.any()
-    assert (res.points[on_car, 2] >= 0.05).all()
-    near_ground = (res.points[:, 2] < 0.05) & (np.abs(res.points[:, 1]) < 0.9) & (res.points[:, 0] > 5.7)
+    assert (res.points[on_car, 2] >= DETECTED_BOTTOM_LIFT).all()
+    near_ground = ((res.points[:, 2] < DETECTED_BOTTOM_LIFT) & (np.abs(res.points[:, 1]) < 0.9)
+                   & (res.points[:, 0] > 5.7))
     assert near_ground.any() and (res.point_box[near_ground] == -1).all()
 
 

@@ -1,11 +1,14 @@
-"""tools/bench_sparse.py: command line, fallback scan, backbone topology, report files."""
+"""tools/bench_sparse.py: command line and report files; the library parts it times (the fallback
+scan of detbench.sim.scans, the backbone topology of detbench.sparse.bench)."""
 import json
 
 import numpy as np
 import pytest
 import torch
 
+from detbench.sim.scans import synthetic_scan
 from detbench.sparse import SparseConvTensor
+from detbench.sparse.bench import backbone
 
 
 @pytest.fixture
@@ -23,8 +26,8 @@ def test_help_lists_options_with_units(capsys, bench):
     assert "metres" in text and "milliseconds" in text.lower()
 
 
-def test_synthetic_scan_geometry(bench):
-    pts = bench.synthetic_scan(0)
+def test_synthetic_scan_geometry():
+    pts = synthetic_scan(0)
     assert pts.dtype == np.float32 and pts.shape[1] == 4 and len(pts) > 10000
     r = np.hypot(pts[:, 0], pts[:, 1])
     assert r.max() <= 150.5 and pts[:, 0].min() > -1.0  # 180 deg ahead, 150 m range
@@ -33,8 +36,8 @@ def test_synthetic_scan_geometry(bench):
     assert pts[~ground, 2].max() < 1.9 and pts[:, 2].min() > -0.1
 
 
-def test_backbone_shapes_and_rulebook_reuse(bench):
-    net = bench.backbone(4).eval()
+def test_backbone_shapes_and_rulebook_reuse():
+    net = backbone(4).eval()
     g = torch.Generator().manual_seed(0)
     idx = torch.unique(torch.cat([torch.zeros(300, 1, dtype=torch.long),
                                   torch.randint(0, 41, (300, 1), generator=g),

@@ -7,8 +7,9 @@ import torch
 
 from detbench.ops import ResidualBoxCoder, boxes_iou3d
 from detbench.train.run_config import load_run_config
+from models.stages.losses import corner_loss
 from models.stages.two_stage import (
-    PAD_ROI, Proposals, RefineOutput, confidence_targets, corner_loss, decode_refined,
+    PAD_ROI, Proposals, RefineOutput, confidence_targets, decode_refined,
     encode_refine_targets, fold_heading, from_canonical, refine_loss, sample_proposal_targets, select_proposals,
     to_canonical,
 )

@@ -15,6 +15,7 @@ writes bench_eval.json and bench_eval.md to --out.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
 import statistics
@@ -22,7 +23,9 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -17,13 +17,15 @@ Usage: python tools/bench_points.py [--out DIR] [--frames N] [--points N] [--sam
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 # Idle OpenMP threads sleep instead of spinning (as tests/conftest.py): on a busy 2-core machine
 # the torch steps (grouping, interpolation, pooling gathers) were measured 10-20x slower with
 # spinning threads. Set before torch is imported; an explicit OMP_WAIT_POLICY wins.
@@ -33,9 +35,10 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from bench_sparse import load_scans, timed  # noqa: E402
 from detbench.ops.points import (ball_query, farthest_point_sample, group_neighbours,  # noqa: E402
                                  roi_point_pool, three_nn_interpolate)
+from detbench.sim.scans import load_scans  # noqa: E402
+from detbench.utils.bench import timed  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 # PointRCNN (OpenPCDet pointrcnn.yaml, PointNet2MSG backbone)

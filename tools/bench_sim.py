@@ -17,13 +17,16 @@ machine; the split is the sum over the run of each stage's time.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import platform
 import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.config import ConfigError  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402

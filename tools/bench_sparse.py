@@ -14,128 +14,29 @@ Usage: python tools/bench_sparse.py [--out DIR] [--scans N] [--repeats N] ...  (
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import platform
-import statistics
 import sys
-import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 import torch.nn.functional as F  # noqa: E402
-from torch import nn  # noqa: E402
 from tqdm import tqdm  # noqa: E402
 
 from detbench.ops.voxelize import (dynamic_voxelize, scatter_mean, unique_voxels, voxel_grid_size,  # noqa: E402
                                    voxelize)
-from detbench.sparse import (SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d,  # noqa: E402
-                             build_conv_rulebook, build_subm_rulebook, sparse_conv)
+from detbench.sim.scans import load_scans  # noqa: E402
+from detbench.sparse import (SparseConv3d, SparseConvTensor, SubMConv3d, build_conv_rulebook,  # noqa: E402
+                             build_subm_rulebook, sparse_conv)
+from detbench.sparse.bench import backbone, implicit_gemm  # noqa: E402
+from detbench.utils.bench import gflops, timed  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
-
-
-# ----------------------------------------------------------------------------- input scan
-def synthetic_scan(seed: int, height: float = 1.8, vfov_deg=(-15.0, 10.0), hfov_deg: float = 180.0,
-                   channels: int = 128, h_samples: int = 480, max_range: float = 150.0,
-                   num_cars: int = 30) -> np.ndarray:
-    """Fallback scan: flat road sampled by channels x h_samples beams from ``height`` metres plus
-    car-sized axis-aligned boxes on six lanes; (N, 4) float32 x, y, z, intensity (ego ground frame)."""
-    rng = np.random.default_rng(seed)
-    el = np.deg2rad(np.linspace(vfov_deg[0], vfov_deg[1], channels))
-    az = np.deg2rad(np.linspace(-hfov_deg / 2, hfov_deg / 2, h_samples))
-    e, a = np.meshgrid(el, az, indexing="ij")
-    d = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], -1).reshape(-1, 3)
-    origin = np.array([0.0, 0.0, height])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d[:, 2] < 0, -height / d[:, 2], np.inf)
-        lanes = np.array([-8.75, -5.25, -1.75, 1.75, 5.25, 8.75])
-        for _ in range(num_cars):
-            x = rng.uniform(6.0, max_range)
-            y = rng.choice(lanes) + rng.normal(0, 0.25)
-            length, width, tall = rng.uniform(4.0, 5.0), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.8)
-            lo = np.array([x - length / 2, y - width / 2, 0.0])
-            hi = np.array([x + length / 2, y + width / 2, tall])
-            t1, t2 = (lo - origin) / d, (hi - origin) / d
-            t_near = np.nanmax(np.minimum(t1, t2), axis=1)
-            t_far = np.nanmin(np.maximum(t1, t2), axis=1)
-            hit = (t_near <= t_far) & (t_far > 0) & (t_near < t)
-            t = np.where(hit, np.maximum(t_near, 0.0), t)
-    ok = np.isfinite(t) & (t <= max_range)
-    xyz = origin + d[ok] * t[ok, None] + rng.normal(0, 0.01, (int(ok.sum()), 3))
-    return np.concatenate([xyz, rng.uniform(0, 1, (len(xyz), 1))], 1).astype(np.float32)
-
-
-def load_scans(num: int, seed: int, source: str) -> tuple[list[np.ndarray], str]:
-    """``num`` scans of the 1.8 m LiDAR: from detbench.sim when importable (and source != synthetic)."""
-    note = ""
-    if source in ("auto", "sim"):
-        try:
-            from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
-
-            sim = HighwaySimulator(load_sim_config("paper"), seed=seed)
-            lidar = lidar_preset("h3-1.8")
-            scans = [frames[0].points[:, :4].astype(np.float32) for frames in sim.run(num, [lidar])]
-            return scans, f"detbench.sim HighwaySimulator (preset paper, lidar h3-1.8, seed {seed})"
-        except Exception as exc:  # the simulator is optional here; say why it was not used
-            if source == "sim":
-                raise
-            note = f" (detbench.sim not usable: {type(exc).__name__}: {exc})"
-    scans = [synthetic_scan(seed + i) for i in range(num)]
-    return scans, ("synthetic: flat road + 30 car boxes, 128 x 480 beams, vfov -15..10 deg, hfov 180 deg, "
-                   f"from 1.8 m{note}")
-
-
-# ----------------------------------------------------------------------------- helpers
-def timed(fn, repeats: int, sync) -> dict:
-    """Run ``fn`` once to warm up, then ``repeats`` times; milliseconds (median, best)."""
-    fn()
-    sync()
-    ts = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        sync()
-        ts.append((time.perf_counter() - t0) * 1e3)
-    return {"ms": statistics.median(ts), "ms_best": min(ts)}
-
-
-def backbone(in_channels: int = 4) -> SparseSequential:
-    """SECOND-style 3D backbone (OpenPCDet VoxelBackBone8x topology, BN eps 1e-3, momentum 0.01)."""
-    def block(cin, cout, key, stride=1, padding=1, kind="subm", kernel=3):
-        conv = (SubMConv3d(cin, cout, kernel, bias=False, indice_key=key) if kind == "subm" else
-                SparseConv3d(cin, cout, kernel, stride=stride, padding=padding, bias=False, indice_key=key))
-        return SparseSequential(conv, nn.BatchNorm1d(cout, eps=1e-3, momentum=0.01), nn.ReLU())
-
-    return SparseSequential(
-        block(in_channels, 16, "subm1"),
-        block(16, 16, "subm1"),
-        block(16, 32, "spconv2", 2, 1, "spconv"), block(32, 32, "subm2"), block(32, 32, "subm2"),
-        block(32, 64, "spconv3", 2, 1, "spconv"), block(64, 64, "subm3"), block(64, 64, "subm3"),
-        block(64, 64, "spconv4", 2, (0, 1, 1), "spconv"), block(64, 64, "subm4"), block(64, 64, "subm4"),
-        block(64, 128, "spconv_down2", (2, 1, 1), 0, "spconv", (3, 1, 1)),
-    )
-
-
-def implicit_gemm(features: torch.Tensor, weight: torch.Tensor, table: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
-    """The alternative kernel (for comparison only): gather (N_out, K * C_in) with zero rows for
-    missing neighbours and multiply by the (K * C_in, C_out) weight, in row chunks."""
-    n_in, c_in = features.shape
-    c_out, kvol = weight.shape[0], table.shape[1]
-    padded = torch.cat([features, features.new_zeros(1, c_in)])
-    idx = torch.where(table < 0, torch.full_like(table, n_in), table)
-    w = weight.reshape(c_out, c_in, kvol).permute(2, 1, 0).reshape(kvol * c_in, c_out)
-    out = features.new_empty(table.shape[0], c_out)
-    for s in range(0, table.shape[0], chunk):
-        rows = padded.index_select(0, idx[s:s + chunk].reshape(-1)).view(-1, kvol * c_in)
-        torch.mm(rows, w, out=out[s:s + chunk])
-    return out
-
-
-def gflops(pairs: int, cin: int, cout: int, ms: float) -> float:
-    """Useful GFLOP/s: 2 FLOP per multiply-add, pairs * cin * cout multiply-adds."""
-    return 2.0 * pairs * cin * cout / (ms * 1e-3) / 1e9 if ms > 0 else float("nan")
 
 
 # ----------------------------------------------------------------------------- main

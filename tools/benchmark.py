@@ -18,6 +18,7 @@ Units: milliseconds per frame, MB = 10^6 bytes (checkpoint), MiB = 2^20 bytes (m
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import io
 import json
 import platform
@@ -29,7 +30,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(ROOT))
 
 import models  # noqa: E402
 from detbench.train.run_config import preset_names  # noqa: E402

@@ -35,13 +35,16 @@ With --strict the exit code is 1 when any whole run fails a criterion.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.regions import RANGE_NAMES  # noqa: E402

@@ -15,11 +15,14 @@ Combine several reports (models x heights) into one table and the paper's Fig. 8
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from detbench.eval.evaluate import (  # noqa: E402
     evaluate_predictions,

@@ -37,7 +37,7 @@ import numpy as np
 
 from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.frame import Frame
-from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS
+from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, detected_point_index
 from detbench.ops import boxes_iou_bev, points_in_boxes
 from detbench.utils.io import atomic_save, atomic_write_json, read_json
 
@@ -158,7 +158,7 @@ def build_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLike, sourc
         f = frames[i]
         if f.boxes.shape[0] == 0:
             continue
-        counts, index = points_in_boxes(f.points, f.boxes, bottom_lift=bottom_lift)
+        counts, index = detected_point_index(f.points, f.boxes, bottom_lift)
         order = np.argsort(index, kind="stable")
         sorted_index = index[order]
         starts = np.searchsorted(sorted_index, np.arange(f.boxes.shape[0]), side="left")

@@ -20,10 +20,11 @@ LiDAR-detected: a vehicle is detected at a height when at least `DETECTED_MIN_PO
 point of that height's sweep lies inside its box with the bottom face raised by
 `DETECTED_BOTTOM_LIFT` (0.05 m), so road points under the car do not count:
 `lidar_detected(points, boxes)`, or `detected_point_counts(points, boxes) >= k` for other
-minimum numbers of points. The ability study, the evaluator (the ground truth a detector is
-scored on), the training set and its ground-truth database all use these two functions; the
-simulator's fast path counts with its own numba kernel fed by the same constant
-(detbench.sim.raycast.count_table, proven equal by tests).
+minimum numbers of points; `detected_point_index` also gives the box each point counts for.
+The ability study, the evaluator (the ground truth a detector is scored on), the training
+set and its ground-truth database all use these functions; the simulator's fast path counts
+with its own numba kernel fed by the same constant (detbench.sim.raycast.count_table, proven
+equal by tests).
 """
 from __future__ import annotations
 
@@ -99,19 +100,27 @@ def region_masks(xy: np.ndarray, lanes: np.ndarray) -> dict[tuple[str, str], np.
     return out
 
 
+def detected_point_index(points, boxes, bottom_lift: float = DETECTED_BOTTOM_LIFT) -> tuple[np.ndarray, np.ndarray]:
+    """`detected_point_counts` with the points that count: ((M,) int64 counts, (N,) int64 index of
+    the first (lowest-index) box holding each point, -1 for none), for callers that gather a
+    vehicle's points (the ground-truth database) and must not test the points twice.
+    """
+    from detbench.ops import points_in_boxes  # on first use: detbench.ops loads torch
+
+    boxes = np.asarray(boxes)
+    if len(boxes) == 0:
+        return np.zeros(0, dtype=np.int64), np.full(len(points), -1, dtype=np.int64)
+    counts, index = points_in_boxes(points, boxes, bottom_lift=bottom_lift)
+    return np.asarray(counts, dtype=np.int64), np.asarray(index, dtype=np.int64)
+
+
 def detected_point_counts(points, boxes, bottom_lift: float = DETECTED_BOTTOM_LIFT) -> np.ndarray:
     """(M,) int64 number of `points` (N, >=3) inside each of `boxes` (M, 7) with the bottom raised
     `bottom_lift` metres (numpy arrays; metres and radians in one frame).
 
     Compare with `DETECTED_MIN_POINTS` (or another minimum) to decide "detected".
     """
-    from detbench.ops import points_in_boxes  # on first use: detbench.ops loads torch
-
-    boxes = np.asarray(boxes)
-    if len(boxes) == 0:
-        return np.zeros(0, dtype=np.int64)
-    counts, _ = points_in_boxes(points, boxes, bottom_lift=bottom_lift)
-    return np.asarray(counts, dtype=np.int64)
+    return detected_point_index(points, boxes, bottom_lift)[0]
 
 
 def lidar_detected(points, boxes, min_points: int = DETECTED_MIN_POINTS,
@@ -124,5 +133,5 @@ def lidar_detected(points, boxes, min_points: int = DETECTED_MIN_POINTS,
 __all__ = [
     "RANGES", "RANGE_NAMES", "LEVELS", "LEVEL_K", "TOPK_LANES", "DETECTED_BOTTOM_LIFT", "DETECTED_MIN_POINTS",
     "in_range", "importance_mask", "region_masks", "check_range_name", "check_level",
-    "detected_point_counts", "lidar_detected",
+    "detected_point_counts", "detected_point_index", "lidar_detected",
 ]

@@ -20,10 +20,10 @@ gathers directly); -1 means "no point" (an empty ball, a missing neighbour, an e
 b's rows are offsets[b]:offsets[b + 1] with offsets = [0, cumsum(counts)]; subtract offsets[b]
 for per-frame indices.
 
-Units and arithmetic. Coordinates in metres (ego frame of DESIGN.md), headings in radians.
-Distances are computed in float64 in both backends, in the same order of operations
-(dx*dx + dy*dy + dz*dz with d = point - reference), so the two backends agree bit for bit on
-one device (`three_nn` takes its square root with torch.sqrt on the output device).
+Units and arithmetic. Coordinates in metres (the ego ground frame of docs/architecture.md),
+headings in radians. Distances are computed in float64 in both backends, in the same order of
+operations (dx*dx + dy*dy + dz*dz with d = point - reference), so the two backends agree bit
+for bit on one device (`three_nn` takes its square root with torch.sqrt on the output device).
 
 Backends. `backend="auto"` runs the numba kernels for CPU tensors (via .numpy(), outputs come
 back as tensors) and vectorised torch for tensors on other devices (CUDA), memory linear in the

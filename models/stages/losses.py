@@ -1,8 +1,12 @@
 """Detection losses as plain functions: tensors in, a scalar (or per-element) tensor out."""
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
+
+from detbench.ops import boxes_to_corners_3d
 
 
 def sigmoid_focal_loss(logits: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor,
@@ -106,3 +110,16 @@ def od_iou_loss(pred: torch.Tensor, target: torch.Tensor, distance: bool = True)
         enclose = torch.maximum(local + hp, hg) - torch.minimum(local - hp, -hg)
         loss = loss + _safe_div((local * local).sum(dim=1), (enclose * enclose).sum(dim=1))
     return loss
+
+
+def corner_loss(pred: torch.Tensor, gt: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
+    """Per-box corner loss (N,): mean Huber distance of the 8 corners, the smaller of gt and gt turned by pi."""
+    if pred.shape[0] == 0:
+        return pred.new_zeros(0)
+    pc = boxes_to_corners_3d(pred)
+    gc = boxes_to_corners_3d(gt)
+    flipped = gt.clone()
+    flipped[:, 6] = gt[:, 6] + math.pi
+    fc = boxes_to_corners_3d(flipped)
+    d = torch.minimum((pc - gc).norm(dim=-1), (pc - fc).norm(dim=-1))  # (N, 8)
+    return F.huber_loss(d, torch.zeros_like(d), delta=delta, reduction="none").mean(dim=1)

@@ -30,10 +30,10 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from detbench.data.batch import Detections
-from detbench.ops import ResidualBoxCoder, boxes_iou3d, boxes_to_corners_3d, nms_bev, normalize_heading
+from detbench.ops import ResidualBoxCoder, boxes_iou3d, nms_bev, normalize_heading
 from detbench.ops.points import from_canonical, to_canonical  # noqa: F401  (re-exported: the RoI frame)
 
-from .losses import weighted_smooth_l1
+from .losses import corner_loss, weighted_smooth_l1
 from .postprocess import select_detections
 
 LOG_SIZE_CLAMP = 3.0  # |log(size / roi size)| at most e^3 when decoding residuals
@@ -304,21 +304,8 @@ def decode_refined(deltas: torch.Tensor, rois: torch.Tensor, coder: ResidualBoxC
 
 
 # --------------------------------------------------------------------------------------
-# losses
+# the second stage's loss (the loss functions themselves live in losses.py)
 # --------------------------------------------------------------------------------------
-def corner_loss(pred: torch.Tensor, gt: torch.Tensor, delta: float = 1.0) -> torch.Tensor:
-    """Per-box corner loss (N,): mean Huber distance of the 8 corners, the smaller of gt and gt turned by pi."""
-    if pred.shape[0] == 0:
-        return pred.new_zeros(0)
-    pc = boxes_to_corners_3d(pred)
-    gc = boxes_to_corners_3d(gt)
-    flipped = gt.clone()
-    flipped[:, 6] = gt[:, 6] + math.pi
-    fc = boxes_to_corners_3d(flipped)
-    d = torch.minimum((pc - gc).norm(dim=-1), (pc - fc).norm(dim=-1))  # (N, 8)
-    return F.huber_loss(d, torch.zeros_like(d), delta=delta, reduction="none").mean(dim=1)
-
-
 def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Loss of the second stage: confidence BCE + residual smooth-L1 + corner loss.
 
