@@ -9,7 +9,7 @@ import torch
 import models
 from detbench.train.run_config import load_run_config
 from models.stages.ct3d_head import (
-    ChannelWiseAttention, cylinder_radius, encode_proposal_points, gather_cylinder_points,
+    ChannelWiseAttention, ChannelWiseDecoderLayer, cylinder_radius, encode_proposal_points, gather_cylinder_points,
 )
 from test_second import TINY, batch_of, box_points
 
@@ -109,6 +109,50 @@ def test_channel_wise_weights_sum_to_one_over_points_per_channel():
     assert float((w[:, :, 0] - w[:, :, 1]).abs().max().detach()) > 1e-3
 
 
+def test_channel_wise_decoder_equals_the_formula_by_hand():
+    """The decoder layer on 3 RoIs x 5 points (d 8, 2 heads of 4), every sum written out in numpy."""
+    rng = np.random.default_rng(7)
+    layer = ChannelWiseDecoderLayer(8, 2, 12, dropout=0.0).double().eval()
+    with torch.no_grad():
+        for prm in layer.parameters():  # fixed weights, LayerNorm's affine included
+            prm.copy_(torch.from_numpy(rng.normal(0.0, 0.7, tuple(prm.shape))))
+    W = {k: v.detach().numpy() for k, v in layer.named_parameters()}
+    query, memory = rng.normal(size=(3, 8)), rng.normal(size=(3, 5, 8))
+
+    def lin(x, name):
+        return x @ W[name + ".weight"].T + W[name + ".bias"]
+
+    def layer_norm(x, name):
+        mu, var = x.mean(-1, keepdims=True), x.var(-1, keepdims=True)
+        return (x - mu) / np.sqrt(var + 1e-5) * W[name + ".weight"] + W[name + ".bias"]
+
+    n, k, heads, dh = 3, 5, 2, 4
+    weights, pooled = np.zeros((n, heads, dh, k)), np.zeros((n, heads * dh))
+    for i in range(n):
+        q, key, val = lin(query[i], "attn.q"), lin(memory[i], "attn.k"), lin(memory[i], "attn.v")  # (8,), (K, 8)
+        for h in range(heads):
+            ch = slice(h * dh, (h + 1) * dh)
+            score = [sum(q[ch][c] * key[m, ch][c] for c in range(dh)) / math.sqrt(dh) for m in range(k)]
+            for c in range(dh):  # softmax over the points of key channel c scaled by the point's score
+                e = [math.exp(key[m, ch][c] * score[m]) for m in range(k)]
+                weights[i, h, c] = [e_m / sum(e) for e_m in e]
+            for cv in range(dh):  # value channel cv pooled with the weights of every key channel, then `down`
+                z = [sum(weights[i, h, c, m] * val[m, ch][cv] for m in range(k)) for c in range(dh)]
+                pooled[i, h * dh + cv] = sum(W["attn.down.weight"][0, c] * z[c] for c in range(dh)) \
+                    + W["attn.down.bias"][0]
+    attn_out = lin(pooled, "attn.out")
+    x = layer_norm(query + attn_out, "norm1")
+    want = layer_norm(x + lin(np.maximum(lin(x, "ff.0"), 0.0), "ff.3"), "norm2")
+
+    with torch.no_grad():
+        a, w = layer.attn(torch.from_numpy(query), torch.from_numpy(memory))
+        got, w2 = layer(torch.from_numpy(query), torch.from_numpy(memory))
+    np.testing.assert_allclose(w.numpy(), weights, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.numpy(), attn_out, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-6)
+    assert torch.equal(w, w2) and np.abs(weights[:, :, 0] - weights[:, :, 1]).max() > 1e-3
+
+
 def test_finite_losses_on_an_empty_frame_and_predictions():
     torch.manual_seed(0)
     model = models.build_model("ct3d", TINY_CT3D)
@@ -128,6 +172,45 @@ def test_finite_losses_on_an_empty_frame_and_predictions():
     assert len(dets) == len(first) == 2 and all(torch.isfinite(d.boxes).all() for d in dets)
     with pytest.raises(ValueError, match="refined"):
         model.set_output_stage("rpn")
+
+
+@pytest.mark.parametrize("how", ["scores_minus_inf", "zero_budget"])
+def test_zero_proposals_through_the_full_model(how, monkeypatch):
+    """The RPN proposes nothing: every score -inf (R padding slots, all masked), or a budget of 0 slots
+    (R = 0, ct3d_head's r == 0 branch). Training and evaluation still run end to end."""
+    cfg = copy.deepcopy(TINY_CT3D)
+    rh = cfg["roi_head"]
+    rh["targets"]["gt_jitter_copies"] = 0  # the RoIs are the proposals alone
+    if how == "zero_budget":
+        rh["proposals"]["train"]["post_nms_top_k"] = rh["proposals"]["test"]["post_nms_top_k"] = 0
+        rh["targets"]["roi_per_image"] = 0
+    torch.manual_seed(0)
+    model = models.build_model("ct3d", cfg)
+    if how == "scores_minus_inf":
+        decode = model.head.decode
+
+        def no_scores(rpn):
+            boxes, scores = decode(rpn)
+            return boxes, torch.full_like(scores, -math.inf)
+
+        monkeypatch.setattr(model.head, "decode", no_scores)
+    car = [5.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.2]
+    batch = batch_of([box_points(car), np.zeros((0, 4), np.float32)], [np.array([car]), np.zeros((0, 7))])
+    out = model(batch)
+    assert not out.proposals.mask.any() and not out.refine.roi_mask.any()
+    loss, parts = model.loss(out, batch)
+    loss.backward()
+    assert torch.isfinite(loss) and parts["num_fg_rois"] == 0 and parts["loss_rcnn_cls"] == 0
+    grads = [p.grad for p in model.parameters() if p.grad is not None]
+    assert grads and all(torch.isfinite(g).all() for g in grads)
+    assert any(p.grad is not None and p.grad.any() for p in model.head.parameters())  # the RPN still learns
+    model.eval()
+    with torch.no_grad():
+        out = model(batch)
+        dets = model.predict(out, batch)
+    assert not out.refine.roi_mask.any() and [len(d.boxes) for d in dets] == [0, 0]
+    if how == "zero_budget":
+        assert out.refine.rois.shape == (2, 0, 7) and out.refine.box_deltas.shape == (2, 0, 7)
 
 
 def test_presets_build_and_paper_follows_the_published_configuration():

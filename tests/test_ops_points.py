@@ -249,6 +249,34 @@ def test_three_nn_ties_flat_and_far_targets(backend):
     np.testing.assert_array_equal(three_nn(tt, flat, backend=backend)[1].numpy(), ref_three_nn(tt, flat, [50], [200])[1])
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_three_nn_all_sources_identical(backend):
+    # every frame's sources coincide (zero extent: the CPU kernel's one-cell grid): frame 0 has five
+    # copies of one point, frame 1 two copies of another (fewer than three); targets on the point,
+    # near it and 1e6 m away
+    s = torch.tensor([[1.0, 2.0, 3.0]] * 5 + [[-4.0, 0.5, 1.0]] * 2, dtype=torch.float64)
+    t = torch.tensor([[1.0, 2.0, 3.0], [0.0, 0.0, 0.0], [1e6, -1e6, 5.0], [2.0, 2.0, 2.0], [-4.0, 0.5, 1.0]],
+                     dtype=torch.float64)
+    tc, sc = [3, 2], [5, 2]
+    dist, idx = three_nn(t, s, tc, sc, backend=backend)
+    assert idx.tolist() == [[0, 1, 2]] * 3 + [[5, 6, -1]] * 2  # ties: the lowest rows
+    np.testing.assert_allclose(dist.numpy(), ref_three_nn(t, s, tc, sc)[0], rtol=1e-15, atol=0)
+    other = "torch" if backend == "numba" else "numba"
+    assert all(torch.equal(a, b) for a, b in zip((dist, idx), three_nn(t, s, tc, sc, backend=other)))
+    # one-hot source features read the weights back: finite, equal between the copies, summing to one
+    w = three_nn_interpolate(t, s, torch.eye(7, dtype=torch.float64), tc, sc, backend=backend)
+    assert torch.isfinite(w).all()
+    np.testing.assert_allclose(w.sum(1).numpy(), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(w[:3, :3].numpy(), 1 / 3, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(w[3:, 5:].numpy(), 0.5, rtol=0, atol=1e-12)
+    # a feature shared by the copies comes back unchanged at every target
+    shared = torch.tensor([[0.25, -7.0, 3e3]] * 5 + [[1.5, 0.0, -2.0]] * 2, dtype=torch.float64)
+    out = three_nn_interpolate(t, s, shared, tc, sc, backend=backend)
+    np.testing.assert_allclose(out.numpy(), shared[[0, 0, 0, 5, 5]].numpy(), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(out.numpy(), three_nn_interpolate(t, s, shared, tc, sc, backend=other).numpy(),
+                               rtol=1e-15, atol=0)
+
+
 def test_three_nn_interpolate_values_and_gradcheck():
     tc, sc = [30, 6, 4], [10, 2, 0]
     t, s = clouds(9, tc).double(), clouds(10, sc).double()
@@ -318,6 +346,35 @@ def test_roi_point_pool_faces_cyclic_and_extremes(backend):
     assert none.empty.tolist() == [True] and none.index.tolist() == [[-1] * 4] and not none.points.any()
     batch0 = roi_point_pool(torch.zeros((0, 3)), torch.zeros((0, 7)), 4, 0.5, None, [], [], backend=backend)
     assert batch0.points.shape == (0, 4, 3) and batch0.empty.shape == (0,)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_roi_point_pool_identical_points_and_an_empty_roi(backend):
+    # rows 0, 2, 3, 5 are one point inside RoI 0 (with distinct features, to tell them apart), row 1 lies
+    # outside every RoI, row 4 is the same point again but in frame 1, which also holds rows 5 and 6;
+    # RoI 1 (frame 0) and RoI 3 (frame 1) hold no point
+    p = [1.0, 0.5, 0.2]
+    xyz = torch.tensor([p, [9.0, 9.0, 0.0], p, p, p, p, [-30.0, 0.0, 0.0]], dtype=torch.float64)
+    feats = torch.arange(7, dtype=torch.float64)[:, None] * 10 + 1
+    rois = torch.tensor([[0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.3], [-20.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.0],
+                         [0.0, 0.0, 0.0, 4.0, 2.0, 1.5, 0.3], [20.0, 5.0, 0.0, 4.0, 2.0, 1.5, 0.0]],
+                        dtype=torch.float64)
+    pc, rc = [4, 3], [2, 2]
+    out = roi_point_pool(xyz, rois, 6, 0.5, feats, pc, rc, backend=backend)
+    assert out.empty.tolist() == [False, True, False, True] and out.count.tolist() == [3, 0, 2, 0]
+    # three inside points for six slots: rows 0, 2, 3 then again cyclically; frame 1: rows 4, 5 three times
+    assert out.index.tolist() == [[0, 2, 3, 0, 2, 3], [-1] * 6, [4, 5] * 3, [-1] * 6]
+    canon = to_canonical(torch.tensor([p], dtype=torch.float64), rois[:1])[0]
+    for r in (0, 2):
+        np.testing.assert_allclose(out.points[r, :, :3].numpy(), canon.expand(6, 3).numpy(), atol=1e-12)
+    assert out.points[0, :, 3].tolist() == [1.0, 21.0, 31.0] * 2 and out.points[2, :, 3].tolist() == [41.0, 51.0] * 3
+    assert not out.points[[1, 3]].any()  # empty RoIs: zero coordinates and features
+    ref, ridx = ref_roi(xyz, rois, feats, pc, rc, 6, 0.5)
+    np.testing.assert_array_equal(out.index.numpy(), ridx)
+    np.testing.assert_allclose(out.points.numpy(), ref, atol=1e-12)
+    # more identical points than slots: the even subsample floor(j * k / S) of the seven copies
+    many = roi_point_pool(torch.tensor([p] * 7), rois[:1].float(), 3, 0.5, backend=backend)
+    assert many.index.tolist() == [[0, 2, 4]] and many.count.tolist() == [7] and not many.empty.any()
 
 
 def test_roi_point_pool_gradients_flow_to_features():

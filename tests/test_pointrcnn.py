@@ -76,6 +76,39 @@ def test_empty_sparse_and_normal_frames_give_finite_losses_and_predictions():
     assert all(torch.isfinite(d.boxes).all() for d in dets + first)
 
 
+def test_a_valid_roi_without_points_trains(monkeypatch):
+    """A frame whose only ground-truth box lies far from every point: its jittered copies become
+    foreground RoIs that pool no point. The pooled `empty` flag is set for such a real, regressed
+    RoI, and loss and gradients stay finite."""
+    import models.stages.pointrcnn_head as roi_head_module
+
+    pooled = []
+
+    def spy(*args, **kwargs):
+        pooled.append(pool(*args, **kwargs))
+        return pooled[-1]
+
+    pool = roi_head_module.roi_point_pool
+    monkeypatch.setattr(roi_head_module, "roi_point_pool", spy)
+    cfg = tiny_cfg()
+    cfg["roi_head"]["targets"].update(gt_jitter_copies=4, gt_jitter=[0.05] * 7)  # copies well above reg_fg_thresh
+    torch.manual_seed(0)
+    model = models.build_model("pointrcnn", cfg)
+    far = [40.0, -6.0, 0.8, 4.5, 1.9, 1.6, -0.4]  # 30 m from the nearest point
+    batch = batch_of([box_points(CAR, n=400)], [np.array([far])])
+    out = model(batch)
+    loss, parts = model.loss(out, batch)
+    loss.backward()
+    assert len(pooled) == 1
+    empty = pooled[0].empty.reshape(out.refine.roi_mask.shape)
+    assert (empty & out.refine.roi_mask & out.refine.targets.reg_mask).any()
+    assert not pooled[0].points[pooled[0].empty].any()
+    assert torch.isfinite(loss) and parts["num_fg_rois"] > 0 and parts["loss_rcnn_reg"] > 0
+    grads = [p.grad for p in model.refine.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads) and any(g.any() for g in grads)
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
 def test_presets_and_mean_size_from_data():
     cfg = load_run_config("pointrcnn", "paper")["model"]
     assert cfg["sampling"]["num_points"] == 16384 and cfg["backbone"]["npoints"] == [4096, 1024, 256, 64]
@@ -104,18 +137,40 @@ def test_overfit_a_few_frames():
     model = models.build_model("pointrcnn", tiny_cfg())
     opt = torch.optim.AdamW(model.parameters(), lr=0.003)
     hist = []
-    for _ in range(120):
+    for _ in range(300):
         loss, parts = model.loss(model(batch), batch)
         hist.append(parts)
         opt.zero_grad()
         loss.backward()
         opt.step()
     mean = lambda k, sl: float(np.mean([h[k] for h in hist[sl]]))  # noqa: E731
+    print({k: (round(mean(k, slice(0, 10)), 4), round(mean(k, slice(-10, None)), 4))
+           for k in ("loss_point_cls", "loss_point_box", "loss_rcnn_cls", "loss_rcnn_reg", "loss_rcnn_corner")})
     assert mean("loss_point_cls", slice(-10, None)) < 0.3 * mean("loss_point_cls", slice(0, 10))
     assert mean("loss_point_box", slice(-10, None)) < 0.5 * mean("loss_point_box", slice(0, 10))
+    # the second stage learns too
+    assert mean("loss_rcnn_reg", slice(-10, None)) < 0.7 * mean("loss_rcnn_reg", slice(0, 10))
+    assert mean("loss_rcnn_corner", slice(-10, None)) < 0.7 * mean("loss_rcnn_corner", slice(0, 10))
     from detbench.ops import boxes_iou3d
+    model.eval()
     with torch.no_grad():
-        dets = model.predict(model(batch), batch)
+        out = model(batch)
+        dets = model.predict(out, batch)
+    # a live box branch: the residuals differ between RoIs (a dead one, every ReLU of its last hidden
+    # layer off, gives the same residual for every RoI: what lr 0.01 did on the cpu preset)
+    deltas = out.refine.box_deltas[out.refine.roi_mask]
+    print(f"{len(deltas)} RoIs, residual std across them {deltas.std(dim=0).tolist()}")
+    assert len(deltas) >= 2 and (deltas[:, :2].std(dim=0) > 1e-4).all()
     for d, gt in zip(dets, cars):
         assert len(d.boxes) >= 1
         assert float(boxes_iou3d(d.boxes.double(), torch.as_tensor(gt)).max(dim=0).values.min()) > 0.3
+
+
+def test_roi_head_with_no_roi_slots():
+    """A zero RoI budget (R = 0) gives (B, 0, C) features, not a reshape error."""
+    model = models.build_model("pointrcnn", tiny_cfg())
+    head = model.roi_head
+    n = 64
+    xyz, feats = torch.randn(2 * n, 3), torch.randn(2 * n, model.backbone.out_channels)
+    out = head(xyz, feats, torch.rand(2 * n), torch.zeros(2, 0, 7), n)
+    assert out.shape == (2, 0, head.out_channels)

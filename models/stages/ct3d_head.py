@@ -209,7 +209,7 @@ class CT3DRoIHead(nn.Module):
         cyl = gather_cylinder_points(points, rois.detach(), self.num_points, self.radius_scale,
                                      random=self.training)
         src = encode_proposal_points(cyl.points, rois.detach())  # (B, R, K, 28)
-        src = self.up(src.reshape(b * r, self.num_points, -1))
+        src = self.up(src.reshape(b * r, self.num_points, src.shape[-1]))  # explicit width: b * r may be 0
         empty = cyl.empty.reshape(b * r)
         src = torch.where(empty[:, None, None], self.empty_token.expand_as(src), src)
         if self.encoder is not None and src.shape[0]:
@@ -218,4 +218,4 @@ class CT3DRoIHead(nn.Module):
         feat, _ = self.decoder(query, src)
         if self.max_pool_skip:  # the encoded points' channel-wise maximum beside the decoder's output
             feat = torch.cat([feat, src.max(dim=1).values if src.shape[0] else feat], dim=-1)
-        return feat.reshape(b, r, -1)
+        return feat.reshape(b, r, feat.shape[-1])

@@ -49,6 +49,8 @@ class PointRCNNRoIHead(nn.Module):
                 points_per_frame: int) -> torch.Tensor:
         """xyz (B * N, 3), point_features (B * N, C), seg_scores (B * N,), rois (B, R, 7) -> (B, R, out)."""
         b, r = rois.shape[:2]
+        if b * r == 0:  # no RoI slot (e.g. a zero proposal budget): nothing to pool
+            return point_features.new_zeros(b, r, self.out_channels)
         depth = xyz.norm(dim=1) / self.depth_normalizer - 0.5
         extra = torch.stack([seg_scores.detach(), depth.detach()], dim=1)
         pooled = roi_point_pool(xyz.detach(), rois.detach().reshape(-1, 7), self.num_points, self.pool_extra_width,
