@@ -7,7 +7,11 @@ as YAML (so `1e-3`, `true`, `[1, 2]` work).
 
 Validation is against a *reference* config (the defaults a tool ships): a key that is not
 in the reference is an error that names the key, the file it came from and the closest
-known key. Keys under a mapping listed in `open_keys` may be free-form.
+known key. Keys under a mapping listed in `open_keys` may be free-form. A value must also
+be of the kind its reference holds (`check_value`): a section stays a section, a switch
+true or false, a count an integer, a number a number, a list a list (of numbers, where the
+reference's are; keys whose reference is a string or null take any value: `auto` or a
+list, a path or null).
 
 The YAML files users read are the one home of the defaults: `shipped_defaults(section)` is
 a section of configs/default.yaml (data, train, augment, eval), from which the library's
@@ -49,6 +53,9 @@ def _read_yaml(path: Path) -> dict:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
         raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {e.start} cannot be decoded); save the config file "
+                          f"as UTF-8") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
@@ -135,7 +142,9 @@ def apply_overrides(cfg: dict, overrides: Iterable[str], reference: Mapping | No
     for item in overrides or ():
         keys, value = parse_override(item)
         if reference is not None:
-            _check_path(keys, reference, f"--set {item}", tuple(open_keys))
+            ref = _check_path(keys, reference, f"--set {item}", tuple(open_keys))
+            if ref is not _OPEN:
+                check_value(value, ref, f"--set {item}", ".".join(keys))
         node = out
         for k in keys[:-1]:
             if not isinstance(node.get(k), dict):
@@ -150,13 +159,17 @@ def _closest(key: str, choices: Iterable[str]) -> str:
     return f"; did you mean {m[0]!r}?" if m else ""
 
 
-def _check_path(keys: list[str], reference: Mapping, where: str, open_keys: tuple[str, ...]) -> None:
+_OPEN = object()  # what `_check_path` returns for a key under an open (free-form) section
+
+
+def _check_path(keys: list[str], reference: Mapping, where: str, open_keys: tuple[str, ...]) -> Any:
+    """The reference value at `keys` (ConfigError when a key is unknown), or `_OPEN`."""
     node: Any = reference
     for depth, k in enumerate(keys):
         dotted = ".".join(keys[: depth + 1])
         parent = ".".join(keys[:depth])
         if parent in open_keys:
-            return
+            return _OPEN
         if not isinstance(node, Mapping):
             raise ConfigError(f"{where}: {'.'.join(keys[:depth])} is a value, not a section; it has no key {k!r}")
         if k not in node:
@@ -164,11 +177,51 @@ def _check_path(keys: list[str], reference: Mapping, where: str, open_keys: tupl
             raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(k, map(str, node))} "
                               f"(known keys here: {known})")
         node = node[k]
+    return node
+
+
+def _kind(value: Any) -> str | None:
+    """What a reference value asks for, in words; None when anything goes (a string or null)."""
+    if isinstance(value, bool):
+        return "true or false"
+    if isinstance(value, int):
+        return "an integer"
+    if isinstance(value, float):
+        return "a number"
+    if isinstance(value, (list, tuple)):
+        return "a list of numbers" if value and all(map(_is_number, value)) else "a list"
+    return None
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _fits(value: Any, kind: str) -> bool:
+    is_list = isinstance(value, (list, tuple))
+    return {"true or false": isinstance(value, bool), "an integer": _is_number(value) and isinstance(value, int),
+            "a number": _is_number(value), "a list": is_list,
+            "a list of numbers": is_list and all(map(_is_number, value))}[kind]
+
+
+def check_value(value: Any, ref: Any, where: str, dotted: str) -> None:
+    """ConfigError naming `dotted` when `value` is not of the kind the reference value `ref` is."""
+    if isinstance(ref, Mapping):
+        if not isinstance(value, Mapping):
+            first = next(iter(ref), "key")
+            raise ConfigError(f"{where}: {dotted} is a section of keys ({', '.join(sorted(map(str, ref)))}), not a "
+                              f"value; set one of its keys instead, e.g. {dotted}.{first}=...")
+        return
+    kind = _kind(ref)
+    if kind is not None and not _fits(value, kind):
+        shown = str(ref).lower() if isinstance(ref, bool) else repr(ref)
+        raise ConfigError(f"{where}: {dotted} must be {kind} (like the default {shown}), got {value!r}")
 
 
 def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys: Iterable[str] = (),
              _prefix: str = "") -> None:
-    """Raise ConfigError for any key of `cfg` that `reference` does not have."""
+    """Raise ConfigError for any key of `cfg` that `reference` does not have, or whose value is not
+    of the kind the reference's is (`check_value`)."""
     open_keys = tuple(open_keys)
     for k, v in cfg.items():
         dotted = f"{_prefix}{k}"
@@ -176,8 +229,21 @@ def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys:
             known = ", ".join(sorted(map(str, reference))) or "(none)"
             raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(str(k), map(str, reference))} "
                               f"(known keys here: {known})")
-        if isinstance(v, Mapping) and isinstance(reference[k], Mapping) and dotted not in open_keys:
+        if dotted in open_keys:
+            continue
+        if isinstance(v, Mapping) and isinstance(reference[k], Mapping):
             validate(v, reference[k], where, open_keys, f"{dotted}.")
+        else:
+            check_value(v, reference[k], where, dotted)
+
+
+def section_with_defaults(d: Any, defaults: Mapping, where: str) -> dict:
+    """A config section `d` (None = empty) checked against `defaults` (`validate`), missing keys filled in."""
+    if d is not None and not isinstance(d, Mapping):
+        raise ConfigError(f"{where} must be a section of keys (see configs/default.yaml), got {d!r}")
+    d = dict(d or {})
+    validate(d, defaults, where=where)  # unknown keys, and each value of its default's kind
+    return {**defaults, **d}
 
 
 def get(cfg: Mapping, dotted: str, default: Any = None) -> Any:

@@ -28,6 +28,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 from detbench.data.frame import DEFAULT_LANE_WIDTH, height_key  # noqa: E402
 from detbench.data.regions import RANGE_NAMES  # noqa: E402
 from detbench.eval.ability import DEFAULT_THRESHOLDS, AbilityStudy, ability_markdown  # noqa: E402
+from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 
@@ -89,6 +90,16 @@ def _progress(iterable, total, desc, disable):
     return tqdm(iterable, total=total, desc=desc, unit="frame", disable=disable, smoothing=0.05)
 
 
+def simulated_lidars(args) -> list:
+    """The LiDAR presets of --heights (default 0.5 1.0 1.8); a bad height is the user's error."""
+    from detbench.sim import lidar_preset
+
+    try:
+        return [lidar_preset(float(h)) for h in (args.heights or [0.5, 1.0, 1.8])]
+    except ValueError as e:
+        raise UserError(f"--heights: {e}") from None
+
+
 def stream_simulator(args, study: AbilityStudy) -> dict:
     """Feed `study` from the simulator; returns the provenance dict.
 
@@ -96,15 +107,15 @@ def stream_simulator(args, study: AbilityStudy) -> dict:
     exact per-box hit counts (same rule and result as points_in_boxes with the 0.05 m
     lift); `--points` simulates full clouds and counts with points_in_boxes instead.
     """
-    from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+    from detbench.sim import HighwaySimulator, load_sim_config
 
     heights = args.heights or [0.5, 1.0, 1.8]
     cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
     lift = float(cfg["output"]["count_bottom_lift_m"])
     if not args.points and abs(lift - study.bottom_lift) > 1e-12:
-        raise SystemExit(f"error: the simulator counts with a {lift} m bottom lift but the study uses "
-                         f"{study.bottom_lift} m; drop the output.count_bottom_lift_m override or pass --points")
-    lidars = [lidar_preset(float(h)) for h in heights]
+        raise UserError(f"the simulator counts with a {lift} m bottom lift but the study uses "
+                        f"{study.bottom_lift} m; drop the output.count_bottom_lift_m override or pass --points")
+    lidars = simulated_lidars(args)
     fps = args.frames_per_scene if args.frames_per_scene is not None else int(cfg["scene"]["frames_per_scene"])
     sim = HighwaySimulator(cfg, seed=args.seed)
     stream = sim.run(args.simulate, lidars, frames_per_scene=fps, with_points=args.points)
@@ -126,10 +137,10 @@ def simulated_example(args, cfg_source: dict):
     Scenes are seeded independently of the run length, so the first `--example-window`
     instants of a short run with points are exactly the first instants of the main run.
     """
-    from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+    from detbench.sim import HighwaySimulator, load_sim_config
 
     cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
-    lidars = [lidar_preset(float(h)) for h in (args.heights or [0.5, 1.0, 1.8])]
+    lidars = simulated_lidars(args)
     n = min(args.simulate, args.example_window)
     picker = AbilityStudy(keep_example=True, example_frame_id=args.example_frame,
                           bottom_lift=float(cfg["output"]["count_bottom_lift_m"]))
@@ -150,14 +161,14 @@ def stream_dataset(args, study: AbilityStudy) -> dict:
     datasets = [Height3Dataset(args.data, k, args.split, lane_width=args.lane_width) for k in keys]
     ids = datasets[0].frame_ids
     if not ids:
-        raise SystemExit(f"{args.data}: the {args.split!r} split lists no frames; try --split all")
+        raise UserError(f"{args.data}: the {args.split!r} split lists no frames; try --split all")
     skipped = []
     for fid in _progress(ids, len(ids), "read+count", args.no_progress):
         try:
             frames = [ds.load(fid) for ds in datasets]
         except (DatasetError, FileNotFoundError) as e:
             if not args.skip_bad:
-                raise SystemExit(f"error: {e}\n(fix the file, or pass --skip-bad to skip such frames)") from None
+                raise UserError(f"{e} (fix the file, or pass --skip-bad to skip such frames)") from None
             skipped.append(str(e))
             continue
         study.add(frames)
@@ -172,7 +183,7 @@ def stream_dataset(args, study: AbilityStudy) -> dict:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.simulate is not None and args.simulate < 1:
-        raise SystemExit("--simulate needs a positive number of frames")
+        raise UserError("--simulate needs a positive number of frames")
     out = Path(args.out)
     json_path = Path(args.json) if args.json else out / "ability.json"
     lane_width = args.lane_width if args.lane_width is not None else DEFAULT_LANE_WIDTH
@@ -182,7 +193,7 @@ def main(argv=None) -> int:
                              keep_example=not args.no_figures and not sim_counts,
                              example_frame_id=args.example_frame, bootstrap=args.bootstrap)
     except ValueError as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
     t0 = time.perf_counter()
     from detbench.config import ConfigError
     from detbench.data import DatasetError
@@ -190,7 +201,7 @@ def main(argv=None) -> int:
     try:
         source = stream_simulator(args, study) if args.simulate is not None else stream_dataset(args, study)
     except (ConfigError, DatasetError, FileNotFoundError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
     seconds = time.perf_counter() - t0
     report = study.report(source=source)
     report["extras"]["run"] = {"seconds": round(seconds, 2),
@@ -231,4 +242,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

@@ -134,6 +134,7 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_
     `stage` 'proposals' asks a two-stage model for its first stage's boxes alone.
     """
     import models
+    from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
     from detbench.train.inference import predict_frames
 
@@ -146,8 +147,13 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_
             raise ToolError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
                             f"two-stage models (pointrcnn, ct3d)")
         model.set_output_stage(stage)
-    preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
-                           batch_size=batch_size, progress=progress)
+    try:
+        preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
+                               batch_size=batch_size, progress=progress)
+    except FloatingPointError as e:
+        raise ToolError(f"{ckpt}: {e}") from None
+    except DatasetError as e:  # a frame of the split is malformed
+        raise ToolError(str(e)) from None
     return preds, ck["model_name"]
 
 

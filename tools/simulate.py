@@ -29,7 +29,8 @@ import numpy as np  # noqa: E402
 
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.cli import UserError, run_main  # noqa: E402
+from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -93,7 +94,7 @@ def main(argv=None) -> int:
             raise ValueError(f"LiDAR heights must differ (one points folder per height), got {keys} m")
         sim = HighwaySimulator(cfg, seed=args.seed)
     except (ConfigError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
 
     out = Path(args.out)
     source = {"kind": "simulator", "preset": args.preset, "seed": args.seed, "overrides": list(args.overrides),
@@ -115,7 +116,10 @@ def main(argv=None) -> int:
                          test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,
                          on_step=tally)
     except (FileExistsError, ValueError, TypeError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
+    except DiskFullError as e:
+        raise UserError(f"{e}; {out} is left unfinished (it has no dataset.json, so no command will read it); "
+                        f"free space, then run the same command again") from None
     seconds = time.perf_counter() - t0
     scenes = math.ceil(frames / fps)
     report = {
@@ -145,4 +149,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

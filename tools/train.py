@@ -27,15 +27,17 @@ from pathlib import Path
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import models  # noqa: E402
-from detbench.config import ConfigError, dump  # noqa: E402
+from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
 from detbench.train.checkpoint import CheckpointError  # noqa: E402
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.cli import UserError, run_main  # noqa: E402
+from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -71,15 +73,8 @@ def collect_train_boxes(train_set, limit: int = 400) -> np.ndarray:
     return np.concatenate(boxes) if boxes else np.zeros((0, 7), np.float32)
 
 
-def main(argv=None) -> int:
-    args = build_parser().parse_args(argv)
-    from detbench.data.regions import RANGE_NAMES
-    from detbench.eval.evaluate import evaluate_predictions
-    from detbench.sim.dataset import default_dataset
-    from detbench.train import (AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed,
-                                main_process_first, train)
-    from detbench.train.inference import predict_frames
-
+def run_config_from_args(args) -> dict:
+    """The merged, checked run config (every section's keys and value kinds, before anything runs)."""
     overrides = list(args.overrides)
     for flag, key in ((args.epochs, "train.epochs"), (args.batch_size, "train.batch_size"),
                       (args.workers, "train.workers")):
@@ -91,7 +86,68 @@ def main(argv=None) -> int:
         cfg = load_run_config(args.model, args.preset, args.config, overrides)
         models.get_model_class(cfg["model"]["name"])
     except (ConfigError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
+    return cfg
+
+
+def eval_frames(root: Path, height: float, ecfg):
+    """The frames evaluated after each epoch, each read once now, so a bad file stops the run before it trains."""
+    from detbench.data import Height3Dataset
+    from detbench.data.validate import check_frames
+
+    test_set = Height3Dataset(root, height, ecfg.split)
+    n = len(test_set)
+    if ecfg.max_frames and ecfg.max_frames < n:
+        return [test_set[int(i)] for i in np.linspace(0, n - 1, ecfg.max_frames).astype(int)]
+    check_frames(test_set)
+    return test_set
+
+
+def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
+    """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range."""
+    from detbench.data.regions import RANGE_NAMES
+    from detbench.eval.evaluate import evaluate_predictions
+    from detbench.train.inference import predict_frames
+
+    def eval_fn(m, epoch):
+        preds = predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size, progress=False)
+        rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
+                                   score_threshold=ecfg.score_threshold, extras=False, progress=False)
+        res = {}
+        for r in RANGE_NAMES:
+            cell = rep["results"][r]["all"]
+            res[f"ap_r40_{r}"] = cell["ap_r40"] if cell["ap_r40"] is not None else float("nan")
+            res[f"recall_{r}"] = cell["recall"] if cell["recall"] is not None else float("nan")
+        return res
+
+    return eval_fn
+
+
+def write_summary(out: Path, args, model_name: str, root: Path, result, seconds: float) -> None:
+    """OUT/train_summary.json and .md."""
+    last = result.history[-1] if result.history else {}
+    summary = {"model": model_name, "height": float(args.height), "preset": args.preset, "data": str(root),
+               "epochs_completed": result.epochs_completed, "global_step": result.global_step,
+               "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
+               "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
+               "last_epoch": last}
+    atomic_write_json(out / "train_summary.json", summary)
+    lines = [f"# Training summary: {model_name} at {args.height:g} m ({args.preset} preset)", "",
+             "| item | value |", "| --- | --- |"]
+    lines += [f"| {k} | {v} |" for k, v in summary.items() if k != "last_epoch"]
+    lines += [f"| last epoch: {k} | {v:.4g} |" if isinstance(v, float) else f"| last epoch: {k} | {v} |"
+              for k, v in last.items()]
+    atomic_write_text(out / "train_summary.md", "\n".join(lines) + "\n")
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    from detbench.eval.evaluate import EvalConfig
+    from detbench.sim.dataset import default_dataset
+    from detbench.train import AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed, \
+        main_process_first, train
+
+    cfg = run_config_from_args(args)
     model_name = cfg["model"]["name"]
     out = Path(args.out or f"runs/{model_name}_h{height_key(args.height)}_{args.preset}")
     info = init_distributed(args.device)
@@ -106,61 +162,32 @@ def main(argv=None) -> int:
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
         model = models.build_model(model_name, model_cfg)
+        ecfg = EvalConfig.from_dict(cfg["eval"])
+        eval_fn = None if args.no_eval else make_eval_fn(eval_frames(root, args.height, ecfg), ecfg,
+                                                         model_cfg["point_cloud_range"], info.device,
+                                                         tcfg.batch_size)
     except (FileNotFoundError, ValueError, KeyError, ConfigError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
 
-    eval_fn = None
-    if not args.no_eval:
-        from detbench.data import Height3Dataset
-
-        test_set = Height3Dataset(root, args.height, cfg["eval"]["split"])
-        max_frames = int(cfg["eval"]["max_frames"])
-        frames = test_set if not max_frames or max_frames >= len(test_set) else \
-            [test_set[int(i)] for i in np.linspace(0, len(test_set) - 1, max_frames).astype(int)]
-
-        def eval_fn(m, epoch):
-            preds = predict_frames(m, frames, model_cfg["point_cloud_range"], device=info.device,
-                                   batch_size=tcfg.batch_size, progress=False)
-            rep = evaluate_predictions(frames, preds, iou_threshold=cfg["eval"]["iou_threshold"],
-                                       score_threshold=cfg["eval"]["score_threshold"], extras=False,
-                                       progress=False)
-            res = {}
-            for r in RANGE_NAMES:
-                cell = rep["results"][r]["all"]
-                res[f"ap_r40_{r}"] = cell["ap_r40"] if cell["ap_r40"] is not None else float("nan")
-                res[f"recall_{r}"] = cell["recall"] if cell["recall"] is not None else float("nan")
-            return res
-
-    data_info = {"source": str(root), "height": float(args.height)}
     if info.is_main:
-        out.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out / "config.yaml", dump(cfg))
         print(f"{model_name} at {args.height:g} m: {len(train_set)} training frames from {root}; "
               f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters; device {info.device}; "
               f"out {out}")
     t0 = time.perf_counter()
     try:
-        result = train(model, train_set, tcfg, out, model_name=model_name, run_config=cfg, data_info=data_info,
-                       dist_info=info, resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
+        result = train(model, train_set, tcfg, out, model_name=model_name, run_config=cfg,
+                       data_info={"source": str(root), "height": float(args.height)}, dist_info=info,
+                       resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
                        resume_hint=f"run the same command again with --resume (--out {out})")
-    except (CheckpointError, ConfigError, ValueError) as e:
+    except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
         cleanup(info)
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
+    except DiskFullError as e:
+        cleanup(info)
+        raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:
-        last = result.history[-1] if result.history else {}
-        summary = {"model": model_name, "height": float(args.height), "preset": args.preset, "data": str(root),
-                   "epochs_completed": result.epochs_completed, "global_step": result.global_step,
-                   "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
-                   "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
-                   "last_epoch": last}
-        atomic_write_json(out / "train_summary.json", summary)
-        lines = [f"# Training summary: {model_name} at {args.height:g} m ({args.preset} preset)", "",
-                 "| item | value |", "| --- | --- |"]
-        lines += [f"| {k} | {v} |" for k, v in summary.items() if k != "last_epoch"]
-        lines += [f"| last epoch: {k} | {v:.4g} |" if isinstance(v, float) else f"| last epoch: {k} | {v} |"
-                  for k, v in last.items()]
-        atomic_write_text(out / "train_summary.md", "\n".join(lines) + "\n")
+        write_summary(out, args, model_name, root, result, seconds)
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
             print(f"interrupted: resume with the same command and --resume")
@@ -169,4 +196,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

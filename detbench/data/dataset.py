@@ -94,6 +94,11 @@ class Height3Dataset:
         return [float(k) for k in self.info.heights]
 
     @property
+    def info_file(self) -> Path:
+        """ROOT/dataset.json."""
+        return self.root / INFO_FILE
+
+    @property
     def sensor(self) -> Sensor:
         """The sensor of this height as stored in dataset.json."""
         return self.height_info.sensor
@@ -122,13 +127,17 @@ class Height3Dataset:
     def points_file(self, frame_id: str) -> Path:
         return points_path(self.root, self.height_key, frame_id, self.height_info.points_ext)
 
+    def frame_files(self, frame_id: str) -> list[Path]:
+        """The files a frame at this height is read from: labels, meta (when the dataset has them), points."""
+        files = [label_path(self.root, frame_id)]
+        if self.info.has_meta:
+            files.append(meta_path(self.root, frame_id))
+        return files + [self.points_file(frame_id)]
+
     def _check_files(self) -> None:
         missing: list[Path] = []
         for fid in self._ids:
-            paths = [label_path(self.root, fid), self.points_file(fid)]
-            if self.info.has_meta:
-                paths.append(meta_path(self.root, fid))
-            missing.extend(p for p in paths if not p.is_file())
+            missing.extend(p for p in self.frame_files(fid) if not p.is_file())
         if missing:
             listing = imageset_path(self.root, "train" if self.split == "all" else self.split)
             shown = ", ".join(str(p) for p in missing[:3])

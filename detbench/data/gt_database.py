@@ -6,13 +6,17 @@ Building (once per training split and height; later calls reuse it):
 OUT/gt_database.npz    points (T, 4) float32 x, y, z relative to the box centre, intensity;
                        offsets (K + 1,) int64 (object k owns points[offsets[k]:offsets[k+1]]);
                        boxes (K, 7) float32 where the vehicle was; num_points (K,) int64
-OUT/gt_database.json   the index: format, version, source, fingerprint of the frames,
-                       bottom lift, per-class counts and one record per object
+OUT/gt_database.json   the index: format, version, source, fingerprint of the frames'
+                       content (`frames_fingerprint`: the bytes of their files), bottom
+                       lift, per-class counts and one record per object
                        {frame_id, class, track_id, num_points}
 ```
 
-Both files are written atomically, the JSON last, so a folder without the JSON is an
-unfinished build and is rebuilt. An object's points are those inside its box with the
+A build first removes the old index, then writes both files atomically, the JSON last, so
+a folder without the JSON is an unfinished build and is rebuilt. A database whose
+fingerprint no longer matches the frames (the dataset was re-simulated into the same
+folder, or labels were edited in place) is rebuilt, never reused. An object's points are
+those inside its box with the
 bottom raised by `bottom_lift` (DETECTED_BOTTOM_LIFT, the LiDAR-detected rule of
 detbench.data.regions), so no road points travel with a pasted vehicle; objects with fewer
 such points than DETECTED_MIN_POINTS are not LiDAR-detected and are left out.
@@ -122,11 +126,35 @@ def _frame_ids(frames: Sequence[Frame]) -> list[str]:
 
 
 def frames_fingerprint(frames: Sequence[Frame]) -> str:
-    """SHA-1 of the ordered frame ids of `frames` (a Height3Dataset split or a list of Frames)."""
+    """SHA-1 of the content of `frames`, in order: for a dataset on disk (anything with
+    `frame_files(frame_id)` and `info_file`, e.g. Height3Dataset) the bytes of dataset.json and of
+    every frame's label, meta and points files; for a list of Frames their ids, points, boxes,
+    classes and track ids. A dataset re-simulated or edited in place gets another fingerprint."""
     h = hashlib.sha1()
-    for fid in _frame_ids(frames):
+    files = getattr(frames, "frame_files", None)
+    if files is not None:
+        _hash_file(h, frames.info_file)
+    for i, fid in enumerate(_frame_ids(frames)):
         h.update(fid.encode("utf-8") + b"\n")
+        if files is not None:
+            for path in files(fid):
+                _hash_file(h, path)
+        else:
+            f = frames[i]
+            for arr in (f.points, f.boxes, np.asarray(f.classes, dtype=str), f.track_ids):
+                h.update(np.ascontiguousarray(arr).tobytes())
     return h.hexdigest()
+
+
+def _hash_file(h, path: Path) -> None:
+    """Feed a file's size and bytes to `h` (a missing file hashes as absent; reading it will say so)."""
+    if not Path(path).is_file():
+        h.update(b"<absent>")
+        return
+    with open(path, "rb") as fh:
+        h.update(str(os.fstat(fh.fileno()).st_size).encode() + b":")
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
 
 
 def _write_npz(arrays: dict[str, np.ndarray]):
@@ -153,6 +181,7 @@ def build_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLike, sourc
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
+    (out_dir / INDEX_FILE).unlink(missing_ok=True)  # an interrupted rebuild must not pass for the old database
     pts, boxes, npts, classes, fids, tids = [], [], [], [], [], []
     for i in tqdm(range(len(frames)), desc="gt database", unit="frame", disable=not progress, leave=False):
         f = frames[i]
@@ -253,6 +282,11 @@ def build_or_load_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLik
                 and db.info.get("source") == dict(source or {})
                 and db.info.get("bottom_lift") == float(bottom_lift)):
             return db
+        if progress:
+            from tqdm import tqdm
+
+            tqdm.write(f"{out_dir}: the ground-truth database is stale (the training frames, their source or "
+                       f"the bottom lift changed since it was built); rebuilding it")
     return build_gt_database(frames, out_dir, source=source, bottom_lift=bottom_lift, progress=progress)
 
 

@@ -40,12 +40,15 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM) -> np.ndarray
                                path=path)
     ext = path.suffix.lower()
     if ext == ".npy":
+        if path.stat().st_size == 0:
+            raise DatasetError("the file is empty (0 bytes), as an interrupted copy or a full disk leaves it; "
+                               "copy or re-create it", path=path)
         try:
             arr = np.load(path, allow_pickle=False)
         except ValueError as e:
             raise DatasetError(f"cannot read as .npy ({e}); save points with np.save(path, "
                                f"points.astype(np.float32))", path=path) from None
-        except OSError as e:
+        except (OSError, EOFError) as e:
             raise DatasetError(f"cannot read as .npy ({e}); the file is truncated or not a numpy file; "
                                f"re-create it", path=path) from None
         if arr.ndim != 2 or arr.shape[1] != POINT_DIM:
@@ -77,6 +80,62 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM) -> np.ndarray
 
 # --------------------------------------------------------------------------- labels
 
+def _parse_label_line(s: str, path, lineno: int, known: set | None) -> tuple[list[float], str]:
+    """One stripped, non-comment label line -> (7 values, class name); DatasetError naming file and line."""
+    parts = s.split()
+    if len(parts) != len(LABEL_COLUMNS):
+        raise DatasetError(f"{len(parts)} columns, expected {len(LABEL_COLUMNS)}: "
+                           f"{' '.join(LABEL_COLUMNS)} (got {s!r})", path=path, line=lineno)
+    vals = []
+    for col, tok in zip(LABEL_COLUMNS[:7], parts[:7]):
+        try:
+            v = float(tok)
+        except ValueError:
+            raise DatasetError(f"column {col!r} is {tok!r}, not a number; write a decimal number "
+                               f"(metres or radians)", path=path, line=lineno) from None
+        if not math.isfinite(v):
+            raise DatasetError(f"column {col!r} is {tok}; label values must be finite", path=path, line=lineno)
+        vals.append(v)
+    for col, v in zip(("dx", "dy", "dz"), vals[3:6]):
+        if v < 0:
+            raise DatasetError(f"size {col} is {v:g}; box sizes must be >= 0 metres (dx length, dy width, "
+                               f"dz height)", path=path, line=lineno)
+    name = parts[7]
+    try:
+        float(name)
+        is_number = True
+    except ValueError:
+        is_number = False
+    if is_number:
+        raise DatasetError(f"class is {name!r}, a number; the 8th column is the class name "
+                           f"(e.g. car); check the column order x y z dx dy dz heading class",
+                           path=path, line=lineno)
+    if known is not None and name not in known:
+        raise DatasetError(f"class {name!r} is not in the dataset's classes {sorted(known)}; add it to "
+                           f"'classes' in dataset.json or fix the label", path=path, line=lineno)
+    return vals, name
+
+
+def _label_lines(text: str):
+    """(line number, stripped text) of the lines holding a label (blank and '#' lines skipped)."""
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if s and not s.startswith("#"):
+            yield lineno, s
+
+
+def label_problems(text: str, path: str | os.PathLike = "<labels>", classes=None) -> list[DatasetError]:
+    """Every malformed line of label text (not just the first), each a DatasetError naming file and line."""
+    known = None if classes is None else set(classes)
+    problems = []
+    for lineno, s in _label_lines(text):
+        try:
+            _parse_label_line(s, path, lineno, known)
+        except DatasetError as e:
+            problems.append(e)
+    return problems
+
+
 def parse_labels(text: str, path: str | os.PathLike = "<labels>", classes=None) -> tuple[np.ndarray, np.ndarray]:
     """Parse label text -> (boxes (M, 7) float32, classes (M,) str).
 
@@ -84,47 +143,13 @@ def parse_labels(text: str, path: str | os.PathLike = "<labels>", classes=None) 
     radians; ground frame, z the box centre). Blank lines and lines starting with '#' are
     skipped. Headings beyond +-pi (by more than float32 rounding) are wrapped into
     [-pi, pi). If `classes` is given, every class must
-    be one of them.
+    be one of them. The first malformed line raises DatasetError (`label_problems` lists all).
     """
     rows: list[list[float]] = []
     names: list[str] = []
     known = None if classes is None else set(classes)
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        s = line.strip()
-        if not s or s.startswith("#"):
-            continue
-        parts = s.split()
-        if len(parts) != len(LABEL_COLUMNS):
-            raise DatasetError(f"{len(parts)} columns, expected {len(LABEL_COLUMNS)}: "
-                               f"{' '.join(LABEL_COLUMNS)} (got {s!r})", path=path, line=lineno)
-        vals = []
-        for col, tok in zip(LABEL_COLUMNS[:7], parts[:7]):
-            try:
-                v = float(tok)
-            except ValueError:
-                raise DatasetError(f"column {col!r} is {tok!r}, not a number; write a decimal number "
-                                   f"(metres or radians)", path=path, line=lineno) from None
-            if not math.isfinite(v):
-                raise DatasetError(f"column {col!r} is {tok}; label values must be finite", path=path,
-                                   line=lineno)
-            vals.append(v)
-        for col, v in zip(("dx", "dy", "dz"), vals[3:6]):
-            if v < 0:
-                raise DatasetError(f"size {col} is {v:g}; box sizes must be >= 0 metres (dx length, dy width, "
-                                   f"dz height)", path=path, line=lineno)
-        name = parts[7]
-        try:
-            float(name)
-            is_number = True
-        except ValueError:
-            is_number = False
-        if is_number:
-            raise DatasetError(f"class is {name!r}, a number; the 8th column is the class name "
-                               f"(e.g. car); check the column order x y z dx dy dz heading class",
-                               path=path, line=lineno)
-        if known is not None and name not in known:
-            raise DatasetError(f"class {name!r} is not in the dataset's classes {sorted(known)}; add it to "
-                               f"'classes' in dataset.json or fix the label", path=path, line=lineno)
+    for lineno, s in _label_lines(text):
+        vals, name = _parse_label_line(s, path, lineno, known)
         rows.append(vals)
         names.append(name)
     boxes = np.asarray(rows, dtype=np.float64).reshape(-1, BOX_DIM)
@@ -255,9 +280,13 @@ def read_imageset(path: str | os.PathLike) -> list[str]:
     if not path.is_file():
         raise MissingFileError("split list not found; create ImageSets/train.txt and test.txt with one "
                                "frame id a line (tools/simulate.py writes them)", path=path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise DatasetError("not UTF-8 text; a split list holds one frame id a line", path=path) from None
     ids: list[str] = []
     seen: dict[str, int] = {}
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s:
             continue

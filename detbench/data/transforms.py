@@ -16,6 +16,8 @@ import math
 
 import numpy as np
 
+from detbench.utils.angles import fix_huge
+
 
 def _rot_y(pitch_deg: float) -> np.ndarray:
     a = math.radians(float(pitch_deg))
@@ -70,6 +72,6 @@ def boxes_sensor_to_ground(boxes: np.ndarray, height: float, pitch_deg: float = 
 
 
 def wrap_heading(heading: np.ndarray) -> np.ndarray:
-    """Angles (radians, any shape) wrapped into [-pi, pi)."""
+    """Angles (radians, any shape) wrapped into [-pi, pi), float64; huge angles exactly (detbench.utils.angles)."""
     h = np.asarray(heading, dtype=np.float64)
-    return (h + np.pi) % (2 * np.pi) - np.pi
+    return fix_huge(h, (h + np.pi) % (2 * np.pi) - np.pi)

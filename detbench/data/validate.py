@@ -12,11 +12,13 @@ import os
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 from detbench.data.errors import DatasetError
 from detbench.data.frame import height_key
 from detbench.data.dataset import Height3Dataset, split_ids
 from detbench.data.layout import LABELS_DIR, read_info
+from detbench.data.readers import label_problems
 
 
 @dataclass
@@ -44,13 +46,19 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
     """Read every listed frame at every height (or `heights`, metres) and collect the problems.
 
     Checks dataset.json, ImageSets (duplicates, ids in both splits, a scene in both splits
-    under the by-scene rule), every label, meta and points file (format, values, counts),
-    and warns about label files no split lists. Stops collecting after `max_errors`.
+    under the by-scene rule), every label (every malformed line of it), meta and points file
+    (format, values, counts), and warns about label files no split lists. A file's problem
+    is listed once. Stops collecting after `max_errors`.
     """
     root = Path(root)
     rep = ValidationReport(root=str(root))
+    reported: set[str] = set()  # files already listed (a missing meta file fails the scene check and its frame)
 
     def err(e: Exception | str) -> bool:
+        where = getattr(e, "path", None)
+        if where is not None and getattr(e, "line", None) is None and where in reported:
+            return False
+        reported.add(where)
         rep.errors.append(str(e))
         if len(rep.errors) >= max_errors:
             rep.truncated = True
@@ -112,15 +120,48 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
         iterator = tqdm(ids, desc="validate", unit="frame")
     for fid in iterator:
         for k, ds in datasets.items():
-            try:
-                ds.load(fid)
-            except (DatasetError, FileNotFoundError, ValueError) as e:
-                if err(e):
-                    return rep
-                if isinstance(e, DatasetError) and e.path and Path(e.path).name.startswith(fid) \
-                        and Path(e.path).suffix in (".txt", ".json"):
-                    break  # a shared label/meta problem: reported once, not once per height
+            e = frame_error(ds, fid)
+            if e is None:
+                continue
+            if any(err(p) for p in _every_line(e, ds.info.classes)):
+                return rep
+            if isinstance(e, DatasetError) and e.path and Path(e.path).name.startswith(fid) \
+                    and Path(e.path).suffix in (".txt", ".json"):
+                break  # a shared label/meta problem: reported once, not once per height
     return rep
+
+
+def _every_line(e: Exception, classes) -> list[Exception]:
+    """For an error on a line of a label file, every malformed line of that file; else `[e]`."""
+    if not (isinstance(e, DatasetError) and e.line is not None and e.path and e.path.endswith(".txt")):
+        return [e]
+    try:
+        text = Path(e.path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):
+        return [e]
+    return label_problems(text, e.path, classes) or [e]
+
+
+def frame_error(dataset: Height3Dataset, frame_id: str) -> Exception | None:
+    """Why frame `frame_id` of `dataset` cannot be read (the reader's error naming file and line), or None."""
+    try:
+        dataset.load(frame_id)
+    except (DatasetError, FileNotFoundError, ValueError) as e:
+        return e
+    return None
+
+
+def check_frames(dataset: Height3Dataset, frame_ids: Sequence[str] | None = None) -> None:
+    """Read every frame of `dataset` (or `frame_ids`) once; DatasetError naming the first bad file and the count.
+
+    For a command about to spend long on them (training evaluates them after each epoch).
+    """
+    ids = dataset.frame_ids if frame_ids is None else list(frame_ids)
+    bad = [e for e in (frame_error(dataset, f) for f in ids) if e is not None]
+    if bad:
+        more = f" (and {len(bad) - 1} more frame(s); list them all with python -m detbench.data.validate " \
+               f"{dataset.root})" if len(bad) > 1 else ""
+        raise DatasetError(f"{bad[0]}{more}")
 
 
 def main(argv=None) -> int:

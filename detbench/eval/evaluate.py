@@ -33,6 +33,8 @@ from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 import numpy as np
 from numba import njit, prange
 
+from detbench.config import ConfigError, section_with_defaults, shipped_defaults
+from detbench.data.layout import SPLIT_CHOICES
 from detbench.data.regions import (
     DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
 )
@@ -262,6 +264,35 @@ def _check_threshold(value: float, name: str, low_open: bool) -> float:
         rng = "(0, 1]" if low_open else "[0, 1]"
         raise ValueError(f"{name} must be a number in {rng}, got {value!r}")
     return v
+
+
+EVAL_DEFAULTS: dict[str, Any] = shipped_defaults("eval")  # configs/default.yaml `eval:`, each key documented there
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """The `eval` section of a run config, checked before any training starts (defaults and units:
+    configs/default.yaml)."""
+
+    split: str  # train | test | all
+    iou_threshold: float  # in (0, 1]
+    score_threshold: float  # in [0, 1]
+    max_frames: int  # 0 = all
+
+    @classmethod
+    def from_dict(cls, d: Mapping | None, where: str = "eval") -> "EvalConfig":
+        """Parse the section (missing keys: EVAL_DEFAULTS); ConfigError naming the key on a bad value."""
+        v = section_with_defaults(d, EVAL_DEFAULTS, where)
+        if v["split"] not in SPLIT_CHOICES:
+            raise ConfigError(f"{where}.split must be one of {', '.join(SPLIT_CHOICES)}, got {v['split']!r}")
+        if v["max_frames"] < 0:
+            raise ConfigError(f"{where}.max_frames must be >= 0 (0 = every frame), got {v['max_frames']!r}")
+        try:
+            iou = _check_threshold(v["iou_threshold"], f"{where}.iou_threshold", low_open=True)
+            score = _check_threshold(v["score_threshold"], f"{where}.score_threshold", low_open=False)
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
+        return cls(split=v["split"], iou_threshold=iou, score_threshold=score, max_frames=int(v["max_frames"]))
 
 
 class _Prepared(NamedTuple):
@@ -641,7 +672,7 @@ def format_prediction_lines(boxes: np.ndarray, scores: np.ndarray, class_name: s
 
 
 __all__ = [
-    "EvalFrame", "Predictions", "evaluate", "evaluate_predictions", "eval_frame_from_frame",
+    "EvalConfig", "EVAL_DEFAULTS", "EvalFrame", "Predictions", "evaluate", "evaluate_predictions", "eval_frame_from_frame",
     "ap_r40", "ap_r40_ranked", "extra_key", "parse_prediction_file", "read_prediction_dir",
     "format_prediction_lines", "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS",
     "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",

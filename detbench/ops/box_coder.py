@@ -22,6 +22,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from detbench.utils.angles import HUGE_ANGLE, fix_huge, wrap_exact
+
 __all__ = [
     "limit_period",
     "normalize_heading",
@@ -110,9 +112,28 @@ def normalize_heading(val):
     """Wrap headings (radians) into [-pi, pi); float, numpy array or tensor, same type out.
 
     Guaranteed half-open: pi maps to -pi, and values that rounding pushes just outside the
-    interval are folded back.
+    interval are folded back. Angles of HUGE_ANGLE (65536) rad or more are wrapped exactly in
+    float64 (detbench.utils.angles; the float formula loses every digit there, e.g. 1e30 gives
+    0 instead of 3.1323), then cast to the input's dtype; NaN and inf give NaN.
     """
-    r = limit_period(val, 0.5, TWO_PI)
+    if is_torch(val):
+        return _half_open(_fix_huge_tensor(val, limit_period(val, 0.5, TWO_PI)))
+    if isinstance(val, np.ndarray):
+        return _half_open(fix_huge(val, limit_period(val, 0.5, TWO_PI)).astype(val.dtype, copy=False))
+    return _half_open(limit_period(val, 0.5, TWO_PI) if abs(val) < HUGE_ANGLE else wrap_exact(val))
+
+
+def _fix_huge_tensor(val: torch.Tensor, wrapped: torch.Tensor) -> torch.Tensor:
+    """`wrapped` with the elements where |val| >= HUGE_ANGLE replaced by their exact float64 wrap."""
+    huge = val.detach().abs() >= HUGE_ANGLE
+    if not bool(huge.any()):
+        return wrapped
+    exact = fix_huge(val.detach().cpu().numpy(), wrapped.detach().cpu().numpy().astype(np.float64))
+    return torch.where(huge, torch.as_tensor(exact, device=val.device).to(wrapped.dtype), wrapped)
+
+
+def _half_open(r):
+    """Fold values that rounding left at -pi - eps or at pi back into [-pi, pi)."""
     if is_torch(r):
         r = torch.where(r < -math.pi, r + TWO_PI, r)
         return torch.where(r >= math.pi, r - TWO_PI, r)

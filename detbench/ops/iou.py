@@ -29,7 +29,9 @@ apart are skipped (one `nonzero`, i.e. one host sync per call), the rest are pro
 chunks to bound memory; it computes in the output dtype and autograd flows through it
 (the vertex selection is piecewise constant). CPU tensors without grad take the numba
 kernels (float64, then cast), which are much faster on the CPU. Negative sizes are
-clamped to 0 on the torch paths (no host sync to check them).
+clamped to 0 on the torch paths (no host sync to check them). A NaN or inf box raises the
+numpy path's ValueError for CPU tensors too; on other devices (no host sync) every IoU of
+such a box is NaN, never a silent 0.
 
 Numba-callable kernels for other njit code: `iou3d_pair_nb(a, b)`, `iou_bev_pair_nb(a, b)`,
 `overlap_bev_pair_nb(a, b)` on 1-D float64 arrays of >= 7 values, and
@@ -403,12 +405,34 @@ def _cpu_boxes(t: torch.Tensor) -> np.ndarray:
 # ----------------------------------------------------------------------------------------
 # public API
 # ----------------------------------------------------------------------------------------
+def _nonfinite_error(func: str, name: str, row: int, box) -> ValueError:
+    return ValueError(f"{func}: `{name}` row {row} contains NaN or inf ({box.tolist()}); "
+                      f"drop or fix non-finite boxes first")
+
+
+def _check_finite_tensor(t: torch.Tensor, func: str, name: str) -> None:
+    """The numpy path's ValueError for a CPU tensor holding a non-finite box (checking costs no sync there)."""
+    if t.device.type != "cpu":
+        return
+    bad = ~torch.isfinite(t[:, :7]).all(dim=1)
+    if bool(bad.any()):
+        row = int(bad.nonzero()[0, 0])
+        raise _nonfinite_error(func, name, row, t[row].detach())
+
+
+def _nan_where_nonfinite(values: torch.Tensor, a: torch.Tensor, b: torch.Tensor, pairwise: bool) -> torch.Tensor:
+    """`values` with NaN wherever box a or b is not finite (the device-side rule: no host sync)."""
+    bad_a = ~torch.isfinite(a[:, :7]).all(dim=1)
+    bad_b = ~torch.isfinite(b[:, :7]).all(dim=1)
+    bad = bad_a[:, None] | bad_b[None, :] if pairwise else bad_a | bad_b
+    return values.masked_fill(bad, float("nan"))
+
+
 def _numpy_boxes(boxes: np.ndarray, func: str, name: str) -> np.ndarray:
     b = np.ascontiguousarray(boxes[:, :7], dtype=np.float64)
     if b.size and not np.isfinite(b).all():
         bad = int(np.nonzero(~np.isfinite(b).all(axis=1))[0][0])
-        raise ValueError(f"{func}: `{name}` row {bad} contains NaN or inf ({boxes[bad].tolist()}); "
-                         f"drop or fix non-finite boxes first")
+        raise _nonfinite_error(func, name, bad, boxes[bad])
     if b.size and (b[:, 3:6] < 0).any():
         bad = int(np.nonzero((b[:, 3:6] < 0).any(axis=1))[0][0])
         raise ValueError(f"{func}: `{name}` row {bad} has a negative size dx, dy or dz "
@@ -426,6 +450,8 @@ def _prepare(a, b, func: str):
             b = torch.as_tensor(np.asarray(b), device=a.device)
         if a.device != b.device:
             raise ValueError(f"{func}: a is on {a.device} but b on {b.device}; move them to one device")
+        _check_finite_tensor(a, func, "a")
+        _check_finite_tensor(b, func, "b")
         return a, b, True
     return _numpy_boxes(a, func, "a"), _numpy_boxes(b, func, "b"), False
 
@@ -434,7 +460,7 @@ def _matrix(a, b, mode: int, func: str):
     a, b, torch_path = _prepare(a, b, func)
     if torch_path:
         if not _numba_for_torch(a, b):
-            return _torch_matrix(a, b, mode)
+            return _nan_where_nonfinite(_torch_matrix(a, b, mode), a, b, pairwise=True)
         dt = float_dtype_torch(a, b)
         return torch.from_numpy(_numpy_matrix(_cpu_boxes(a), _cpu_boxes(b), mode)).to(dt)
     return _numpy_matrix(a, b, mode)
@@ -491,7 +517,7 @@ def _aligned_values(a, b, mode: int, func: str):
             return torch.from_numpy(_aligned(_cpu_boxes(a), _cpu_boxes(b), mode)).to(dt)
         out = [_torch_pair_values(a[s:s + _TORCH_CHUNK_PAIRS, :7].to(dt), b[s:s + _TORCH_CHUNK_PAIRS, :7].to(dt), mode)
                for s in range(0, a.shape[0], _TORCH_CHUNK_PAIRS)]
-        return torch.cat(out)
+        return _nan_where_nonfinite(torch.cat(out), a, b, pairwise=False)
     return _aligned(a, b, mode)
 
 

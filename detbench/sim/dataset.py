@@ -6,8 +6,9 @@ into a `DatasetWriter`. `default_dataset` is what every command uses when no `--
 given: the dataset described by a config's `data:` section, generated once into a cache
 folder named by a digest of everything that shapes it (preset, overrides, frames, scene
 length, heights, seed, split) and reused afterwards. Generation goes to a temporary folder
-that is renamed into place when complete, so an interrupted run never leaves a half
-dataset that later runs would trust.
+`.tmp-sim-...-<pid>` that is renamed into place when complete, so an interrupted run never
+leaves a half dataset that later runs would trust; a failed generation (a full disk) removes
+its folder, and one whose process was killed is removed by the next `default_dataset` call.
 """
 from __future__ import annotations
 
@@ -107,6 +108,25 @@ def dataset_digest(data_cfg: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def remove_abandoned_builds(cache: Path) -> list[Path]:
+    """Delete the `.tmp-sim-*-<pid>` folders in `cache` whose generating process no longer runs."""
+    doomed = [d for d in cache.glob(".tmp-sim-*-*") if d.is_dir() and d.name.rsplit("-", 1)[-1].isdigit()
+              and not _process_alive(int(d.name.rsplit("-", 1)[-1]))]
+    for d in doomed:
+        shutil.rmtree(d, ignore_errors=True)
+    return doomed
+
+
 def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path:
     """The dataset a command runs on: `data_cfg["root"]` if set, else the cached simulated one.
 
@@ -125,16 +145,21 @@ def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path
     final = cache_root(cfg["cache_dir"]) / name
     if (final / "dataset.json").is_file():
         return final
+    remove_abandoned_builds(final.parent)
     tmp = final.parent / f".tmp-{name}-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)
     if progress:
         tqdm.write(f"simulating the default dataset once into {final} ({cfg['frames']} frames x "
                    f"{len(cfg['heights'])} heights; later runs reuse it)")
-    simulate_dataset(tmp, frames=int(cfg["frames"]), heights=cfg["heights"], seed=int(cfg["seed"]),
-                     preset=cfg["sim_preset"], overrides=cfg["sim_overrides"],
-                     frames_per_scene=cfg["frames_per_scene"], test_fraction=float(cfg["test_fraction"]),
-                     progress=progress)
+    try:
+        simulate_dataset(tmp, frames=int(cfg["frames"]), heights=cfg["heights"], seed=int(cfg["seed"]),
+                         preset=cfg["sim_preset"], overrides=cfg["sim_overrides"],
+                         frames_per_scene=cfg["frames_per_scene"], test_fraction=float(cfg["test_fraction"]),
+                         progress=progress)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     try:
         os.replace(tmp, final)
     except OSError:

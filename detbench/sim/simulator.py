@@ -181,12 +181,22 @@ def _mix64(*vals: int) -> int:
     return z
 
 
+def _seed64(seed: int) -> int:
+    """`seed` itself below 2**64 (the ray-noise keys of every such seed stay as they were), else a
+    64-bit hash of all its 64-bit words, so 2**64 does not repeat seed 0's noise."""
+    if seed < 2**64:
+        return seed
+    words = [(seed >> s) & (2**64 - 1) for s in range(0, seed.bit_length(), 64)]
+    return _mix64(len(words), *words)
+
+
 # ---------------------------------------------------------------------------- simulator
 class HighwaySimulator:
     """Highway scenes seen by LiDARs (see the module doc).
 
     config: a dict like `load_sim_config()` returns (checked again here);
-    seed: any integer; the same (config, seed) gives byte-identical frames.
+    seed: any integer >= 0, however large (every bit of it seeds the scenes); the same
+    (config, seed) gives byte-identical frames.
     """
 
     def __init__(self, config: dict, seed: int):
@@ -195,6 +205,8 @@ class HighwaySimulator:
                               f"{type(config).__name__}")
         check_sim_config(config)
         self.config = copy.deepcopy(config)
+        if isinstance(seed, bool) or int(seed) != seed or seed < 0:
+            raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
         self.seed = int(seed)
         r = self.config["road"]
         self.layout = RoadLayout(int(r["lanes_per_direction"]), float(r["lane_width_m"]), float(r["median_width_m"]),
@@ -232,7 +244,7 @@ class HighwaySimulator:
     def _scene(self, scene: int, n_frames: int, fps: int, lidars: list[LidarConfig], with_points: bool):
         cfg = self.config
         sc, rd, tr, out = cfg["scene"], cfg["road"], cfg["traffic"], cfg["output"]
-        rng = np.random.default_rng(np.random.SeedSequence([self.seed & (2**63 - 1), scene, 1]))
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, scene, 1]))  # takes big integers whole
         t0 = time.perf_counter()
         rate = float(sc["frame_rate_hz"])
         dt_frame = 1.0 / rate
@@ -269,7 +281,7 @@ class HighwaySimulator:
             self._add_time("transform", time.perf_counter() - t0)
             frames = []
             for lidar, lkey in zip(lidars, keys):
-                key = _mix64(self.seed, scene, index, lkey)
+                key = _mix64(_seed64(self.seed), scene, index, lkey)
                 res = cast_lidar(lidar, objects, key=key, with_points=with_points,
                                  bottom_lift=float(out["count_bottom_lift_m"]),
                                  ground_reflectivity=float(out["ground_reflectivity"]), timings=self.timings)

@@ -35,7 +35,8 @@ from detbench.utils.io import atomic_save
 
 __all__ = [
     "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
-    "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "config_diff",
+    "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "check_finite_weights",
+    "config_diff",
 ]
 
 CKPT_FORMAT = "detbench-checkpoint"
@@ -148,13 +149,14 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
-        if "weights_only" in str(e) or "Weights only" in str(e):
+        if "GLOBAL" in str(e) or "global" in str(e):  # a pickled class or function; random bytes fail otherwise
             raise CheckpointError(
                 f"{path}: holds Python objects that safe loading (weights_only=True) refuses, so it was not "
                 f"written by detbench; pass a checkpoint from tools/train.py (OUT/checkpoints/*.pt)") from None
-        raise CheckpointError(_damaged(path, e)) from None
+        raise CheckpointError(_damaged(path, "UnpicklingError: not a torch checkpoint")) from None
     except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile, KeyError, IndexError) as e:
-        raise CheckpointError(_damaged(path, e)) from None
+        detail = str(e).splitlines()[0] if str(e) else "the file is empty or cut short"
+        raise CheckpointError(_damaged(path, f"{type(e).__name__}: {detail}")) from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != CKPT_FORMAT:
         keys = sorted(map(str, ckpt))[:8] if isinstance(ckpt, dict) else type(ckpt).__name__
         raise CheckpointError(f"{path}: not a detbench checkpoint (found {keys}); pass a checkpoint written by "
@@ -185,16 +187,30 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
     return ckpt
 
 
-def _damaged(path: Path, e: BaseException) -> str:
+def _damaged(path: Path, what: str) -> str:
     older = [p.name for p in CheckpointManager(path.parent).list() if p != path]
     hint = (f"delete it to resume from the previous one ({older[-1]}) or start a new run" if older
-            else "delete it and start a new run")
-    return (f"{path}: cannot read this checkpoint ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}); "
-            f"the file is damaged or truncated (e.g. a copy that stopped half-way); {hint}")
+            else "pass a checkpoint written by tools/train.py (OUT/checkpoints/*.pt), or delete this one and "
+                 "train again")
+    return (f"{path}: cannot read this checkpoint ({what}); "
+            f"the file is damaged or truncated (e.g. a copy that stopped half-way) or not a checkpoint at all; "
+            f"{hint}")
+
+
+def check_finite_weights(state_dict: Mapping[str, Any], path: str | os.PathLike = "<checkpoint>") -> None:
+    """CheckpointError naming the file and the first tensor holding NaN or inf (a run that diverged)."""
+    for name, t in state_dict.items():
+        if isinstance(t, torch.Tensor) and t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            bad = int((~torch.isfinite(t)).sum())
+            raise CheckpointError(f"{path}: weight {name!r} holds {bad} NaN or inf value(s) of {t.numel()}; the run "
+                                  f"diverged before this checkpoint was written; use an earlier checkpoint of the "
+                                  f"run, or train again with a lower train.lr")
 
 
 def load_model_weights(model: nn.Module, ckpt: Mapping, path: str | os.PathLike = "<checkpoint>") -> None:
-    """`model.load_state_dict(ckpt["model"])` with an error naming the file if the weights do not fit."""
+    """`model.load_state_dict(ckpt["model"])` with an error naming the file if the weights do not fit
+    or are not finite."""
+    check_finite_weights(ckpt["model"], path)
     try:
         unwrap_model(model).load_state_dict(ckpt["model"])
     except RuntimeError as e:

@@ -1,7 +1,14 @@
-"""Run a detector over frames: the one prediction path of evaluation, the study and benchmarks."""
+"""Run a detector over frames: the one prediction path of evaluation, the study and benchmarks.
+
+Non-finite model outputs are never dropped silently: post-processing leaves NaN / inf boxes
+out of the detections, so a model with broken weights would look merely untrained;
+`predict_frames` counts them in the raw outputs and raises `NonFiniteOutputError` naming
+the frames.
+"""
 from __future__ import annotations
 
-from typing import Sequence
+import dataclasses
+from typing import Any, Sequence
 
 import numpy as np
 import torch
@@ -20,6 +27,24 @@ def frame_sample(frame: Frame, point_cloud_range: Sequence[float]) -> Sample:
     return Sample(np.ascontiguousarray(points), np.zeros((0, 7), np.float32), frame.frame_id)
 
 
+class NonFiniteOutputError(FloatingPointError):
+    """The model's outputs held NaN or inf for some frames (broken weights or a diverged run)."""
+
+
+def count_nonfinite(outputs: Any) -> int:
+    """NaN / inf values in the floating-point tensors of a model's outputs (dataclasses, named tuples,
+    dicts and sequences are searched)."""
+    if isinstance(outputs, torch.Tensor):
+        return int((~torch.isfinite(outputs)).sum()) if outputs.is_floating_point() else 0
+    if dataclasses.is_dataclass(outputs) and not isinstance(outputs, type):
+        outputs = [getattr(outputs, f.name) for f in dataclasses.fields(outputs)]
+    elif isinstance(outputs, dict):
+        outputs = list(outputs.values())
+    if isinstance(outputs, (list, tuple)):
+        return sum(count_nonfinite(o) for o in outputs)
+    return 0
+
+
 @torch.no_grad()
 def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range: Sequence[float],
                    device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = True,
@@ -28,17 +53,22 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
 
     `frames` is any sequence of Frames (e.g. a Height3Dataset split). The model follows the
     detector contract (`Detector`, detbench/train/detector.py). The model's train/eval mode is restored.
+    Raises NonFiniteOutputError when the model's outputs hold NaN or inf for any frame.
     """
     was_training = model.training
     model.eval()
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     n = len(frames)
     bar = tqdm(total=n, desc=desc, unit="frame", disable=not progress, leave=False, dynamic_ncols=True)
+    bad: list[str] = []  # frames of batches whose outputs were not finite
     try:
         for start in range(0, n, batch_size):
             samples = [frame_sample(frames[i], point_cloud_range) for i in range(start, min(n, start + batch_size))]
             batch = collate(samples).to(device)
-            dets = model.predict(model(batch), batch)
+            outputs = model(batch)
+            if count_nonfinite(outputs):
+                bad.extend(s.frame_id for s in samples)
+            dets = model.predict(outputs, batch)
             for s, d in zip(samples, dets):
                 boxes, scores, _ = d.numpy()
                 out[s.frame_id] = (boxes, scores)
@@ -46,4 +76,8 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
     finally:
         bar.close()
         model.train(was_training)
+    if bad:
+        raise NonFiniteOutputError(f"the model's outputs hold NaN or inf in the batches of {len(bad)} of {n} "
+                                   f"frames (e.g. {', '.join(bad[:3])}); its weights are broken or the run "
+                                   f"diverged: use an earlier checkpoint, or train again with a lower train.lr")
     return out

@@ -135,9 +135,20 @@ class TrainLogger:
         if not self.enabled:
             return
         self.history.append(dict(record))
+        self._write()
+
+    def _write(self) -> None:
         atomic_write_json(self.out_dir / "history.json", {"epochs": self.history})
         if self.writer is not None:
             self.writer.flush()
+
+    def set_last_metrics(self, metrics: Mapping[str, float]) -> None:
+        """Fill the newest epoch record's evaluation metrics (computed after its checkpoint) and rewrite
+        OUT/history.json."""
+        if not self.enabled or not self.history or not metrics:
+            return
+        self.history[-1]["metrics"] = dict(metrics)
+        self._write()
 
     def close(self) -> None:
         if self.writer is not None:

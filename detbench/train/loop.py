@@ -12,8 +12,10 @@ backward, clip, optimizer and schedule; logging, mid-epoch checkpoints, the stop
 `_end_epoch` (averaged losses, checkpoint, evaluation, logs). `_Run` carries the run's
 objects and its advancing `TrainState` between them.
 
-Outputs in `out_dir`: checkpoints/epoch_EEE.pt (last `keep_checkpoints` kept),
-tensorboard/ (event files), history.json (one record per epoch).
+Outputs in `out_dir`: config.yaml (the run config, written once the run is accepted: a
+refused start or resume changes no file), checkpoints/epoch_EEE.pt (last `keep_checkpoints`
+kept), tensorboard/ (event files), history.json (one record per epoch, written before the
+epoch's checkpoint, so a kill at any point loses no completed epoch's line).
 """
 from __future__ import annotations
 
@@ -31,21 +33,23 @@ from torch.utils.data import DataLoader, Sampler
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from detbench.config import ConfigError, shipped_defaults, validate
+from detbench.config import ConfigError, dump, section_with_defaults, shipped_defaults
 from detbench.data.batch import Batch, Sample, collate
 from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
 from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buffers, wrap_model
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
 from detbench.train.seed import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
-from detbench.utils.io import read_json
+from detbench.utils.io import atomic_write_text, read_json, remove_stale_temporaries
 
-__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "TrainConfig", "TrainResult", "train"]
+__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "RESUME_IGNORE_KEYS", "TrainConfig", "TrainResult", "train"]
 
 TRAIN_DEFAULTS: dict[str, Any] = shipped_defaults("train")  # configs/default.yaml `train:`, each key documented there
 # train.* keys that may change between an interrupted run and its resume (they do not change results)
 RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
                     "checkpoint_every_steps")
+# dotted config keys `train` lets differ on resume: those above, and the eval section (it measures, never trains)
+RESUME_IGNORE_KEYS = (*(f"train.{k}" for k in RESUME_SAFE_KEYS), "eval")
 
 
 @dataclass(frozen=True)
@@ -77,14 +81,8 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
         """Parse the `train` section (missing keys: TRAIN_DEFAULTS); ConfigError on unknown keys or bad values."""
-        d = dict(d or {})
-        validate(d, TRAIN_DEFAULTS, where=where)
-        v = {**TRAIN_DEFAULTS, **d}
-        try:
-            cfg = cls(**{f.name: _as_field_type(f.type, v[f.name]) for f in fields(cls)})
-        except (TypeError, ValueError, IndexError) as e:
-            raise ConfigError(f"{where}: a value has the wrong type ({e}); see the train section of "
-                              f"configs/default.yaml for each key's type") from None
+        v = section_with_defaults(d, TRAIN_DEFAULTS, where)
+        cfg = cls(**{f.name: _as_field_type(f.type, v[f.name], f"{where}.{f.name}") for f in fields(cls)})
         checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
                   ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
                   ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
@@ -98,11 +96,13 @@ class TrainConfig:
         return cfg
 
 
-def _as_field_type(annotation: str, value: Any) -> Any:
-    """A YAML value converted to a TrainConfig field's type, named by its annotation string."""
-    if annotation == "tuple[float, float]":
-        return float(value[0]), float(value[1])
-    return {"int": int, "float": float, "bool": bool}[annotation](value)
+def _as_field_type(annotation: str, value: Any, key: str) -> Any:
+    """A YAML value (of its default's kind, `validate`d) as a TrainConfig field's type, named by its annotation."""
+    if annotation != "tuple[float, float]":
+        return {"int": int, "float": float, "bool": bool}[annotation](value)
+    if len(value) != 2:  # `validate` made it a list of numbers
+        raise ConfigError(f"{key} must be a list of two numbers, e.g. [0.9, 0.99], got {value!r}")
+    return float(value[0]), float(value[1])
 
 
 @dataclass
@@ -215,7 +215,7 @@ def _any_rank(flags: list[bool], info: DistInfo) -> list[bool]:
 def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *, model_name: str,
           run_config: Mapping, data_info: Mapping, dist_info: DistInfo | None = None, resume: bool = False,
           eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None = None, preview: Sample | None = None,
-          resume_ignore_keys: Iterable[str] = tuple(f"train.{k}" for k in RESUME_SAFE_KEYS),
+          resume_ignore_keys: Iterable[str] = RESUME_IGNORE_KEYS,
           resume_hint: str = "run the same command again with --resume", progress: bool = True) -> TrainResult:
     """Train `model` on `train_set`, or resume the run in `out_dir`.
 
@@ -341,6 +341,9 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     if resume:
         state, last_ckpt, history = _resume(ckpts, cfg, info, out_dir, meta, resume_ignore_keys, model=core,
                                             optimizer=optimizer, scheduler=scheduler, scaler=scaler)
+    if info.is_main:  # the run is accepted: from here on it may write
+        remove_stale_temporaries(ckpts.directory)  # checkpoints a killed run was writing
+        atomic_write_text(out_dir / "config.yaml", dump(run_config))
     ddp_model = wrap_model(core, info, cfg.find_unused_parameters)
     logger = TrainLogger(out_dir, enabled=info.is_main, tensorboard=cfg.tensorboard,
                          purge_step=state.global_step + 1 if last_ckpt is not None else None)
@@ -432,8 +435,9 @@ def _train_epoch(run: _Run, epoch: int, stop: _StopRequest, progress: bool) -> _
         if nonfinite:
             raise FloatingPointError(
                 f"loss is not finite at epoch {epoch + 1}, step {run.state.step_in_epoch} (frames "
-                f"{batch.frame_ids}; parts {values}); the last good checkpoint is {run.ckpts.latest()}. Lower "
-                f"train.lr or train.grad_clip, or check those frames")
+                f"{batch.frame_ids}; parts {values}); the last good checkpoint is "
+                f"{run.ckpts.latest() or 'none (no checkpoint was written yet)'}. Lower train.lr or "
+                f"train.grad_clip, or check those frames")
         at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
         if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
                                               and run.state.global_step % cfg.checkpoint_every_steps == 0)):
@@ -455,26 +459,37 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
     seconds = time.perf_counter() - ep.t0
     frames_all = int(reduce_mean({"f": ep.n_frames}, info)["f"] * info.world_size)
     sync_buffers(core, info)  # every rank ends the epoch with the same BatchNorm statistics
+    step, lr = run.state.global_step, ep.lr
+    # the epoch's line goes to history.json before its checkpoint: a kill during the (long) evaluation
+    # then loses only the metrics, and a kill before the checkpoint replays the epoch and its line
+    run.logger.add_epoch({"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
+                          "frames": frames_all, "losses": losses, "metrics": {},
+                          "checkpoint": run.ckpts.name_for(run.state)})
     run.last_ckpt = run.save(run.state) or run.last_ckpt
     if info.is_main:
-        metrics: dict[str, float] = {}
-        rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
-        if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
-            core.eval()
-            with torch.no_grad():
-                metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
-        if cfg.bev_image and run.logger.writer is not None and run.preview is not None:
-            _log_preview(core, run.preview, run.train_set, run.logger, epoch + 1, run.state.global_step, info.device)
-        restore_rng_state(rng_before)
-        core.train()
-        step, lr = run.state.global_step, ep.lr
+        metrics = _evaluate(run, epoch, eval_fn)
         run.logger.scalars({**losses, "lr": lr, "seconds": seconds, "epoch": epoch + 1}, step, prefix="epoch/")
         run.logger.scalars(metrics, step, prefix="eval/")
-        run.logger.add_epoch({"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
-                              "frames": frames_all, "losses": losses, "metrics": metrics,
-                              "checkpoint": run.last_ckpt.name if run.last_ckpt else None})
+        run.logger.set_last_metrics(metrics)
         tqdm.write(format_epoch_summary(epoch + 1, cfg.epochs, losses, lr, seconds, frames_all, metrics))
     barrier(info)
+
+
+def _evaluate(run: _Run, epoch: int, eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None
+              ) -> dict[str, float]:
+    """The epoch's evaluation metrics (when due) and preview image; the training's random stream is untouched."""
+    cfg, core = run.cfg, run.core
+    metrics: dict[str, float] = {}
+    rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
+    if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+        core.eval()
+        with torch.no_grad():
+            metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
+    if cfg.bev_image and run.logger.writer is not None and run.preview is not None:
+        _log_preview(core, run.preview, run.train_set, run.logger, epoch + 1, run.state.global_step, run.info.device)
+    restore_rng_state(rng_before)
+    core.train()
+    return metrics
 
 
 def _log_preview(model: nn.Module, preview: Sample, train_set, logger: TrainLogger, epoch: int, step: int,

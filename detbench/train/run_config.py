@@ -16,6 +16,7 @@ from typing import Sequence
 
 from detbench.config import CONFIG_DIR, ConfigError, apply_overrides, deep_merge, load_config, validate
 from detbench.data.augment import AugmentConfig
+from detbench.eval.evaluate import EvalConfig
 from detbench.train.loop import TrainConfig
 
 PRESETS = ("smoke", "cpu", "paper")
@@ -51,4 +52,5 @@ def load_run_config(model: str | None = None, preset: str | None = None, config:
     cfg["preset"] = preset
     TrainConfig.from_dict(cfg.get("train"), where="train")  # type and range checks, early
     AugmentConfig.from_dict(cfg.get("augment"), where="augment")
+    EvalConfig.from_dict(cfg.get("eval"), where="eval")  # before training, not after its first epoch
     return cfg

@@ -3,13 +3,17 @@
 Every writer goes to a temporary file in the destination folder, flushes and fsyncs it,
 then renames it over the target (an atomic operation on POSIX and on Windows for files on
 the same volume). An interrupted write leaves the old file intact and at most a stray
-`.tmp-*` file behind.
+`.tmp-*` file behind (a process killed mid-write cannot remove it; `remove_stale_temporaries`
+does, at the next start). A write that fails because the disk or the file-size limit is
+full raises `DiskFullError` naming the file, never the writer's own obscure error.
 """
 from __future__ import annotations
 
+import errno
 import json
 import math
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -23,6 +27,58 @@ def _current_umask() -> int:
 
 
 _UMASK = _current_umask()
+_FULL_ERRNOS = {errno.ENOSPC, errno.EFBIG, getattr(errno, "EDQUOT", errno.ENOSPC)}
+_LOW_SPACE = 1 << 20  # bytes: a write that fails with less free than this failed for lack of space
+
+
+class DiskFullError(OSError):
+    """A write failed because the disk, the quota or the file-size limit is full; names the file."""
+
+
+def _full_reason(exc: BaseException, tmp: Path) -> str | None:
+    """Why writing `tmp` failed when it is for lack of space (errno anywhere in the chain, little
+    free space left, or the file reached the process's file-size limit), else None."""
+    e: BaseException | None = exc
+    while e is not None:
+        if isinstance(e, OSError) and e.errno in _FULL_ERRNOS:
+            return os.strerror(e.errno)
+        e = e.__cause__ or e.__context__
+    if not isinstance(exc, (OSError, RuntimeError)):
+        return None
+    if shutil.disk_usage(tmp.parent).free < _LOW_SPACE:
+        return os.strerror(errno.ENOSPC)
+    try:
+        import resource
+
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    except (ImportError, OSError, ValueError):  # pragma: no cover - not POSIX
+        return None
+    if limit != resource.RLIM_INFINITY and tmp.is_file() and tmp.stat().st_size >= limit:
+        return f"{os.strerror(errno.EFBIG)} (the file-size limit, ulimit -f, is {limit} bytes)"
+    return None
+
+
+def _disk_full(exc: BaseException, path: Path, tmp: Path) -> DiskFullError | None:
+    reason = _full_reason(exc, tmp)
+    if reason is None:
+        return None
+    free = shutil.disk_usage(path.parent).free / 2**20
+    err = DiskFullError(f"{path}: could not be written: {reason} ({free:.0f} MiB free in {path.parent}); free "
+                        f"some space (or raise the limit) and run the same command again; any previous version "
+                        f"of the file is unchanged")
+    err.errno = errno.ENOSPC
+    return err
+
+
+def remove_stale_temporaries(directory: str | os.PathLike, pattern: str = ".tmp-*") -> list[Path]:
+    """Delete the leftover temporary files of writes that a killed process never finished."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    stale = [p for p in directory.glob(pattern) if p.is_file()]
+    for p in stale:
+        p.unlink(missing_ok=True)
+    return stale
 
 
 @contextmanager
@@ -39,8 +95,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with open(tmp_path, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as e:
+        full = _disk_full(e, path, tmp_path)
         tmp_path.unlink(missing_ok=True)
+        if full is not None:
+            raise full from None
         raise
 
 
@@ -105,3 +164,6 @@ def read_json(path: str | os.PathLike) -> Any:
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); "
                          f"re-create it or fix the file") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text (byte {e.start} cannot be decoded), so not JSON; re-create it "
+                         f"or fix the file") from None
