@@ -8,9 +8,10 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 os.environ.setdefault("NUMBA_NUM_THREADS", "2")
-# OpenMP threads sleep instead of spinning while they wait: on a busy 2-core machine spinning
-# threads starve each other (measured 10x slower test runs), on an idle one it costs nothing.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Before any test module imports torch or numba: the library's thread-runtime defaults
+# (detbench/runtime.py: thread counts and a short OpenMP spin, so a busy machine does not
+# slow the tests several-fold).
+import detbench  # noqa: E402,F401
 
 
 def pytest_addoption(parser):

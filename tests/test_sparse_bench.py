@@ -70,3 +70,15 @@ def test_full_run_writes_reports(tmp_path, bench):
     assert data["spconv"] == "not installed" or isinstance(data["spconv"], dict)
     assert all(c["ms"] > 0 for c in data["cases"])
     assert (tmp_path / "bench_sparse.md").read_text().startswith("# Sparse convolution benchmark")
+
+
+def test_markdown_report_idle_and_loaded(bench):
+    r = {"source": "synthetic", "scans": 1, "points": [10], "voxel_size_m": [0.1, 0.1, 0.15],
+         "range_m": [0, -15, -1, 150, 15, 4], "grid_xyz": [1500, 300, 33], "spatial_shape_zyx": [34, 300, 1500],
+         "active_sites": 5, "device": "cpu", "threads": 2, "torch": "x", "repeats": 1, "flop_convention": "2/MAC",
+         "spconv": "not installed", "load": {"processes": 1, "busy_cores_used": 0.9, "wall_s": 3.0},
+         "cases": [{"case": "a", "ms": 1.0, "ms_best": 1.0, "loaded_ms": 2.5, "loaded_ms_best": 2.0,
+                    "loaded_ratio": 2.5, "sites": 5}]}
+    md = bench.markdown(r)
+    assert "| case | median ms | best ms | loaded median ms | x idle |" in md
+    assert "| a | 1.00 | 1.00 | 2.50 | 2.50 |  | sites=5 |" in md and "1 busy-loop process" in md

@@ -24,7 +24,7 @@ def run(args, cwd=ROOT):
 
 
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
-def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model):
+def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, load_tool, capsys):
     out = tmp_path / "run"
     run(["tools/train.py", "--model", model, "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset),
          "--out", str(out), "--epochs", "1", "--no-progress", "--set", "train.tensorboard=false"])
@@ -41,12 +41,28 @@ def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model):
     run(["tools/eval.py", "--ckpt", str(ckpt), "--out", str(tmp_path / "e18"), "--no-progress"])
     rep = json.loads((tmp_path / "e18" / "report.json").read_text())
     assert rep["model"] == model and rep["height"] == 1.8 and rep["trained_height"] == 1.8
+    assert rep["stage"] == "refined"
     assert rep["num_frames"] == 3 and set(rep["results"]) == {"small", "moderate", "large"}
     assert len(list((tmp_path / "e18" / "pred").glob("*.txt"))) == 3
     run(["tools/eval.py", "--ckpt", str(ckpt), "--test-height", "0.5", "--out", str(tmp_path / "e05"),
          "--no-progress"])
     rep = json.loads((tmp_path / "e05" / "report.json").read_text())
     assert rep["height"] == 0.5 and rep["trained_height"] == 1.8
+    # --stage proposals (in process, on the same checkpoint): the first stage alone of a two-stage
+    # model; a one-stage model has no such stage and is refused before anything is written
+    out_p = tmp_path / "e18_proposals"
+    rc = load_tool("eval").main(["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p), "--no-progress"])
+    err = capsys.readouterr().err
+    if model in ("pointrcnn", "ct3d"):
+        assert rc == 0, err
+        rep = json.loads((out_p / "report.json").read_text())
+        assert (rep["model"], rep["stage"], rep["height"], rep["trained_height"]) == (model, "proposals", 1.8, 1.8)
+        assert rep["num_frames"] == 3 and set(rep["results"]) == {"small", "moderate", "large"}
+        assert len(list((out_p / "pred").glob("*.txt"))) == 3
+        assert "proposals of the first stage alone" in (out_p / "report.md").read_text()
+    else:
+        assert rc == 2 and "--stage proposals" in err and f"{model} is a one-stage detector" in err
+        assert not out_p.exists()
 
 
 def test_train_rejects_unknown_config_key(tiny_dataset, tmp_path):
@@ -68,3 +84,13 @@ def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
         assert 0 < sum(stages) <= lat["total"] * 1.05  # the stage split accounts for (nearly) all the time
     md = (tmp_path / "b" / "benchmark.md").read_text()
     assert "ms" in md and "MiB" in md
+
+
+def test_benchmark_idle_and_loaded_table(load_tool):
+    bench = load_tool("benchmark")
+    idle = {"model": "second", "device": "cpu", "latency_ms": {"total": 100.0, "points": 5.0}, "train_step_ms": 400.0}
+    loaded = {"latency_ms": {"total": 150.0, "points": 5.0}, "train_step_ms": 800.0}
+    idle["loaded"] = bench._loaded_figures(idle, loaded, {"processes": 1})
+    assert idle["loaded"]["ratio"] == {"total": 1.5, "train_step": 2.0}
+    md = "\n".join(bench._idle_loaded_markdown([idle]))
+    assert "| second | cpu | 100.0 | 150.0 | 1.5 | 400.0 | 800.0 | 2.0 |" in md and "1 busy-loop process" in md

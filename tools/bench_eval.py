@@ -27,6 +27,8 @@ from pathlib import Path
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before numba starts)
+
 
 def build_parser() -> argparse.ArgumentParser:
     """The command-line options (see --help)."""

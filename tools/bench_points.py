@@ -9,7 +9,7 @@ or cache loading is excluded), per call on the whole batch of --frames scans:
   - the four feature-propagation levels back to --points (three_nn_interpolate, C channels);
   - RoI point pooling of --rois car-sized RoIs per scan (512 points, 1.0 m extra, C features).
 The load average of the machine is recorded before and after (the machine may be shared);
-OMP_WAIT_POLICY defaults to PASSIVE here (set it in the environment to measure otherwise).
+OMP_WAIT_POLICY defaults to PASSIVE (detbench/runtime.py; set it in the environment to measure otherwise).
 Writes bench_points.json and bench_points.md to --out.
 
 Usage: python tools/bench_points.py [--out DIR] [--frames N] [--points N] [--samples N] ...  (see --help)
@@ -26,10 +26,7 @@ from pathlib import Path
 # Not installed (run from a checkout): the repository root holds detbench and models.
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-# Idle OpenMP threads sleep instead of spinning (as tests/conftest.py): on a busy 2-core machine
-# the torch steps (grouping, interpolation, pooling gathers) were measured 10-20x slower with
-# spinning threads. Set before torch is imported; an explicit OMP_WAIT_POLICY wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 
 import numba  # noqa: E402
 import numpy as np  # noqa: E402

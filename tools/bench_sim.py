@@ -10,6 +10,7 @@ Examples:
   python tools/bench_sim.py                      # 300 frames x 3 heights
   python tools/bench_sim.py --frames 1000 --out runs/bench_sim
   python tools/bench_sim.py --heights 0.5 1.8 --set traffic.density_per_km_lane=20
+  python tools/bench_sim.py --frames 300 --load 1   # idle, then beside one busy process
 
 Writes OUT/bench_sim.json and OUT/bench_sim.md. Times are wall-clock seconds on this
 machine; the split is the sum over the run of each stage's time.
@@ -28,7 +29,9 @@ from pathlib import Path
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from detbench import runtime  # noqa: E402  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.config import ConfigError  # noqa: E402
+from detbench.utils.bench import idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 STAGES = [
@@ -57,6 +60,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     ap.add_argument("--mode", choices=("both", "points", "counts"), default="both",
                     help="measure with points, counts only (no points), or both (default)")
+    ap.add_argument("--load", type=int, default=0, metavar="N",
+                    help="measure again beside N busy-loop processes started for it (stopped after); the report has "
+                         "idle and loaded figures side by side (default 0: idle only)")
     ap.add_argument("--out", default="runs/bench_sim", help="output folder for the JSON and Markdown")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap
@@ -111,8 +117,8 @@ def _pib_time(sim_factory, lidars, frames, fps):
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if args.frames < 1:
-        raise SystemExit("--frames must be >= 1")
+    if args.frames < 1 or args.load < 0:
+        raise SystemExit("--frames must be >= 1 and --load >= 0")
     t_import = time.perf_counter()
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
     import numba
@@ -133,11 +139,15 @@ def main(argv=None) -> int:
         for _ in factory().run(1, lidars, frames_per_scene=1, with_points=wp):
             pass
     warmup = time.perf_counter() - t0
-    runs = []
-    if args.mode in ("both", "points"):
-        runs.append(_measure(factory, lidars, args.frames, fps, True, not args.no_progress))
-    if args.mode in ("both", "counts"):
-        runs.append(_measure(factory, lidars, args.frames, fps, False, not args.no_progress))
+
+    def measure() -> list[dict]:
+        modes = [wp for wp, m in ((True, "points"), (False, "counts")) if args.mode in ("both", m)]
+        return [_measure(factory, lidars, args.frames, fps, wp, not args.no_progress) for wp in modes]
+
+    runs, loaded, load_info = idle_and_loaded(measure, args.load)
+    for r, lr in zip(runs, loaded or []):
+        r["loaded"] = {k: lr[k] for k in ("wall_s", "frames_per_s", "rays_traced_per_s")}
+        r["loaded"]["wall_ratio"] = ratio(lr["wall_s"], r["wall_s"])
     pib = _pib_time(factory, lidars, min(args.frames, 100), fps) if args.mode != "counts" else None
     report = {
         "frames": args.frames, "frames_per_scene": fps, "heights": args.heights, "preset": args.preset,
@@ -147,6 +157,8 @@ def main(argv=None) -> int:
         "machine": {"cpus": os.cpu_count(), "numba_threads": numba.get_num_threads(),
                     "threading_layer": numba.threading_layer(), "python": platform.python_version(),
                     "load_average_1min": round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None},
+        "runtime": runtime.describe(),
+        "load": load_info,
         "runs": runs,
         "ops_points_in_boxes_ms_per_lidar_frame": None if pib is None else round(
             1e3 * pib / (min(args.frames, 100) * len(lidars)), 3),
@@ -166,7 +178,13 @@ def main(argv=None) -> int:
         md.append(f"| {'points' if r['with_points'] else 'counts only'} | {r['wall_s']} | {r['frames_per_s']} | "
                   f"{r['lidar_frames_per_s']} | {r['rays_traced_per_s']:.3g} | {r['scan_rays_per_s']:.3g} | "
                   f"{r['points_per_lidar_frame']} |")
-    md += ["", "Per-stage split (milliseconds per frame, all LiDARs):", "",
+    if load_info:
+        md += ["", f"Loaded: the same runs beside {load_line(load_info)}.", "",
+               "| mode | idle wall (s) | loaded wall (s) | x idle | idle frames/s | loaded frames/s |", "|---|---|---|---|---|---|"]
+        md += [f"| {'points' if r['with_points'] else 'counts only'} | {r['wall_s']} | {r['loaded']['wall_s']} | "
+               f"{r['loaded']['wall_ratio']} | {r['frames_per_s']} | {r['loaded']['frames_per_s']} |" for r in runs]
+    md += ["", f"Thread runtimes: {runtime_line(report['runtime'])}."]
+    md += ["", "Per-stage split (milliseconds per frame, all LiDARs; idle run):", "",
            "| stage | what | " + " | ".join('points' if r['with_points'] else 'counts only' for r in runs) + " |",
            "|---|---|" + "---|" * len(runs)]
     for k, what in STAGES + [("other (python, frames)", "frame objects, generator, progress")]:

@@ -5,12 +5,16 @@ Latency is the median over --frames real (simulated or --data) frames after --wa
 passes, split by stage (voxelize / backbone / head / post-processing; each model names its
 stages), on CPU and on CUDA when present. With --study DIR (a tools/study.py output) the
 models' trained checkpoints are used and each model's AP@R40 / recall is joined to its cost,
-like the paper's Table III next to its accuracy.
+like the paper's Table III next to its accuracy. --train-steps N also times N training steps
+(forward, loss, backward, AdamW step) on batches of --train-batch frames. --load N measures
+everything again beside N busy-loop processes (started for it, stopped after) and reports
+idle and loaded figures side by side.
 
 Examples:
   python tools/benchmark.py                         # every model, its cpu-preset size, CPU
   python tools/benchmark.py --preset paper --device cuda
   python tools/benchmark.py --study runs/study_cpu --height 1.8
+  python tools/benchmark.py --models second --train-steps 3 --load 1   # idle vs one busy process
 
 Writes OUT/benchmark.json and OUT/benchmark.md (default OUT = runs/benchmark).
 Units: milliseconds per frame, MB = 10^6 bytes (checkpoint), MiB = 2^20 bytes (memory).
@@ -34,8 +38,11 @@ ROOT = Path(__file__).resolve().parents[1]
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(ROOT))
 
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 import models  # noqa: E402
+from detbench import runtime  # noqa: E402
 from detbench.train.run_config import preset_names  # noqa: E402
+from detbench.utils.bench import idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
 
 
@@ -52,7 +59,14 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--frames", type=int, default=10, help="timed frames (default 10)")
     ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
-    ap.add_argument("--threads", type=int, default=2, help="torch CPU threads (default 2)")
+    ap.add_argument("--threads", type=int, default=None,
+                    help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/architecture.md)")
+    ap.add_argument("--train-steps", type=int, default=0, metavar="N",
+                    help="also time N training steps after one untimed step (default 0: none)")
+    ap.add_argument("--train-batch", type=int, default=2, metavar="B",
+                    help="frames per training step (default 2, the cpu preset's batch size)")
+    ap.add_argument("--load", type=int, default=0, metavar="N",
+                    help="measure each model again beside N busy-loop processes (default 0: idle only)")
     ap.add_argument("--out", default="runs/benchmark", help="output folder (default runs/benchmark)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: one model in a child process
     return ap
@@ -100,7 +114,8 @@ def worker(args) -> dict:
     from detbench.train.inference import frame_sample
     from detbench.train.run_config import load_run_config
 
-    torch.set_num_threads(args.threads)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     spec = json.loads(args.worker)
     name, device, ckpt = spec["model"], torch.device(spec["device"]), spec.get("ckpt")
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -155,10 +170,48 @@ def worker(args) -> dict:
               "weights_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
               "latency_ms_min_total": round(min(r["total"] for r in rows), 2),
               "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
-              "frames": len(rows), "threads": args.threads}
+              "frames": len(rows), "threads": torch.get_num_threads()}
     if device.type == "cuda":
         result["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
+    if args.train_steps > 0:
+        result["train_step_ms"] = _train_steps(model, test, cfg_model["point_cloud_range"], args, device, sync)
+        result["train_batch"] = args.train_batch
+    result["runtime"] = runtime.describe()
     return result
+
+
+def _train_steps(model, frames, point_cloud_range, args, device, sync) -> float:
+    """Median milliseconds of one training step (forward, loss, backward, AdamW step) over
+    --train-steps steps after one untimed step; batches of --train-batch frames with their
+    boxes cropped to the model's range. The model is trained in place (benchmark only)."""
+    import numpy as np
+    import torch
+
+    from detbench.data.augment import crop_to_range
+    from detbench.data.batch import Sample, collate
+
+    def sample(i):
+        f = frames[i % len(frames)]
+        pts, boxes, _ = crop_to_range(np.asarray(f.points, np.float32), np.asarray(f.boxes, np.float32),
+                                      point_cloud_range)
+        return Sample(np.ascontiguousarray(pts[:, :4]), boxes, f.frame_id)
+
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)
+    model.train()
+    times = []
+    for step in range(args.train_steps + 1):
+        batch = collate([sample(step * args.train_batch + k) for k in range(args.train_batch)]).to(device)
+        sync()
+        t0 = time.perf_counter()
+        loss, _ = model.loss(model(batch), batch)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        sync()
+        if step > 0:
+            times.append((time.perf_counter() - t0) * 1000)
+    model.eval()
+    return round(statistics.median(times), 2)
 
 
 def main(argv=None) -> int:
@@ -186,22 +239,36 @@ def main(argv=None) -> int:
         for dev in devices:
             spec = json.dumps({"model": name, "device": dev, "ckpt": ckpt})
             cmd = [sys.executable, __file__, "--worker", spec, "--preset", args.preset, "--height", str(args.height),
-                   "--frames", str(args.frames), "--warmup", str(args.warmup), "--threads", str(args.threads)]
+                   "--frames", str(args.frames), "--warmup", str(args.warmup)]
+            if args.threads:
+                cmd += ["--threads", str(args.threads)]
             if args.data:
                 cmd += ["--data", args.data]
-            proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
-            if proc.returncode != 0:
-                raise SystemExit(f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}")
-            res = json.loads(proc.stdout.strip().splitlines()[-1])
+            if args.train_steps > 0:
+                cmd += ["--train-steps", str(args.train_steps), "--train-batch", str(args.train_batch)]
+
+            def run_worker():
+                proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
+                if proc.returncode != 0:
+                    raise SystemExit(f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}")
+                return json.loads(proc.stdout.strip().splitlines()[-1])
+
+            res, loaded, load_info = idle_and_loaded(run_worker, args.load)
+            if loaded is not None:
+                res["loaded"] = _loaded_figures(res, loaded, load_info)
             if report is not None:
                 res["accuracy"] = {r: {k: report["results"][r]["all"][k] for k in ("recall", "ap_r40")}
                                    for r in report["results"]}
             results.append(res)
             lat = res["latency_ms"]
             print(f"{name:10s} {dev:5s} {res['parameters'] / 1e6:6.2f} M params  {res['weights_mb']:7.2f} MB  "
-                  f"{lat['total']:8.1f} ms/frame  peak {res['peak_rss_mib']:.0f} MiB")
+                  f"{lat['total']:8.1f} ms/frame  peak {res['peak_rss_mib']:.0f} MiB"
+                  + (f"  train step {res['train_step_ms']:.0f} ms" if "train_step_ms" in res else "")
+                  + (f"  | loaded: {res['loaded']['latency_ms']['total']:.1f} ms/frame "
+                     f"(x{res['loaded']['ratio']['total']})" if "loaded" in res else ""))
     meta = {"machine": platform.machine(), "processor": platform.processor() or platform.machine(),
-            "python": platform.python_version(), "torch": torch.__version__, "threads": args.threads,
+            "python": platform.python_version(), "torch": torch.__version__,
+            "threads": results[0]["threads"] if results else args.threads,
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             "preset": args.preset, "study": args.study, "height": args.height}
     out = Path(args.out)
@@ -215,7 +282,7 @@ def main(argv=None) -> int:
     has_acc = any("accuracy" in r for r in results)
     if has_acc:
         head += ["AP@R40 small", "AP@R40 moderate", "AP@R40 large", "recall large"]
-    lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {args.threads} CPU threads"
+    lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {meta['threads']} CPU threads"
              f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
              "Latency: median per frame after warm-up, batch of 1. Weights: the state_dict as torch.save writes it "
              "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
@@ -231,9 +298,47 @@ def main(argv=None) -> int:
             row += [fmt(acc.get(k, {}).get("ap_r40")) for k in ("small", "moderate", "large")]
             row += [fmt(acc.get("large", {}).get("recall"))]
         lines.append("| " + " | ".join(row) + " |")
+    if any("train_step_ms" in r or "loaded" in r for r in results):
+        lines += ["", *_idle_loaded_markdown(results)]
+    if results:
+        lines += ["", f"Thread runtimes: {runtime_line(results[0]['runtime'])}."]
     atomic_write_text(out / "benchmark.md", "\n".join(lines) + "\n")
     print(f"wrote {out / 'benchmark.json'}, {out / 'benchmark.md'}")
     return 0
+
+
+def _loaded_figures(idle: dict, loaded: dict, load_info: dict) -> dict:
+    """The loaded worker's latency (and training step) with each figure's loaded / idle ratio."""
+    out = {"load": load_info, "latency_ms": loaded["latency_ms"],
+           "ratio": {k: ratio(v, idle["latency_ms"].get(k)) for k, v in loaded["latency_ms"].items() if k != "points"}}
+    if "train_step_ms" in loaded:
+        out["train_step_ms"] = loaded["train_step_ms"]
+        out["ratio"]["train_step"] = ratio(loaded["train_step_ms"], idle["train_step_ms"])
+    return out
+
+
+def _idle_loaded_markdown(results: list[dict]) -> list[str]:
+    """Forward latency and training step, idle and (with --load) loaded with the ratio, per model."""
+    loaded = any("loaded" in r for r in results)
+    head = ["model", "device", "forward + post, idle (ms/frame)"]
+    head += ["loaded (ms/frame)", "x idle"] if loaded else []
+    head += ["training step, idle (ms)"] + (["loaded (ms)", "x idle"] if loaded else [])
+    lines = ["## Idle and loaded" if loaded else "## Training step", ""]
+    if loaded:
+        lines += [f"Loaded: the same measurement beside {load_line(results[0]['loaded']['load'])}. "
+                  "Training step: forward, loss, backward and AdamW step, median.", ""]
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    fmt = (lambda v: "-" if v is None else f"{v:.1f}")
+    for r in results:
+        lo = r.get("loaded", {})
+        row = [r["model"], r["device"], fmt(r["latency_ms"]["total"])]
+        if loaded:
+            row += [fmt(lo.get("latency_ms", {}).get("total")), str(lo.get("ratio", {}).get("total", "-"))]
+        row += [fmt(r.get("train_step_ms"))]
+        if loaded:
+            row += [fmt(lo.get("train_step_ms")), str(lo.get("ratio", {}).get("train_step", "-"))]
+        lines.append("| " + " | ".join(row) + " |")
+    return lines
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(ROOT))
 
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402

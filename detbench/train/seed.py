@@ -17,6 +17,8 @@ import signal
 import numpy as np
 import torch
 
+from detbench.runtime import worker_threads
+
 __all__ = ["seed_everything", "sample_rng", "worker_init_fn", "capture_rng_state", "restore_rng_state"]
 
 
@@ -41,8 +43,11 @@ def worker_init_fn(worker_id: int) -> None:
     torch gives each worker `base_seed + worker_id` (base_seed drawn from the DataLoader's
     generator, which the loop seeds per epoch), so workers differ and runs repeat. Workers
     ignore Ctrl-C: the main process handles it (finishes the step, saves, stops the workers).
+    Each worker uses one torch and one numba thread (`detbench.runtime.worker_threads`): the
+    training process already uses the cores.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    worker_threads()
     s = torch.initial_seed() % (2 ** 32)
     random.seed(s)
     np.random.seed(s)

@@ -1,0 +1,173 @@
+"""Thread runtimes: thread counts and OpenMP spinning, set once before torch or numba starts.
+
+detbench runs two thread pools in one process: torch's intra-op pool (the GNU libgomp that
+the torch wheel bundles) and numba's parallel kernels (``parallel=True``, its ``omp`` layer on
+the system libgomp). Both read their settings from environment variables when they start,
+so `apply_defaults` sets them in ``os.environ`` when ``import detbench`` runs (this module is
+the first thing ``detbench/__init__.py`` imports, and every tool imports detbench before
+torch):
+
+- ``OMP_NUM_THREADS`` = cores - 1 (at least 1; 1 on a 2-core machine): torch's intra-op
+  threads. detbench's torch work is many small ops (gathers, scatters, sorts, small GEMMs);
+  two threads that must meet at the end of every op lose a whole scheduler time slice each
+  time another process holds one of the cores.
+- ``GOMP_SPINCOUNT=3000``: an OpenMP thread waiting for work spins about 3,000 iterations
+  (tens of microseconds) before it sleeps, instead of libgomp's default 300,000 (a few
+  milliseconds, taken from a competing process). Sleeping at once (``OMP_WAIT_POLICY=PASSIVE``)
+  is what a waiting thread should do under load, but waking a sleeping thread costs ~0.1 ms
+  on an idle (virtual) machine, and that made idle torch ops 3-9x slower.
+- ``NUMBA_THREADING_LAYER=omp``: numba's kernels on OpenMP, one thread per core
+  (``NUMBA_NUM_THREADS`` is numba's default). numba's ``workqueue`` layer wakes its threads
+  through condition variables, which made the simulator 2x slower on the idle machine.
+
+numba's omp layer resets OpenMP's thread count to numba's when its pool starts, and torch
+reads that count; so the pool is started here, at import (about 0.1 s), and the count put
+back (`_start_numba_pool`).
+
+Why, in figures: docs/architecture.md, "Thread runtimes on a shared CPU". Every default is
+set only where the variable is missing: a variable the user set (even to the same value)
+wins, and `describe` reports which values came from the user. DataLoader workers use one
+torch and one numba thread each (`worker_threads`).
+"""
+from __future__ import annotations
+
+import os
+import sys
+import warnings
+
+__all__ = ["DEFAULTS", "apply_defaults", "describe", "worker_threads", "set_threads"]
+
+# Environment defaults, applied with setdefault before torch or numba reads them.
+DEFAULTS: dict[str, str] = {
+    "OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) - 1)),
+    "GOMP_SPINCOUNT": "3000",
+    "NUMBA_THREADING_LAYER": "omp",
+}
+# Names of the DEFAULTS that detbench (not the user) set, for child processes that inherit them.
+MARKER = "DETBENCH_RUNTIME_DEFAULTS"
+# Variables that describe() reports (the defaults and the ones a user may set instead).
+REPORTED = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS")
+
+# Which of REPORTED the user had set before detbench was imported, and which defaults detbench
+# set (both filled by the first apply_defaults on os.environ, at import).
+_user_set: dict[str, str] = {}
+_applied: dict[str, str] = {}
+_imported_first = [True]
+
+
+def apply_defaults(environ=None) -> dict[str, str]:
+    """Set every missing `DEFAULTS` variable in ``environ`` (``os.environ``); return those set.
+
+    Idempotent. When torch was imported before this ran and the user chose no OpenMP wait
+    (GOMP_SPINCOUNT or OMP_WAIT_POLICY), torch's OpenMP runtime has already started with
+    libgomp's long spin: one RuntimeWarning says so and how to fix it.
+    """
+    env = os.environ if environ is None else environ
+    # Defaults a parent detbench process set (a tool's worker, a DataLoader worker) are not the user's.
+    inherited = {k for k in env.get(MARKER, "").split(",") if k in DEFAULTS and k in env}
+    first = environ is None and _imported_first[0]
+    if first:
+        _imported_first[0] = False
+        _user_set.update({k: env[k] for k in REPORTED if k in env and k not in inherited})
+    applied = {}
+    for key, value in DEFAULTS.items():
+        if key not in env:
+            env[key] = value
+            applied[key] = value
+    env[MARKER] = ",".join(sorted(inherited | set(applied)))
+    if environ is None:
+        _applied.update({k: env[k] for k in inherited})
+        _applied.update(applied)
+        _sync_numba_config(applied)
+        if first and "torch" in sys.modules and not {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & set(_user_set):
+            warnings.warn(
+                "torch was imported before detbench, so torch's OpenMP runtime started without detbench's "
+                "settings: its waiting threads spin for milliseconds, which made torch ops up to 10-30x slower "
+                "when another process shared the CPU (docs/architecture.md). Import detbench before torch, or "
+                "set GOMP_SPINCOUNT=3000 (or OMP_WAIT_POLICY) in the environment.", RuntimeWarning, stacklevel=4)
+    return applied
+
+
+def _sync_numba_config(applied: dict[str, str]) -> None:
+    """numba reads NUMBA_* variables when it is imported: if it already was, set its config too
+    (the threading layer is chosen at the first parallel launch, so this still takes effect)."""
+    numba = sys.modules.get("numba")
+    if numba is None or "NUMBA_THREADING_LAYER" not in applied:
+        return
+    try:
+        numba.config.THREADING_LAYER = applied["NUMBA_THREADING_LAYER"]
+    except AttributeError:  # a partially imported numba: it will read the environment itself
+        pass
+
+
+def _start_numba_pool() -> None:
+    """Start numba's thread pool now and give OpenMP back torch's thread count.
+
+    numba's ``omp`` layer sets OpenMP's thread count to numba's (one per core) when its pool
+    starts, and torch's libgomp reads that count (measured: torch 1 -> 2 threads after the
+    first numba kernel), which would undo OMP_NUM_THREADS at the first parallel kernel. So the
+    pool starts here (about 0.1 s) and the count is put back: through torch when it is
+    already imported, else through OpenMP itself, where torch reads it when it starts."""
+    try:
+        import numba
+        from numba.np.ufunc import parallel
+
+        parallel._launch_threads()
+        if numba.threading_layer() != "omp":
+            return
+        n = int(os.environ.get("OMP_NUM_THREADS", "").split(",")[0])
+    except (ImportError, AttributeError, ValueError, RuntimeError):
+        # no numba, a layer numba cannot load (its first kernel reports it), or no usable count
+        return
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(n)
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libgomp.so.1").omp_set_num_threads(n)
+    except (OSError, AttributeError):
+        pass
+
+
+def set_threads(n: int) -> None:
+    """Use ``n`` threads in torch's intra-op pool and in numba's parallel kernels (numba: at most
+    its pool size, NUMBA_NUM_THREADS, fixed when its pool starts)."""
+    import numba
+    import torch
+
+    torch.set_num_threads(int(n))
+    numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+
+
+def worker_threads() -> None:
+    """A DataLoader worker process: one torch thread (torch's DataLoader already does this) and one
+    numba thread, so workers beside the training process do not oversubscribe the cores."""
+    set_threads(1)
+
+
+def describe() -> dict:
+    """The runtime settings in force, for reports: each variable's value and whether it came from
+    the user's environment or from detbench; torch's and numba's thread counts; numba's
+    threading layer (None until its first parallel launch); the 1-minute load average."""
+    out: dict = {"env": {}}
+    for key in REPORTED:
+        value = os.environ.get(key)
+        source = "user" if key in _user_set else ("detbench" if key in _applied else None)
+        out["env"][key] = {"value": value, "set_by": source if value is not None else None}
+    torch = sys.modules.get("torch")
+    out["torch_threads"] = torch.get_num_threads() if torch is not None else None
+    numba = sys.modules.get("numba")
+    if numba is not None:
+        out["numba_threads"] = numba.get_num_threads()
+        try:
+            out["numba_threading_layer"] = numba.threading_layer()
+        except ValueError:  # no parallel kernel has run yet
+            out["numba_threading_layer"] = None
+    out["load_average_1min"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
+    return out
+
+
+apply_defaults()
+_start_numba_pool()
