@@ -433,10 +433,14 @@ def test_convert_openpcdet_custom_sensor_frame(tmp_path, capsys):
         np.testing.assert_allclose(f.points, ground["000003"][1], atol=1e-4)
         assert f.lanes.tolist() == [0, 1] and f.classes.tolist() == ["Car", "Truck"]
     assert validate_dataset(out).ok
-    # a wrong pitch makes the heights' labels disagree
-    with pytest.raises(DatasetError, match=r"labels at 1\.8 m do not match those at 0\.5 m"):
+    # a missing pitch: the road is at neither 0 nor -1.8 m in the levelled points, so the frame is not guessed
+    with pytest.raises(SystemExit, match=r"cannot tell the frame of the 1\.8 m points.*--pitch.*--points-frame"):
         convert_main(["--src", f"0.5={tmp_path / '0.5m'}", "--src", f"1.8={tmp_path / '1.8m'}",
                       "--out", str(tmp_path / "bad")])
+    # ... and with the checks off, a wrong pitch makes the heights' labels disagree
+    with pytest.raises(SystemExit, match=r"labels at 1\.8 m do not match those at 0\.5 m"):
+        convert_main(["--src", f"0.5={tmp_path / '0.5m'}", "--src", f"1.8={tmp_path / '1.8m'}",
+                      "--out", str(tmp_path / "bad"), "--points-frame", "sensor", "--no-frame-check"])
 
 
 def test_simulated_frames_round_trip(tmp_path):

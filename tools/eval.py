@@ -6,6 +6,10 @@ Evaluate saved predictions of one height and split:
 
 PRED_DIR holds one `<frame_id>.txt` per frame, one box per line, `x y z dx dy dz heading score
 [class]` (metres, radians, ego ground frame). A frame without a file has no predictions.
+OpenPCDet's outputs are read too: its result.pkl (`--pred .../result.pkl`) and per-frame text
+in its layouts (detbench.eval.external); `--pred-frame sensor` moves predictions made in the
+LiDAR's own frame to the ground frame with the dataset's sensor height and pitch. A constant
+height offset between predictions and vehicles is reported as a likely frame mismatch.
 Writes OUT_DIR/report.json, report.md (Table VII layout), report.csv and prints a summary.
 
 Combine several reports (models x heights) into one table and the paper's Fig. 8-10:
@@ -27,7 +31,6 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 from detbench.eval.evaluate import (  # noqa: E402
     evaluate_predictions,
     format_prediction_lines,
-    read_prediction_dir,
 )
 from detbench.eval.report import (  # noqa: E402
     combine_reports,
@@ -65,8 +68,19 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--split", default="test", choices=SPLITS, help="dataset split whose frames are evaluated")
     src.add_argument("--pred", type=Path,
                      help="folder of predictions: one <frame_id>.txt per frame, lines 'x y z dx dy dz heading "
-                          "score [class]' in metres and radians (ego ground frame); a missing file means no "
-                          "predictions for that frame")
+                          "score [class]' in metres and radians (or OpenPCDet's 'x y z dx dy dz heading class "
+                          "score', or its KITTI text layout); a missing file means no predictions for that frame. "
+                          "Or OpenPCDet's result.pkl (per-frame dicts with frame_id, boxes_lidar, score, name): "
+                          "a pickle can run code when loaded, so it is read with a restricted unpickler (plain "
+                          "containers and numpy arrays only); open only result files you or your tools wrote")
+    src.add_argument("--pred-frame", choices=("ground", "sensor"), default="ground",
+                     help="with --pred: frame of the predictions: 'ground' (detbench's ego ground frame) or "
+                          "'sensor' (the LiDAR's own frame, e.g. a model trained on an OpenPCDet export with "
+                          "--frame sensor): moved to the ground frame with the dataset's sensor height and pitch")
+    src.add_argument("--pred-classes", nargs="+", default=None, metavar="NAME",
+                     help="with --pred: prediction classes to evaluate (case-insensitive); default every class "
+                          "but Pedestrian, Cyclist, Person_sitting, DontCare. Predictions without a class are "
+                          "always kept")
     src.add_argument("--ckpt", type=Path,
                      help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt) to run instead of --pred; "
                           "--data and --height default to what it was trained on; its predictions are written "
@@ -207,14 +221,21 @@ def run_evaluate(args: argparse.Namespace) -> int:
                         f"(--pred DIR | --ckpt FILE) --out DIR")
     if (args.pred is None) == (args.ckpt is None):
         raise ToolError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
+    if args.pred is None and (args.pred_frame != "ground" or args.pred_classes is not None):
+        raise ToolError("--pred-frame and --pred-classes describe saved predictions; they go with --pred")
     t0 = time.perf_counter()
     dataset, other_ids = load_dataset(args.data, args.height, args.split)
     model = args.model
+    loaded = None
     if args.pred is not None:
+        from detbench.eval.external import load_predictions
+
         try:
-            preds, skipped = read_prediction_dir(args.pred, dataset.frame_ids, other_ids)
+            loaded = load_predictions(args.pred, dataset, other_ids, pred_frame=args.pred_frame,
+                                      classes=args.pred_classes)
         except (FileNotFoundError, ValueError) as e:
             raise ToolError(str(e)) from None
+        preds, skipped = loaded.predictions, loaded.skipped
     else:
         preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, args.device, args.batch_size,
                                                         not args.no_progress, args.stage)
@@ -242,8 +263,15 @@ def run_evaluate(args: argparse.Namespace) -> int:
         full["predictions_dir"] = str(args.out / "pred")
         full["stage"] = args.stage
     if args.pred is not None:
+        from detbench.eval.external import vertical_offset_check
+
         full["prediction_files"] = len(preds)
         full["files_of_other_splits_skipped"] = len(skipped)
+        full["prediction_input"] = loaded.info
+        full["frame_check"] = vertical_offset_check(dataset, preds, pred_frame=args.pred_frame,
+                                                    score_threshold=args.score_threshold)
+        if full["frame_check"]["warning"]:
+            full["warnings"] = [full["frame_check"]["warning"]]
     title = f"Detection results{' of ' + model if model else ''} at {args.height:g} m ({args.split} split)"
     if args.ckpt is not None and args.stage != "refined":
         title += f", {args.stage} of the first stage alone"
@@ -253,7 +281,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if skipped:
         print(f"  skipped {len(skipped)} prediction file(s) of frames outside the {args.split!r} split")
     if args.pred is not None:
-        print(f"  {len(preds)} of {report['num_frames']} frames had a prediction file")
+        print(f"  {len(preds)} of {report['num_frames']} frames had predictions")
+        for note in loaded.notes:
+            print(f"  {note}")
+        for w in full.get("warnings", []):
+            print(f"tools/eval.py: warning: {w}", file=sys.stderr)
     print(f"  {time.perf_counter() - t0:.1f} s")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

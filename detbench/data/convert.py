@@ -1,23 +1,31 @@
 """Convert OpenPCDet "custom" folders, one per mounting height, into one detbench dataset.
 
-    python -m detbench.data.convert --src 0.5=/data/h3/0.5m --src 1.0=/data/h3/1.0m \
+    python -m detbench.data.convert --src 0.5=/data/h3/0.5m --src 1.0=/data/h3/1.0m \\
         --src 1.8=/data/h3/1.8m --out data/height3 [--pitch 1.8=2.5] [--frames-per-scene 200]
 
-Each source folder holds `points/<id>.npy` (or `.bin`), `labels/<id>.txt`
-(`x y z dx dy dz heading class`) and optionally `ImageSets/*.txt`, all in that LiDAR's own
-frame (OpenPCDet's custom layout). The converter
+(`python tools/import_openpcdet.py` is the same command.) Each source folder holds
+`points/<id>.npy` (or `.bin`), `labels/<id>.txt` (`x y z dx dy dz heading class`) and
+`ImageSets/train.txt` + `val.txt` (OpenPCDet's custom layout). The converter
 
-- copies (or, with --link, hard-links) the point files unchanged and marks them
-  `points_frame: "sensor"`; the reader converts them to the ground frame on load with the
-  stored height and pitch;
-- moves the labels of the reference height (the first --src) to the ground frame (z +
-  height, pitch applied to the centre) and checks that the other heights' labels agree
-  with them within --label-tolerance metres (labels are shared in the detbench layout);
+- finds the frame of each folder's points from its road (`--points-frame auto`, the
+  default): near z = 0 m they are in the ego ground frame, near z = -height m in the LiDAR's
+  own frame; it refuses to guess when the road cannot tell (say it with --points-frame);
+- copies (or, with --link, hard-links) the point files unchanged and records their frame;
+  the reader moves sensor-frame points to the ground frame on load with the stored height
+  and pitch;
+- moves the labels of the reference height (the first --src) to the ground frame (by default
+  they are in the frame of the points, as OpenPCDet requires; --labels-frame says otherwise),
+  checks that their bottoms sit on the road, and that the other heights' labels agree
+  within --label-tolerance metres (labels are shared in the detbench layout);
+- maps or drops classes with --class-map (default: drop OpenPCDet's non-vehicle classes
+  Pedestrian, Cyclist, Person_sitting, DontCare; keep every other name) and prints how many
+  label lines of each class it kept and dropped;
+- keeps the source's split (ImageSets/train.txt, and val.txt or test.txt as detbench's test
+  split; frames in neither are not converted), or re-splits by scene with --resplit;
 - writes no meta files (`has_meta: false`): lanes are derived from the lateral offset with
   --lane-width, track ids are -1, scenes come from --frames-per-scene consecutive ids;
-- splits by scene (--test-fraction), or keeps the source's ImageSets with --keep-split;
-- prints, per height, the road-surface height it finds in the converted points of the
-  first frame, a check that height and pitch are right (it should be close to 0 m).
+- prints per height the road height it finds in the converted points of the first frame
+  (should be close to 0 m) and writes OUT/convert_report.json and .md.
 """
 from __future__ import annotations
 
@@ -32,12 +40,19 @@ import numpy as np
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.data.layout import (
-    FORMAT_NAME, FORMAT_VERSION, INFO_FILE, DatasetInfo, HeightInfo, SceneRule, assign_splits, check_frame_id,
-    imageset_path, label_path, points_path,
+    FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule, assign_splits,
+    check_frame_id, imageset_path, label_path, points_path,
+)
+from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
+    DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame, label_bottom_z, level_road_z, parse_class_map, road_surface_z,
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
 from detbench.utils.io import atomic_write_json, atomic_write_text
+
+POINTS_FRAME_CHOICES = ("auto", "sensor", "ground")
+LABELS_FRAME_CHOICES = ("points", "sensor", "ground")
+SAMPLE_FRAMES = 5  # frames per source looked at to find the points' frame and check the labels
 
 
 def paper_sensor(height: float, pitch_deg: float = 0.0) -> Sensor:
@@ -52,60 +67,181 @@ def paper_sensor(height: float, pitch_deg: float = 0.0) -> Sensor:
                   h_samples=480, max_range=150.0, name=f"h3-{hk}")
 
 
-def road_surface_z(points: np.ndarray) -> float:
-    """Estimated road height (m) in ground-frame points: 5th percentile of z for 5 < x < 40 m, |y| < 4 m."""
-    p = np.asarray(points)
-    sel = p[(p[:, 0] > 5) & (p[:, 0] < 40) & (np.abs(p[:, 1]) < 4)]
-    return float(np.percentile(sel[:, 2], 5)) if len(sel) >= 20 else float("nan")
-
-
 def _pairs(items, what: str) -> dict[str, str]:
     out = {}
     for it in items or []:
         if "=" not in it:
-            raise SystemExit(f"--{what} {it!r}: write HEIGHT=VALUE, e.g. 1.8=/data/h3/1.8m")
+            raise ValueError(f"--{what} {it!r}: write HEIGHT=VALUE, e.g. 1.8=/data/h3/1.8m")
         k, v = it.split("=", 1)
-        out[height_key(float(k))] = v
+        try:
+            out[height_key(float(k))] = v
+        except ValueError:
+            raise ValueError(f"--{what} {it!r}: {k!r} is not a mounting height in metres (e.g. 1.8)") from None
     return out
 
 
+def _points_ext(src: Path) -> str:
+    for p in sorted((src / "points").iterdir()):
+        if p.is_file() and p.suffix in POINT_EXTS:
+            return p.suffix
+    raise MissingFileError(f"no point files ({' or '.join(POINT_EXTS)}) directly in points/; OpenPCDet's custom "
+                           f"layout keeps points/<id>.npy", path=src / "points")
+
+
+def _source_split(src: Path) -> tuple[list[str], list[str], str] | None:
+    """(train ids, test ids, which files) of the source's ImageSets, or None when it has no train.txt."""
+    sets = src / "ImageSets"
+    if not (sets / "train.txt").is_file():
+        return None
+    train = read_imageset(sets / "train.txt")
+    test_name = next((n for n in ("val.txt", "test.txt") if (sets / n).is_file()), None)
+    test = read_imageset(sets / test_name) if test_name else []
+    both = sorted(set(train) & set(test))
+    if both:
+        raise DatasetError(f"{len(both)} frame id(s) are in both train.txt and {test_name} (e.g. {both[0]!r}); a "
+                           f"frame belongs to one split - fix the lists, or pass --resplit", path=sets)
+    return train, test, f"train.txt + {test_name}" if test_name else "train.txt (no val.txt or test.txt)"
+
+
+def _sample(ids: list[str], n: int = SAMPLE_FRAMES) -> list[str]:
+    if len(ids) <= n:
+        return list(ids)
+    return [ids[round(i * (len(ids) - 1) / (n - 1))] for i in range(n)]
+
+
+def _resolve_points_frame(k: str, src: Path, ext: str, sample: list[str], pitch: float, given: str,
+                          checks: bool) -> tuple[str, dict]:
+    """The frame of source `k`'s points: `given`, or found from the road of `sample` frames."""
+    road = [level_road_z(read_points(src / "points" / f"{fid}{ext}"), pitch) for fid in sample]
+    guess, why = guess_points_frame(road, float(k))
+    record = {"road_z_m": [round(v, 3) for v in road], "evidence": why}
+    if given == "auto":
+        if guess is None:
+            raise DatasetError(
+                f"cannot tell the frame of the {k} m points from the road: {why}. Say it with --points-frame sensor "
+                f"(the LiDAR's own frame: road near -{k} m) or --points-frame ground (road near 0 m)",
+                path=src / "points")
+        return guess, dict(record, frame=guess, how="found from the road")
+    if checks and guess is not None and guess != given:
+        raise DatasetError(
+            f"--points-frame {given}, but the road of the {k} m points says {guess} frame ({why}); fix the flag "
+            f"(or leave it out to use what the road says), or pass --no-frame-check to convert anyway",
+            path=src / "points")
+    return given, dict(record, frame=given, how="given (--points-frame)")
+
+
+def _check_label_bottoms(k: str, src: Path, sample: list[str], labels_frame: str, pitch: float, checks: bool
+                         ) -> dict:
+    """The boxes of `sample`, moved to the ground frame, must stand on the road (bottom near 0 m)."""
+    bottoms = []
+    for fid in sample:
+        boxes, _ = read_labels(src / "labels" / f"{fid}.txt")
+        if labels_frame == "sensor":
+            boxes = boxes_sensor_to_ground(boxes, float(k), pitch)
+        bottoms.extend(label_bottom_z(boxes).tolist())
+    if len(bottoms) < 3:
+        return {"boxes": len(bottoms), "median_bottom_z_m": None,
+                "evidence": "fewer than 3 boxes ahead in the sampled frames: not checked"}
+    med = float(np.median(bottoms))
+    rec = {"boxes": len(bottoms), "median_bottom_z_m": round(med, 3)}
+    h = float(k)
+    tol = frame_tolerance(h)
+    if abs(med) <= tol or not checks:
+        return rec
+    if labels_frame == "sensor" and abs(med - h) <= tol:
+        fix = "they look already in the ground frame: pass --labels-frame ground"
+    elif labels_frame == "ground" and abs(med + h) <= tol:
+        fix = "they look in the LiDAR's own frame: pass --labels-frame sensor"
+    else:
+        fix = "check --labels-frame, the height and --pitch"
+    how = "as --labels-frame sensor says" if labels_frame == "sensor" else "taken as ground-frame labels"
+    raise DatasetError(
+        f"the boxes of the {k} m labels ({how}) stand at z = {med:+.2f} m (median bottom of {len(bottoms)} boxes "
+        f"ahead in {len(sample)} sampled frames), not on the road at 0 m; {fix} (or --no-frame-check to convert "
+        f"anyway)", path=src / "labels")
+
+
 def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | os.PathLike, *,
-                             pitch_deg: dict[str, float] | None = None, labels_frame: str = "sensor",
-                             frames_per_scene: int = 200, test_fraction: float = 1 / 3, keep_split: bool = False,
-                             lane_width: float | None = None, label_tolerance: float = 0.05, link: bool = False,
-                             overwrite: bool = False, progress: bool = True) -> DatasetInfo:
+                             pitch_deg: dict[str, float] | None = None, points_frame: str = "auto",
+                             labels_frame: str = "points", class_map: ClassMap | str | list | None = None,
+                             frames_per_scene: int = 200, test_fraction: float = 1 / 3, keep_split: bool = True,
+                             lane_width: float | None = None, label_tolerance: float = 0.05,
+                             frame_checks: bool = True, link: bool = False, overwrite: bool = False,
+                             progress: bool = True) -> DatasetInfo:
     """Build a detbench dataset at `out` from per-height OpenPCDet custom folders.
 
     sources: height key ("0.5") -> folder; pitch_deg: height key -> pitch in degrees
-    (positive = down; default 0); labels_frame: "sensor" (labels in each LiDAR's frame) or
-    "ground". Returns the DatasetInfo written to out/dataset.json. See the module doc.
+    (positive = down; default 0); points_frame: "auto" (from the road), "sensor" or "ground";
+    labels_frame: "points" (the frame of the points), "sensor" or "ground"; class_map: see
+    `detbench.data.openpcdet.parse_class_map` (default: drop non-vehicle classes); keep_split:
+    keep the source's ImageSets (else split by scene). `frame_checks` False turns the road and
+    box-bottom refusals off. Returns the DatasetInfo written to out/dataset.json; its `source`
+    records what was found and done (frames, class counts, split, notes). See the module doc.
     """
     if not sources:
         raise ValueError("no sources given; pass --src HEIGHT=FOLDER for each height")
-    if labels_frame not in ("sensor", "ground"):
-        raise ValueError(f"labels_frame must be 'sensor' or 'ground', got {labels_frame!r}")
+    if points_frame not in POINTS_FRAME_CHOICES:
+        raise ValueError(f"points_frame must be one of {', '.join(POINTS_FRAME_CHOICES)}, got {points_frame!r}")
+    if labels_frame not in LABELS_FRAME_CHOICES:
+        raise ValueError(f"labels_frame must be one of {', '.join(LABELS_FRAME_CHOICES)}, got {labels_frame!r}")
+    cmap = class_map if isinstance(class_map, ClassMap) else parse_class_map(class_map, DEFAULT_IMPORT_CLASS_MAP)
     out = Path(out)
     if (out / INFO_FILE).exists() and not overwrite:
         raise FileExistsError(f"{out / INFO_FILE}: a dataset already exists here; choose another --out or "
                               f"pass --overwrite")
     pitch_deg = {height_key(float(k)): float(v) for k, v in (pitch_deg or {}).items()}
     srcs = {height_key(float(k)): Path(v) for k, v in sources.items()}
+    unknown = sorted(set(pitch_deg) - set(srcs))
+    if unknown:
+        raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")
     sensors = {k: paper_sensor(float(k), pitch_deg.get(k, 0.0)) for k in srcs}
     ref_key = next(iter(srcs))
     exts: dict[str, str] = {}
     for k, src in srcs.items():
         if not (src / "labels").is_dir() or not (src / "points").is_dir():
             raise MissingFileError("expected an OpenPCDet custom folder with points/ and labels/ inside", path=src)
-        first = next(iter(sorted((src / "points").iterdir())), None)
-        if first is None:
-            raise MissingFileError("points/ is empty", path=src / "points")
-        exts[k] = first.suffix
+        exts[k] = _points_ext(src)
     ref_src = srcs[ref_key]
-    ids = sorted(p.stem for p in (ref_src / "labels").glob("*.txt"))
-    if not ids:
+    labelled = sorted(p.stem for p in (ref_src / "labels").glob("*.txt"))
+    if not labelled:
         raise MissingFileError("no label files (*.txt) found", path=ref_src / "labels")
-    for fid in ids:
+    for fid in labelled:
         check_frame_id(fid, str(ref_src / "labels" / f"{fid}.txt"))
+    notes: list[str] = []
+
+    # ---- the split decides which frames are converted
+    kept = _source_split(ref_src) if keep_split else None
+    if keep_split and kept is None:
+        notes.append(f"{ref_src / 'ImageSets' / 'train.txt'} not found: the split is re-made by scene")
+    if kept is not None:
+        train, test, split_files = kept
+        known = set(labelled)
+        missing = [f for f in train + test if f not in known]
+        if missing:
+            raise DatasetError(f"{len(missing)} listed id(s) have no label file (e.g. {missing[0]!r}); fix the lists "
+                               f"or pass --resplit", path=ref_src / "ImageSets")
+        ids = sorted(train + test)
+        left = len(labelled) - len(ids)
+        if left:
+            notes.append(f"{left} labelled frame(s) are in neither split list ({split_files}) and were not "
+                         f"converted (pass --resplit to use every labelled frame)")
+    else:
+        ids = labelled
+
+    # ---- frames of points and labels, checked on a few frames before anything is written
+    sample = _sample(ids)
+    frames: dict[str, dict] = {}
+    lframes: dict[str, str] = {}
+    for k, src in srcs.items():
+        for fid in sample:
+            if not (src / "points" / f"{fid}{exts[k]}").is_file():
+                raise MissingFileError(f"points of frame {fid!r} not found (the folders must hold the same frames)",
+                                       path=src / "points" / f"{fid}{exts[k]}")
+        pf, rec = _resolve_points_frame(k, src, exts[k], sample, sensors[k].pitch_deg, points_frame, frame_checks)
+        lf = pf if labels_frame == "points" else labels_frame
+        rec["labels"] = dict(frame=lf, **_check_label_bottoms(k, src, sample, lf, sensors[k].pitch_deg,
+                                                              frame_checks))
+        frames[k], lframes[k] = rec, lf
 
     iterator = ids
     if progress:
@@ -113,6 +249,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
 
         iterator = tqdm(ids, desc="convert", unit="frame")
     classes: list[str] = []
+    class_counts: dict = {}
     road_z: dict[str, float] = {}
     for k in srcs:
         (out / "points" / k).mkdir(parents=True, exist_ok=True)
@@ -121,7 +258,11 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         ground = {}
         for k, src in srcs.items():
             boxes, names = read_labels(src / "labels" / f"{fid}.txt")
-            if labels_frame == "sensor":
+            if k == ref_key:
+                count_classes(names.tolist(), cmap, class_counts)
+            keep, new_names = cmap.apply(names.tolist())
+            boxes, names = boxes[keep], np.asarray(new_names, dtype=str).reshape(-1)
+            if lframes[k] == "sensor":
                 boxes = boxes_sensor_to_ground(boxes, float(k), sensors[k].pitch_deg)
             ground[k] = (boxes, names)
         rb, rn = ground[ref_key]
@@ -143,7 +284,8 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
             pts = read_points(sp)  # validates before copying
             dst = points_path(out, k, fid, exts[k])
             if k not in road_z:
-                road_z[k] = road_surface_z(sensor_to_ground(pts, float(k), sensors[k].pitch_deg))
+                g = pts if frames[k]["frame"] == "ground" else sensor_to_ground(pts, float(k), sensors[k].pitch_deg)
+                road_z[k] = road_surface_z(g)
             dst.unlink(missing_ok=True)
             if link:
                 os.link(sp, dst)
@@ -152,69 +294,144 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
 
     rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
     scene_of = rule.scenes(ids)
-    if keep_split:
-        train = read_imageset(ref_src / "ImageSets" / "train.txt")
-        test_name = "test.txt" if (ref_src / "ImageSets" / "test.txt").is_file() else "val.txt"
-        test = read_imageset(ref_src / "ImageSets" / test_name)
-        known = set(ids)
-        missing = [f for f in train + test if f not in known]
-        if missing:
-            raise DatasetError(f"{len(missing)} listed id(s) have no label file (e.g. {missing[0]!r})",
-                               path=ref_src / "ImageSets")
-        split = {"rule": "kept", "source": str(ref_src / "ImageSets"), "num_train": len(train), "num_test": len(test)}
+    if kept is not None:
+        split = {"rule": "kept", "source": str(ref_src / "ImageSets"), "files": split_files,
+                 "num_train": len(train), "num_test": len(test)}
     else:
         train, test, split = assign_splits(ids, scene_of, test_fraction)
         split = dict(split, num_train=len(train), num_test=len(test))
     atomic_write_text(imageset_path(out, "train"), "".join(f + "\n" for f in train))
     atomic_write_text(imageset_path(out, "test"), "".join(f + "\n" for f in test))
-    heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame="sensor", points_ext=exts[k]) for k in srcs}
+    heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame=frames[k]["frame"], points_ext=exts[k])
+               for k in srcs}
     info = DatasetInfo(heights=heights, classes=classes or ["car"], split=split, has_meta=False,
                        lane_width=DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width),
                        scene_rule=rule, num_frames=len(ids), format=FORMAT_NAME, version=FORMAT_VERSION,
                        source={"kind": "external", "converted_from": {k: str(v) for k, v in srcs.items()},
-                               "labels_frame": labels_frame, "road_surface_z_m": road_z})
-    atomic_write_json(out / INFO_FILE, info.to_dict())
+                               "format": "openpcdet-custom", "frames": frames,
+                               "labels_frame": {k: lframes[k] for k in srcs}, "class_map": cmap.spec,
+                               "class_counts": class_counts, "road_surface_z_m": road_z, "notes": notes})
+    atomic_write_json(out / "convert_report.json", {"out": str(out), "num_frames": info.num_frames,
+                                                    "split": info.split, **info.source})
+    atomic_write_text(out / "convert_report.md", convert_report_markdown(info, out))
+    atomic_write_json(out / INFO_FILE, info.to_dict())  # last: marks a finished dataset
     return info
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m detbench.data.convert", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+def convert_report_markdown(info: DatasetInfo, out: str | os.PathLike) -> str:
+    """Markdown of what a conversion found and did (the same facts as dataset.json's `source`)."""
+    s = info.source
+    lines = [f"# OpenPCDet custom folders converted to {out}", "",
+             f"{info.num_frames} frames; split {info.split.get('rule')}: {info.split.get('num_train')} train / "
+             f"{info.split.get('num_test')} test.", "",
+             "| height | source | points frame | how | labels frame | road in converted points |",
+             "|---|---|---|---|---|---:|"]
+    for k in info.heights:
+        f = s["frames"][k]
+        z = s["road_surface_z_m"].get(k)
+        zt = "n/a" if z is None or not np.isfinite(z) else f"{z:+.2f} m"
+        lines.append(f"| {k} m | `{s['converted_from'][k]}` | {f['frame']} | {f['how']}: {f['evidence']} | "
+                     f"{s['labels_frame'][k]} | {zt} |")
+    lines += ["", f"Classes (map `{s['class_map']}`), label lines of the reference height:", "",
+              "| source class | kept | dropped | as |", "|---|---:|---:|---|"]
+    for name, c in sorted(s["class_counts"].items()):
+        lines.append(f"| {name} | {c['kept']} | {c['dropped']} | {c['as'] or '-'} |")
+    if s.get("notes"):
+        lines += ["", "Notes:", ""] + [f"- {n}" for n in s["notes"]]
+    return "\n".join(lines) + "\n"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="python -m detbench.data.convert", description=__doc__.split("\n\n")[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="examples:\n"
+               "  python -m detbench.data.convert --src 1.8=/data/h3/1.8m --out data/h3_1.8\n"
+               "  python -m detbench.data.convert --src 0.5=/data/h3/0.5m --src 1.8=/data/h3/1.8m --pitch 1.8=2.5 \\\n"
+               "      --out data/height3 --frames-per-scene 200\n"
+               "  python -m detbench.data.convert --src 1.8=/data/mine --out data/mine --points-frame ground \\\n"
+               "      --class-map 'Vehicle=car,*=-'\n"
+               "Writes OUT/dataset.json (with what was found in its 'source'), OUT/convert_report.json and .md.\n"
+               "Then: python -m detbench.data.validate OUT; python tools/analyze.py --data OUT")
     ap.add_argument("--src", action="append", required=True, metavar="HEIGHT=DIR",
-                    help="an OpenPCDet custom folder and its mounting height in metres; repeat per height "
+                    help="an OpenPCDet custom folder and its LiDAR's mounting height in metres; repeat per height "
                          "(the first one is the label reference)")
     ap.add_argument("--out", required=True, help="output dataset folder")
     ap.add_argument("--pitch", action="append", metavar="HEIGHT=DEG", default=[],
                     help="sensor pitch in degrees, positive = down, for a height (default 0)")
-    ap.add_argument("--labels-frame", choices=("sensor", "ground"), default="sensor",
-                    help="frame of the source labels: each LiDAR's own frame (default) or the ground frame")
+    ap.add_argument("--points-frame", choices=POINTS_FRAME_CHOICES, default="auto",
+                    help="frame of the source points: 'auto' (default) finds it from the road (near 0 m: ground "
+                         "frame; near -HEIGHT m: the LiDAR's own frame) and stops when it cannot tell; 'sensor' or "
+                         "'ground' say it")
+    ap.add_argument("--labels-frame", choices=LABELS_FRAME_CHOICES, default="points",
+                    help="frame of the source labels: 'points' (default: the frame of the points, as OpenPCDet "
+                         "requires), 'sensor' (each LiDAR's own frame) or 'ground'; checked by the boxes standing "
+                         "on the road")
+    ap.add_argument("--class-map", action="append", default=None, metavar="SPEC",
+                    help="rename or drop classes: comma-separated SRC=DST (SRC a class, case-insensitive, or '*' for "
+                         "every other; DST a name, '-' to drop, '*' to keep), or a preset: vehicles-only (default: "
+                         "drop Pedestrian, Cyclist, Person_sitting, DontCare; keep the rest), keep, vehicle (all -> "
+                         "Vehicle). The lines kept and dropped per class are printed")
     ap.add_argument("--frames-per-scene", type=int, default=200,
                     help="consecutive frame ids forming one scene (Height3: 200 frames = 100 s at 2 Hz)")
-    ap.add_argument("--test-fraction", type=float, default=1 / 3, help="share of scenes in the test split")
+    ap.add_argument("--resplit", action="store_true",
+                    help="split by scene (--test-fraction) instead of keeping the source's ImageSets/train.txt and "
+                         "val.txt (or test.txt), which is the default")
     ap.add_argument("--keep-split", action="store_true",
-                    help="keep the source's ImageSets/train.txt and test.txt (or val.txt) instead of re-splitting")
+                    help="keep the source's split (the default; kept for older commands)")
+    ap.add_argument("--test-fraction", type=float, default=1 / 3, help="with --resplit: share of scenes in test")
     ap.add_argument("--lane-width", type=float, default=None,
                     help="lane width in metres used to derive lanes from y on load (default 3.5)")
     ap.add_argument("--label-tolerance", type=float, default=0.05,
                     help="max difference in metres between the heights' ground-frame labels (default 0.05)")
+    ap.add_argument("--no-frame-check", action="store_true",
+                    help="convert even when the road or the boxes' bottoms contradict --points-frame/--labels-frame")
     ap.add_argument("--link", action="store_true", help="hard-link point files instead of copying them")
     ap.add_argument("--overwrite", action="store_true", help="write into a folder that already holds a dataset")
-    args = ap.parse_args(argv)
-    info = convert_openpcdet_custom(
-        _pairs(args.src, "src"), args.out, pitch_deg={k: float(v) for k, v in _pairs(args.pitch, "pitch").items()},
-        labels_frame=args.labels_frame, frames_per_scene=args.frames_per_scene, test_fraction=args.test_fraction,
-        keep_split=args.keep_split, lane_width=args.lane_width, label_tolerance=args.label_tolerance,
-        link=args.link, overwrite=args.overwrite)
-    for k, z in info.source["road_surface_z_m"].items():
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return ap
+
+
+def main(argv=None) -> int:
+    from detbench.utils.cli import UserError
+
+    args = build_parser().parse_args(argv)
+    if args.resplit and args.keep_split:
+        raise UserError("--resplit and --keep-split contradict each other; give one")
+    try:
+        info = convert_openpcdet_custom(
+            _pairs(args.src, "src"), args.out,
+            pitch_deg={k: float(v) for k, v in _pairs(args.pitch, "pitch").items()},
+            points_frame=args.points_frame, labels_frame=args.labels_frame, class_map=args.class_map,
+            frames_per_scene=args.frames_per_scene, test_fraction=args.test_fraction, keep_split=not args.resplit,
+            lane_width=args.lane_width, label_tolerance=args.label_tolerance, frame_checks=not args.no_frame_check,
+            link=args.link, overwrite=args.overwrite, progress=not args.no_progress)
+    except (DatasetError, FileNotFoundError, FileExistsError, ValueError, OSError) as e:
+        raise UserError(str(e)) from None
+    src = info.source
+    for k in info.heights:
+        f = src["frames"][k]
+        print(f"{k} m: points in the {f['frame']} frame ({f['how']}: {f['evidence']}); labels in the "
+              f"{src['labels_frame'][k]} frame")
+    for k, z in src["road_surface_z_m"].items():
         if not np.isfinite(z):
             print(f"{k} m: too few points in front of the car to find the road surface (check by eye)")
             continue
         flag = "ok" if abs(z) < 0.15 else "CHECK --pitch / the height: the road should be near 0 m"
         print(f"{k} m: road surface at z = {z:+.2f} m in the converted points ({flag})")
+    print(f"classes (map {src['class_map']}):")
+    for line in class_count_lines(src["class_counts"]):
+        print("  " + line)
+    for n in src["notes"]:
+        print("note: " + n)
+    out = Path(args.out)
     print(f"{args.out}: {info.num_frames} frames, heights {list(info.heights)}, "
-          f"{info.split.get('num_train')} train / {info.split.get('num_test')} test")
+          f"{info.split.get('num_train')} train / {info.split.get('num_test')} test "
+          f"(split {info.split.get('rule')}); report: {out / 'convert_report.md'}")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from detbench.utils.cli import run_main
+
+    sys.exit(run_main(main))

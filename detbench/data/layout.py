@@ -258,6 +258,34 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
                        format=fmt, version=version)
 
 
+def is_openpcdet_custom_folder(root: str | os.PathLike) -> bool:
+    """True for a folder in OpenPCDet's custom layout: point files directly in points/ (not in
+    points/<height>/ as detbench keeps them) and a labels/ folder."""
+    root = Path(root)
+    pts = root / POINTS_DIR
+    if not (pts.is_dir() and (root / LABELS_DIR).is_dir()):
+        return False
+    return any(p.suffix in POINT_EXTS and p.is_file() for p in pts.iterdir())
+
+
+def openpcdet_folder_hint(root: str | os.PathLike) -> str:
+    """What to tell a user who gives a detbench tool an OpenPCDet custom folder: the command converting it."""
+    root = Path(root)
+    msg = (f"{root} is an OpenPCDet custom folder (points/<id>.npy and labels/<id>.txt of one LiDAR), not a "
+           f"detbench dataset; convert it first: python -m detbench.data.convert --src HEIGHT={root} "
+           f"--out {root.name or 'data'}_detbench (HEIGHT: that LiDAR's mounting height in metres, e.g. 1.8; "
+           f"one --src per height), then give the tool the --out folder")
+    manifest = root / "detbench_export.json"
+    if manifest.is_file():
+        try:
+            src = read_json(manifest).get("source", {})
+            msg += (f". This folder was exported by detbench from {src['root']} ({src['height']} m): give that "
+                    f"dataset to detbench's tools instead")
+        except (ValueError, KeyError, TypeError, AttributeError):
+            pass
+    return msg
+
+
 def read_info(root: str | os.PathLike) -> DatasetInfo:
     """Read and validate ROOT/dataset.json."""
     root = Path(root)
@@ -266,6 +294,8 @@ def read_info(root: str | os.PathLike) -> DatasetInfo:
                                "--out ROOT, or convert data with python -m detbench.data.convert)", path=root)
     path = root / INFO_FILE
     if not path.is_file():
+        if is_openpcdet_custom_folder(root):
+            raise MissingFileError(f"dataset.json not found: {openpcdet_folder_hint(root)}", path=path)
         hint = ("a writer did not finish (re-run it)" if (root / POINTS_DIR).is_dir()
                 else "this is not a detbench dataset (create one with tools/simulate.py, or convert "
                      "OpenPCDet-style data with python -m detbench.data.convert)")

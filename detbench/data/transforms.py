@@ -71,6 +71,20 @@ def boxes_sensor_to_ground(boxes: np.ndarray, height: float, pitch_deg: float = 
     return out
 
 
+def boxes_ground_to_sensor(boxes: np.ndarray, height: float, pitch_deg: float = 0.0) -> np.ndarray:
+    """Inverse of `boxes_sensor_to_ground`: boxes (M, 7) in the ground frame -> the sensor frame.
+
+    The centre is transformed exactly; sizes and heading are kept, so for pitch != 0 the
+    result is the upright box about the exact centre (the box's tilt by the pitch is dropped).
+    """
+    b = np.asarray(boxes)
+    if b.ndim != 2 or b.shape[1] != 7:
+        raise ValueError(f"boxes must be (M, 7), got shape {b.shape}")
+    out = b.copy()
+    out[:, :3] = ground_to_sensor(b[:, :3], height, pitch_deg)
+    return out
+
+
 def wrap_heading(heading: np.ndarray) -> np.ndarray:
     """Angles (radians, any shape) wrapped into [-pi, pi), float64; huge angles exactly (detbench.utils.angles)."""
     h = np.asarray(heading, dtype=np.float64)

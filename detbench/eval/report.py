@@ -123,6 +123,9 @@ def report_to_markdown(report: dict, title: str | None = None) -> str:
     out = [f"# {title or 'Detection results'}", ""]
     out.append(", ".join(_header(report)) + ".")
     out.append("")
+    for w in report.get("warnings") or []:
+        out.append(f"**Warning: {w}**")
+        out.append("")
     out.append(f"Predictions with score < {report['score_threshold']:g} dropped. Counts are vehicles "
                f"(TP, FP: predictions); LDR = LiDAR detected / total, recall = TP / LiDAR detected "
                f"(eq. 2), AP@R40 (eq. 3); fractions in [0, 1], {MISSING} where nothing is evaluated.")

@@ -1,0 +1,25 @@
+#!/usr/bin/env python3
+"""Import OpenPCDet custom folders (one per LiDAR height) as one detbench dataset.
+
+    python tools/import_openpcdet.py --src 1.8=/data/h3/1.8m [--src 0.5=...] --out data/height3
+
+The same command as `python -m detbench.data.convert` (the conversion lives there; see its
+--help and docs/data-format.md, "OpenPCDet's format and detbench's"). Writes OUT/dataset.json,
+OUT/convert_report.json and OUT/convert_report.md; a problem is one 'error:' line naming the
+file and the flag to set, exit status 2.
+"""
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+# Not installed (run from a checkout): the repository root holds detbench.
+if importlib.util.find_spec("detbench") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from detbench.data.convert import main  # noqa: E402
+from detbench.utils.cli import run_main  # noqa: E402
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))
