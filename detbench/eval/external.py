@@ -449,10 +449,14 @@ def vertical_offset_check(dataset, predictions: dict, *, pred_frame: str = "grou
     other_fits = alt_abs <= threshold
     if len(dz) < min_matches or not (abs(med) > threshold or (mabs > threshold and other_fits)):
         return res
-    where = "below" if med < 0 else "above"
-    msg = (f"likely frame mismatch: the predictions sit {abs(med):.2f} m {where} the vehicles they cover in bird's-eye "
-           f"view (median over {len(dz)} matches within {max_distance:g} m; middle half {q1:+.2f} to {q3:+.2f} m); "
-           f"3D IoU counts such boxes as misses. ")
+    if abs(med) > threshold:
+        off = f"sit {abs(med):.2f} m {'below' if med < 0 else 'above'} the vehicles they cover in bird's-eye view"
+    else:
+        off = (f"sit at other heights than the vehicles they cover in bird's-eye view ({mabs:.2f} m apart in the "
+               f"median, an offset that changes with distance)")
+    msg = (f"likely frame mismatch: the predictions {off} (dz = prediction z - vehicle z over {len(dz)} matches "
+           f"within {max_distance:g} m: median {med:+.2f} m, middle half {q1:+.2f} to {q3:+.2f} m); 3D IoU counts "
+           f"such boxes as misses. ")
     sens = ", ".join(f"{h:g} m" + (f" pitched {a:g} deg" if a else "") for h, a in sorted(sensors))
     if other_fits and pred_frame == "ground":
         msg += (f"Taken as the LiDAR's own frame (sensor at {sens}) they match the vehicles (median |dz| "
