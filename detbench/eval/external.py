@@ -93,6 +93,10 @@ def _numpy_global(where: str, name: str):
     raise pickle.UnpicklingError(f"numpy has no {where}.{name}")
 
 
+class _Refused(pickle.UnpicklingError):
+    """An object type the restricted unpickler does not admit."""
+
+
 class _RestrictedUnpickler(pickle.Unpickler):
     """Admits plain containers, numbers, strings and numpy arrays / dtypes / scalars; nothing else."""
 
@@ -103,7 +107,7 @@ class _RestrictedUnpickler(pickle.Unpickler):
             return collections.OrderedDict
         target = _NUMPY_GLOBALS.get((module, name))
         if target is None:
-            raise pickle.UnpicklingError(
+            raise _Refused(
                 f"it holds an object of type {module}.{name}; only plain containers and numpy arrays are read "
                 f"(a pickle can run code, so other types are refused)")
         return _numpy_global(*target)
@@ -118,9 +122,9 @@ def load_result_pkl(path: str | Path):
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: result file not found; give the result.pkl OpenPCDet's tools/test.py "
                                 f"wrote (output/.../eval/.../result.pkl)") from None
-    except pickle.UnpicklingError as e:
+    except _Refused as e:
         raise ValueError(f"{path}: not read: {e}") from None
-    except (EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError, UnicodeDecodeError) as e:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not a readable pickle ({type(e).__name__}: {e}); is it OpenPCDet's result.pkl, "
                          f"complete?") from None
 
