@@ -38,7 +38,8 @@ def opc_entry(fid, boxes, scores, names):
     """One per-frame dict as OpenPCDet's generate_prediction_dicts makes it (frame_id a numpy string)."""
     n = len(boxes)
     return {"name": np.array(names) if n else np.zeros(0), "score": np.asarray(scores, np.float32),
-            "boxes_lidar": np.asarray(boxes, np.float32).reshape(n, -1) if n else np.zeros((0, 7), np.float32), "pred_labels": np.ones(n, np.int64),
+            "boxes_lidar": np.asarray(boxes, np.float32).reshape(n, -1) if n else np.zeros((0, 7), np.float32),
+            "pred_labels": np.ones(n, np.int64),
             "frame_id": np.array([fid])[0]}
 
 

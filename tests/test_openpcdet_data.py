@@ -360,7 +360,8 @@ def test_tools_on_an_unconverted_folder_name_the_convert_command(tmp_path, capsy
 
 
 def test_round_trip_through_openpcdet_on_simulated_data(tmp_path, load_tool):
-    """simulate -> export (sensor frame, pitched 1.8 m LiDAR) -> convert back: same frames, boxes, points, LDR, split."""
+    """simulate -> export (sensor frame, pitched 1.8 m LiDAR) -> convert back: same frames, boxes, points, LDR,
+    split."""
     sim = tmp_path / "sim"
     assert load_tool("simulate").main(["--out", str(sim), "--scenes", "3", "--frames-per-scene", "2", "--heights",
                                        "1.8", "--seed", "2", "--no-progress"]) == 0

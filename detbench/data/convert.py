@@ -44,7 +44,8 @@ from detbench.data.layout import (
     check_frame_id, imageset_path, label_path, points_path,
 )
 from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
-    DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame, label_bottom_z, level_road_z, parse_class_map, road_surface_z,
+    DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame,
+    label_bottom_z, level_road_z, parse_class_map, road_surface_z,
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
@@ -371,7 +372,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="rename or drop classes: comma-separated SRC=DST (SRC a class, case-insensitive, or '*' for "
                          "every other; DST a name, '-' to drop, '*' to keep), or a preset: vehicles-only (default: "
                          "drop Pedestrian, Cyclist, Person_sitting, DontCare; keep the rest), keep, vehicle (all -> "
-                         "Vehicle). The lines kept and dropped per class are printed")
+                         "Vehicle). Repeat to combine: --class-map vehicles-only --class-map Vehicle=car. The lines "
+                         "kept and dropped per class are printed")
     ap.add_argument("--frames-per-scene", type=int, default=200,
                     help="consecutive frame ids forming one scene (Height3: 200 frames = 100 s at 2 Hz)")
     ap.add_argument("--resplit", action="store_true",

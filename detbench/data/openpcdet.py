@@ -42,7 +42,6 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key
 from detbench.data.layout import IMAGESETS_DIR, LABELS_DIR, POINTS_DIR, POINTS_FRAMES
 from detbench.data.readers import format_labels
 from detbench.data.transforms import boxes_ground_to_sensor, ground_to_sensor, sensor_to_ground

@@ -124,7 +124,8 @@ def load_result_pkl(path: str | Path):
                                 f"wrote (output/.../eval/.../result.pkl)") from None
     except _Refused as e:
         raise ValueError(f"{path}: not read: {e}") from None
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError, UnicodeDecodeError) as e:
+    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
+            UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not a readable pickle ({type(e).__name__}: {e}); is it OpenPCDet's result.pkl, "
                          f"complete?") from None
 
@@ -167,7 +168,7 @@ def _checked(boxes, scores, names, where: str) -> ExternalPredictions:
 
 
 def predictions_from_result_pkl(path: str | Path) -> dict[str, ExternalPredictions]:
-    """{frame_id: ExternalPredictions} of OpenPCDet's result.pkl (see the module doc). ValueError naming file and entry."""
+    """{frame_id: ExternalPredictions} of OpenPCDet's result.pkl (module doc); ValueError naming file and entry."""
     path = Path(path)
     data = load_result_pkl(path)
     if not isinstance(data, (list, tuple)):
@@ -291,8 +292,9 @@ def read_prediction_texts(pred_dir: str | Path) -> tuple[dict[str, ExternalPredi
         if path.name.startswith("."):
             continue
         if not path.is_file() or path.suffix != PREDICTION_SUFFIX:
+            hint = "; to read OpenPCDet's result file give --pred the .pkl itself" if path.suffix == ".pkl" else ""
             raise ValueError(f"{path}: unexpected entry in the prediction folder; it must hold only "
-                             f"<frame_id>{PREDICTION_SUFFIX} files")
+                             f"<frame_id>{PREDICTION_SUFFIX} files{hint}")
         preds, layout = parse_prediction_text(path)
         out[path.stem] = preds
         if layout is not None:
