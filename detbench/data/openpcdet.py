@@ -370,19 +370,13 @@ def openpcdet_dataset_yaml(data_path: str | os.PathLike, classes: Sequence[str],
     return "\n".join(lines) + "\n"
 
 
-def openpcdet_commands(out: Path, root: Path, height_k: str, frame: str, classes: Sequence[str] = ("Vehicle",)
-                       ) -> dict:
+def openpcdet_commands(out: Path, root: Path, height_k: str, frame: str) -> dict:
     """The shell commands that take the export into OpenPCDet and its predictions back (paths absolute)."""
     out = Path(out).resolve()
     return {
         "link": f"ln -sfn {out} OPENPCDET/data/custom",
         "create_infos": f"cd OPENPCDET && python -m pcdet.datasets.custom.custom_dataset create_custom_infos "
                         f"{out / EXPORT_YAML}",
-        "create_infos_without_link": (
-            f"cd OPENPCDET && python -c \"import yaml; from pathlib import Path; from easydict import EasyDict; "
-            f"from pcdet.datasets.custom.custom_dataset import create_custom_infos; "
-            f"p = Path('{out}'); create_custom_infos(EasyDict(yaml.safe_load(open(p / '{EXPORT_YAML}'))), "
-            f"{list(classes)}, p, p)\""),
         "evaluate_in_detbench": f"python tools/eval.py --data {Path(root).resolve()} --height {height_k} --split test "
                                 f"--pred OPENPCDET/output/.../eval/.../val/default/result.pkl --pred-frame {frame} "
                                 f"--out runs/openpcdet_eval_{height_k}",
@@ -487,7 +481,7 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     yaml_text = openpcdet_dataset_yaml(out.resolve(), out_classes or ["Vehicle"], frame, s_h, s_p,
                                        source=f"{root.resolve()} at {hk} m")
     atomic_write_text(out / EXPORT_YAML, yaml_text)
-    commands = openpcdet_commands(out, root, hk, frame, out_classes or ["Vehicle"])
+    commands = openpcdet_commands(out, root, hk, frame)
     atomic_write_text(out / EXPORT_SCRIPT, _create_infos_script(out, commands))
     notes = []
     if frame == "sensor" and any(p for (_, p) in sensors_used):
@@ -566,11 +560,9 @@ def export_markdown(m: dict) -> str:
         "",
         f"Then use `{EXPORT_YAML}` as the dataset config (copy it over "
         "tools/cfgs/dataset_configs/custom_dataset.yaml or point the model config's `_BASE_CONFIG_` at it) and set "
-        f"`CLASS_NAMES: {m['classes']}` in the model config. Without the link:",
-        "",
-        "```sh",
-        c["create_infos_without_link"],
-        "```",
+        f"`CLASS_NAMES: {m['classes']}` in the model config. (OpenPCDet's create_custom_infos always reads "
+        "OPENPCDET/data/custom, hence the link; it writes custom_infos_train.pkl, custom_infos_val.pkl, "
+        "custom_dbinfos_train.pkl and gt_database/ into this folder.)",
         "",
         "## Predictions back into detbench",
         "",
