@@ -1,4 +1,4 @@
-"""Inference at reduced precision against float32 (issue 19.2): detbench.eval.precision and tools/precision.py.
+"""Inference at reduced precision against float32 (issue 19.2): detbench.train.precision and tools/precision.py.
 
 - `box_differences` on hand-made detections: a known shift, a heading flip, a lost detection;
 - `compare_precision` with a detector that behaves differently under autocast (boxes moved by a
@@ -23,7 +23,7 @@ from torch import nn
 import models
 from detbench.data.batch import Batch, Detections
 from detbench.data.frame import Frame, Sensor
-from detbench.eval.precision import (
+from detbench.train.precision import (
     available_precisions, autocast_for, box_differences, compare_precision, precision_markdown, run_at_precision,
 )
 from test_models_contract import car_points

@@ -7,7 +7,7 @@ per precision: AP@R40 and recall per range (3D IoU 0.7, level All) and their dif
 float32, the largest difference between the boxes the two runs give for the same vehicle
 (corner displacement, centre, size, heading, score), detections found by only one run, the
 NaN / inf values in the raw outputs, and seconds per frame. The computation is
-`detbench.eval.precision.compare_precision` (docs/architecture.md, "Numerical stability").
+`detbench.train.precision.compare_precision` (docs/architecture.md, "Numerical stability").
 
 Examples:
   python tools/precision.py --ckpt runs/second_h1.8/checkpoints/epoch_020.pt
@@ -29,7 +29,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-from detbench.eval.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
+from detbench.train.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 

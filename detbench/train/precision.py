@@ -20,7 +20,8 @@ autocast on CUDA), and reports for each precision:
   warm-up show).
 
 The model runs with `torch.autocast(device, dtype)` around its forward pass and its
-post-processing; parameters stay float32. Results are plain dicts (JSON-ready), one schema
+post-processing; parameters stay float32. (It lives in detbench.train beside `predict_frames`,
+whose frame preparation and NaN count it shares: detbench.eval sits below the training layer.) Results are plain dicts (JSON-ready), one schema
 for the tool (tools/precision.py), the tests and the trade study. `precision_markdown(report)`
 renders one.
 """
@@ -36,9 +37,13 @@ import numpy as np
 import torch
 from torch import nn
 
+from tqdm import tqdm
+
+from detbench.data.batch import collate
 from detbench.data.regions import RANGE_NAMES, detected_point_counts
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.ops import boxes_iou_bev, boxes_to_corners_3d, normalize_heading
+from detbench.train.inference import count_nonfinite, frame_sample
 
 __all__ = ["PRECISIONS", "PrecisionRun", "available_precisions", "autocast_for", "box_differences",
            "compare_precision", "precision_markdown", "run_at_precision"]
@@ -86,11 +91,6 @@ def run_at_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequ
                      device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = False) -> PrecisionRun:
     """Run `model` (the detector contract: forward, predict) over `frames` in eval mode under `precision`'s
     autocast. Never raises for NaN / inf outputs: they are counted (see the module doc)."""
-    from tqdm import tqdm
-
-    from detbench.data.batch import collate
-    from detbench.train.inference import count_nonfinite, frame_sample  # (loads the training package on use)
-
     device = torch.device(device)
     was_training = model.training
     model.eval()
