@@ -386,7 +386,12 @@ def _post(dirs, height, max_range, t_hit, hit, cosi, kind, refl, ground_refl, ke
                     continue
             pts[r, 0] = t * dirs[r, 0]
             pts[r, 1] = t * dirs[r, 1]
-            pts[r, 2] = height + t * dirs[r, 2]
+            if h == HIT_GROUND:
+                # height + t_hit * dz is 0 up to rounding (it came out at -4e-16 m, below the road): take the
+                # offset from the exact hit instead, so a noise-free ground point has z = 0 exactly
+                pts[r, 2] = (t - t_hit[r]) * dirs[r, 2] + 0.0  # (+ 0.0: no -0.0)
+            else:
+                pts[r, 2] = height + t * dirs[r, 2]
             pts[r, 3] = inten
             keep[r] = True
     return pts, keep

@@ -12,6 +12,12 @@ Why not one big "implicit GEMM" (gather an (N_out, K * C_in) matrix with zero ro
 missing neighbours, one matmul)? A LiDAR scan voxelised at 0.1 m has ~5 active neighbours
 of 27 per site, so that formulation multiplies ~5x more zeros than useful numbers and was
 2-4x slower on CPU in tools/bench_sparse.py measurements.
+
+Mixed precision: under `torch.autocast` the features are cast to the autocast dtype
+(float16 / bfloat16) once, before the autograd function, whose matrix products run in that
+dtype with autocast off; the weight stays float32 and its gradient is accumulated in float32. Left to autocast, each `torch.mm` inside the function casts on its own, so
+the forward output is float16 while the saved features stay float32, and the backward pass
+fails on mixed dtypes (found by the mixed-precision stability tests, issue 19).
 """
 from __future__ import annotations
 
@@ -36,13 +42,17 @@ def _apply_pairs(x: torch.Tensor, w: torch.Tensor, rb: RuleBook) -> torch.Tensor
 
 
 class _SparseConvFunction(torch.autograd.Function):
-    """Autograd wrapper; ``weight_kio`` is (K, C_in, C_out)."""
+    """Autograd wrapper; ``weight_kio`` is (K, C_in, C_out).
+
+    The products run in the features' dtype; the weight gradient is accumulated in the
+    weight's own dtype (float32 under mixed precision: a sum over thousands of sites
+    overflows float16 long before the loss scale is lowered far enough)."""
 
     @staticmethod
     def forward(ctx, features, weight_kio, rb: RuleBook):
         ctx.rb = rb
         ctx.save_for_backward(features, weight_kio)
-        return _apply_pairs(features, weight_kio, rb)
+        return _apply_pairs(features, weight_kio.to(features.dtype), rb)
 
     @staticmethod
     @once_differentiable
@@ -52,7 +62,8 @@ class _SparseConvFunction(torch.autograd.Function):
         grad_out = grad_out.contiguous()
         need_x, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
         grad_x = grad_w = None
-        w_t = weight_kio.transpose(1, 2)  # (K, C_out, C_in)
+        w_t = weight_kio.to(grad_out.dtype).transpose(1, 2)  # (K, C_out, C_in)
+        wdt = weight_kio.dtype
         if need_x:
             if rb.identity_offset >= 0:
                 grad_x = torch.mm(grad_out, w_t[rb.identity_offset])
@@ -61,7 +72,7 @@ class _SparseConvFunction(torch.autograd.Function):
         if need_w:
             grad_w = torch.zeros_like(weight_kio)
             if rb.identity_offset >= 0:
-                grad_w[rb.identity_offset] = torch.mm(features.t(), grad_out)
+                grad_w[rb.identity_offset] = torch.mm(features.t().to(wdt), grad_out.to(wdt))
         if need_x or need_w:
             # One gather of the output gradient per offset serves both gradients.
             for k, rows_in, rows_out in rb.offset_pairs():
@@ -69,8 +80,22 @@ class _SparseConvFunction(torch.autograd.Function):
                 if need_x:
                     grad_x.index_add_(0, rows_in, torch.mm(g, w_t[k]))
                 if need_w:
-                    grad_w[k] = torch.mm(features.index_select(0, rows_in).t(), g)
+                    grad_w[k] = torch.mm(features.index_select(0, rows_in).t().to(wdt), g.to(wdt))
         return grad_x, grad_w, None
+
+
+def _autocast_dtype(device: torch.device) -> torch.dtype | None:
+    """The autocast dtype active for `device`'s type, or None when autocast is off (torch >= 2.1)."""
+    try:
+        if torch.is_autocast_enabled(device.type):
+            return torch.get_autocast_dtype(device.type)
+        return None
+    except (TypeError, AttributeError):  # torch < 2.4: per-device functions
+        if device.type == "cuda" and torch.is_autocast_enabled():
+            return torch.get_autocast_gpu_dtype()
+        if device.type == "cpu" and torch.is_autocast_cpu_enabled():
+            return torch.get_autocast_cpu_dtype()
+        return None
 
 
 def sparse_conv(features: torch.Tensor, weight: torch.Tensor, rulebook: RuleBook,
@@ -97,8 +122,17 @@ def sparse_conv(features: torch.Tensor, weight: torch.Tensor, rulebook: RuleBook
                          f"got {tuple(features.shape)}")
     if features.shape[0] != rulebook.num_in:
         raise ValueError(f"features have {features.shape[0]} rows but the rule book has {rulebook.num_in} input sites")
-    weight_kio = weight.to(features.dtype).reshape(c_out, c_in, kvol).permute(2, 1, 0).contiguous()
-    out = _SparseConvFunction.apply(features.contiguous(), weight_kio, rulebook)
+    amp = _autocast_dtype(features.device) if features.is_floating_point() else None
+    if amp is not None:  # features in the autocast dtype; the weight keeps its own (float32) dtype
+        features = features.to(amp)
+    else:
+        weight = weight.to(features.dtype)
+    weight_kio = weight.reshape(c_out, c_in, kvol).permute(2, 1, 0).contiguous()
+    if amp is None:
+        out = _SparseConvFunction.apply(features.contiguous(), weight_kio, rulebook)
+    else:
+        with torch.autocast(features.device.type, enabled=False):
+            out = _SparseConvFunction.apply(features.contiguous(), weight_kio, rulebook)
     if bias is not None:
         out = out + bias.to(out.dtype)
     return out

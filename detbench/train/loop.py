@@ -1,14 +1,16 @@
 """The training loop: `train(model, train_set, cfg, out_dir, ...)`, readable top to bottom.
 
 One call trains (or resumes) a detector that follows the contract `Detector` (detbench/train/detector.py):
-AdamW + one-cycle LR stepped per batch, gradient clipping, mixed precision on CUDA only,
-seeded data order and augmentation, a checkpoint at every epoch end (and on Ctrl-C),
-TensorBoard + history.json + a console line per epoch, an optional evaluation callback, and
-DistributedDataParallel when launched by torchrun.
+AdamW + one-cycle LR stepped per batch, gradient clipping, mixed precision on CUDA only
+(float32 master weights, dynamic loss scaling), seeded data order and augmentation, skipping
+of steps whose loss or gradient is not finite (`max_nonfinite_steps` in a row stop the run), a
+checkpoint at every epoch end (and on Ctrl-C), TensorBoard + history.json + a console line per
+epoch, an optional evaluation callback, and DistributedDataParallel when launched by torchrun.
 
 `train` reads top to bottom: `_setup` (seed, model on its device, loader, optimizer,
 schedule, `_resume`), then per epoch `_train_epoch` (each batch one `_step`: forward, loss,
-backward, clip, optimizer and schedule; logging, mid-epoch checkpoints, the stop check) and
+backward, the finiteness check, clip, optimizer and schedule; logging, the non-finite streak,
+mid-epoch checkpoints, the stop check) and
 `_end_epoch` (averaged losses, checkpoint, evaluation, logs). `_Run` carries the run's
 objects and its advancing `TrainState` between them.
 
@@ -16,6 +18,17 @@ Outputs in `out_dir`: config.yaml (the run config, written once the run is accep
 refused start or resume changes no file), checkpoints/epoch_EEE.pt (last `keep_checkpoints`
 kept), tensorboard/ (event files), history.json (one record per epoch, written before the
 epoch's checkpoint, so a kill at any point loses no completed epoch's line).
+
+Non-finite steps. A step whose loss or gradient holds NaN or inf changes nothing: no optimizer
+update, and the BatchNorm statistics its forward pass touched are put back (the learning-rate
+schedule still advances, so it stays tied to the step count). It is reported on the console with
+its frame ids, counted in TensorBoard (train/nonfinite_steps) and listed in the epoch's
+history.json record (`nonfinite_steps`). `max_nonfinite_steps` such steps in a row stop the run
+with `NonFiniteTrainingError` naming the frames and the newest checkpoint, which holds the
+weights of the last good step (skipped steps never change the weights). Under mixed precision
+(CUDA) an overflow of the *scaled* gradients is the GradScaler's business (it skips the step and
+lowers the scale, as designed); it counts as non-finite only once the scale is <= 1, i.e. when
+the unscaled gradient itself overflows.
 """
 from __future__ import annotations
 
@@ -23,6 +36,7 @@ import math
 import signal
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Mapping
@@ -42,12 +56,18 @@ from detbench.train.optim import build_optimizer, build_scheduler
 from detbench.train.seed import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
 from detbench.utils.io import atomic_write_text, read_json, remove_stale_temporaries
 
-__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "RESUME_IGNORE_KEYS", "TrainConfig", "TrainResult", "train"]
+__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "RESUME_IGNORE_KEYS", "NonFiniteTrainingError", "TrainConfig",
+           "TrainResult", "train"]
 
 TRAIN_DEFAULTS: dict[str, Any] = shipped_defaults("train")  # configs/default.yaml `train:`, each key documented there
 # train.* keys that may change between an interrupted run and its resume (they do not change results)
 RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
-                    "checkpoint_every_steps")
+                    "checkpoint_every_steps", "max_nonfinite_steps")
+NONFINITE_RECORDS_PER_EPOCH = 20  # skipped steps listed in an epoch's history.json record (all are counted)
+
+
+class NonFiniteTrainingError(FloatingPointError):
+    """`max_nonfinite_steps` steps in a row had a NaN or inf loss or gradient; the run stopped."""
 # dotted config keys `train` lets differ on resume: those above, and the eval section (it measures, never trains)
 RESUME_IGNORE_KEYS = (*(f"train.{k}" for k in RESUME_SAFE_KEYS), "eval")
 
@@ -77,6 +97,7 @@ class TrainConfig:
     find_unused_parameters: bool
     tensorboard: bool
     bev_image: bool
+    max_nonfinite_steps: int  # skipped non-finite steps in a row that stop the run
 
     @classmethod
     def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
@@ -89,7 +110,8 @@ class TrainConfig:
                   ("pct_start", 0 < cfg.pct_start < 1, "in (0, 1)"), ("div_factor", cfg.div_factor > 0, "> 0"),
                   ("final_div_factor", cfg.final_div_factor > 0, "> 0"), ("grad_clip", cfg.grad_clip >= 0, ">= 0"),
                   ("eval_every", cfg.eval_every >= 1, ">= 1"), ("log_every", cfg.log_every >= 1, ">= 1"),
-                  ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0")]
+                  ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0"),
+                  ("max_nonfinite_steps", cfg.max_nonfinite_steps >= 1, ">= 1")]
         for key, ok, need in checks:
             if not ok:
                 raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
@@ -249,15 +271,19 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
                  data_info=data_info, resume=resume, resume_ignore_keys=resume_ignore_keys, preview=preview)
     interrupted = False
     with _StopRequest(announce=info.is_main) as stop:
-        for epoch in range(run.state.epoch, cfg.epochs):
-            epoch_run = _train_epoch(run, epoch, stop, progress)
-            if epoch_run.interrupted:
-                interrupted = True
-                break
-            _end_epoch(run, epoch, epoch_run, eval_fn)
-            if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
-                interrupted = True
-                break
+        try:
+            for epoch in range(run.state.epoch, cfg.epochs):
+                epoch_run = _train_epoch(run, epoch, stop, progress)
+                if epoch_run.interrupted:
+                    interrupted = True
+                    break
+                _end_epoch(run, epoch, epoch_run, eval_fn)
+                if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
+                    interrupted = True
+                    break
+        except NonFiniteTrainingError:
+            run.logger.close()  # the TensorBoard events of the skipped steps reach the disk
+            raise
 
     if interrupted and info.is_main:
         tqdm.write(f"Interrupted after {run.state.epoch} epoch(s) + {run.state.step_in_epoch} batch(es); checkpoint "
@@ -293,6 +319,7 @@ class _Run:
     checkpoint_meta: dict  # model_name, config and data: stored in every checkpoint, checked on resume
     state: TrainState
     last_ckpt: Path | None = None
+    nonfinite_streak: int = 0  # skipped non-finite steps in a row (across epochs)
 
     def save(self, state: TrainState) -> Path | None:
         """Write a checkpoint of `state` (rank 0; every rank takes part). Returns its path on rank 0."""
@@ -333,8 +360,8 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     optimizer = build_optimizer(core, cfg.lr, cfg.weight_decay, cfg.betas)
     scheduler = build_scheduler(optimizer, cfg.lr, cfg.epochs * steps_per_epoch, cfg.pct_start, cfg.div_factor,
                                 cfg.final_div_factor, cfg.momentum_range)
-    use_amp = cfg.amp and device.type == "cuda"
-    scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
+    use_amp = _use_amp(cfg, device)
+    scaler = torch.amp.GradScaler(device.type, enabled=use_amp)
 
     meta = {"config": run_config, "data": data_info, "model_name": model_name}
     state, last_ckpt, history = TrainState(seed=cfg.seed), None, []
@@ -384,27 +411,125 @@ class _EpochRun:
 
     lr: float
     t0: float  # perf_counter at the epoch's start, seconds
-    sums: dict[str, float] = field(default_factory=dict)
-    n_steps: int = 0
+    sums: dict[str, float] = field(default_factory=dict)  # over the steps that updated the model
+    n_steps: int = 0  # steps that updated the model
     n_frames: int = 0
+    n_skipped: int = 0  # steps skipped for a non-finite loss or gradient
+    skipped: list[dict] = field(default_factory=list)  # the first NONFINITE_RECORDS_PER_EPOCH of them
     interrupted: bool = False  # stopped mid-epoch (a checkpoint of the last step is written)
 
 
-def _step(run: _Run, batch: Batch) -> tuple[torch.Tensor, dict, float]:
-    """One optimisation step on `batch` (already on the device): (loss, loss parts, the lr it used)."""
+@dataclass
+class _StepResult:
+    loss: float  # the step's loss (NaN or inf for a skipped step)
+    parts: dict
+    lr: float  # the rate this step used
+    skipped: str | None  # None: the model was updated; else what was not finite: "loss" or "gradient"
+    stop_requested: bool  # Ctrl-C / SIGTERM on any rank
+
+
+def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
+    """Mixed precision runs on CUDA only (CPU float16 kernels are slow and bfloat16 training is not tested)."""
+    return cfg.amp and device.type == "cuda"
+
+
+def _float_buffers(model: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(buffer, copy) of every buffer, taken before a forward pass that may have to be undone."""
+    return [(b, b.detach().clone()) for b in model.buffers()]
+
+
+def _grads(model: nn.Module) -> list[torch.Tensor]:
+    return [p.grad for p in model.parameters() if p.grad is not None]
+
+
+def _grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
+    """Global L2 norm of the gradients (a tensor, NaN or inf when a gradient is not finite)."""
+    if not grads:
+        return torch.zeros(())
+    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.detach(), 2.0).float() for g in grads]))
+
+
+def _clip_(grads: list[torch.Tensor], norm: torch.Tensor, max_norm: float) -> None:
+    """Scale the gradients so their global norm `norm` is at most `max_norm` (torch's clip_grad_norm_ rule)."""
+    coef = torch.clamp(max_norm / (norm + 1e-6), max=1.0)
+    for g in grads:
+        g.detach().mul_(coef.to(g.device, g.dtype))
+
+
+def _step(run: _Run, batch: Batch, stop: _StopRequest) -> _StepResult:
+    """One optimisation step on `batch` (already on the device), or none when its loss or gradient is not finite.
+
+    Mixed precision: the forward pass runs under float16 autocast while the parameters and the
+    optimizer state stay float32 (the master copy); the loss is scaled before backward and the
+    gradients unscaled (in float32) before clipping and the update. A skipped step leaves the
+    weights, the optimizer state and the BatchNorm statistics as they were.
+    """
+    saved = _float_buffers(run.core)
     with torch.autocast(device_type=run.info.device.type, dtype=torch.float16, enabled=run.use_amp):
         outputs = run.ddp_model(batch)
         loss, parts = run.core.loss(outputs, batch)
     run.optimizer.zero_grad(set_to_none=True)
-    run.scaler.scale(loss).backward()
+    run.scaler.scale(loss).backward()  # every rank runs backward (DDP's all-reduce), finite or not
+    loss_value = float(loss.detach())
+    if run.use_amp:
+        run.scaler.unscale_(run.optimizer)  # float32 gradients, ready for the check and clipping
+    grads = _grads(run.core)
+    norm = _grad_norm(grads)
+    grads_finite = bool(torch.isfinite(norm))
+    if not math.isfinite(loss_value):
+        cause = "loss"
+    elif not grads_finite and not (run.use_amp and run.scaler.get_scale() > 1.0):
+        cause = "gradient"  # (an overflow of the scaled gradients is the scaler's: it skips and lowers the scale)
+    else:
+        cause = None
+    stop_requested, bad = _any_rank([stop.requested, cause is not None], run.info)
+    lr = run.optimizer.param_groups[0]["lr"]
+    if bad:
+        cause = cause or "loss or gradient on another process"
+        for buf, copy in saved:
+            buf.copy_(copy)
+        if run.use_amp:
+            run.scaler.update()  # lowers the scale when the (unscaled) gradients overflowed
+        with warnings.catch_warnings():  # "scheduler.step() before optimizer.step()" when the first step is skipped
+            warnings.simplefilter("ignore", UserWarning)
+            run.scheduler.step()
+        return _StepResult(loss_value, parts, lr, cause, stop_requested)
     if run.cfg.grad_clip > 0:
-        run.scaler.unscale_(run.optimizer)
-        torch.nn.utils.clip_grad_norm_(run.core.parameters(), run.cfg.grad_clip)
-    lr = run.optimizer.param_groups[0]["lr"]  # the rate this step used
-    run.scaler.step(run.optimizer)
+        _clip_(grads, norm, run.cfg.grad_clip)
+    run.scaler.step(run.optimizer)  # plain optimizer.step() without mixed precision
     run.scaler.update()
-    run.scheduler.step()
-    return loss, parts, lr
+    with warnings.catch_warnings():  # the scaler may skip an overflowing step, as designed
+        warnings.simplefilter("ignore", UserWarning)
+        run.scheduler.step()
+    return _StepResult(loss_value, parts, lr, None, stop_requested)
+
+
+def _nonfinite_step(run: _Run, ep: _EpochRun, epoch: int, batch: Batch, res: _StepResult) -> None:
+    """Report a skipped step; stop the run after `max_nonfinite_steps` in a row."""
+    cfg, info = run.cfg, run.info
+    run.nonfinite_streak += 1
+    ep.n_skipped += 1
+    record = {"epoch": epoch + 1, "step_in_epoch": run.state.step_in_epoch, "global_step": run.state.global_step,
+              "nonfinite": res.skipped, "loss": repr(res.loss) if not math.isfinite(res.loss) else res.loss,
+              "frames": list(batch.frame_ids)}
+    if len(ep.skipped) < NONFINITE_RECORDS_PER_EPOCH:
+        ep.skipped.append(record)
+    if info.is_main:
+        tqdm.write(f"epoch {epoch + 1}, step {run.state.step_in_epoch}: non-finite {res.skipped} (loss {res.loss}); "
+                   f"step skipped, the model is unchanged ({run.nonfinite_streak} in a row, "
+                   f"{cfg.max_nonfinite_steps} stop the run); frames {list(batch.frame_ids)}")
+        run.logger.scalars({"nonfinite_steps": run.nonfinite_streak}, run.state.global_step, prefix="train/")
+    if run.nonfinite_streak >= cfg.max_nonfinite_steps:
+        last = run.ckpts.latest()
+        good = (f"the newest checkpoint, {last}, holds the weights of the last step with a finite loss and "
+                f"gradient (skipped steps change no weight; if that step's update is what broke the model, take an "
+                f"earlier checkpoint of {last.parent})") if last else "no checkpoint was written yet"
+        raise NonFiniteTrainingError(
+            f"{run.nonfinite_streak} steps in a row had a non-finite loss or gradient (the last at epoch {epoch + 1}, "
+            f"step {run.state.step_in_epoch}: {res.skipped}; frames {list(batch.frame_ids)}; loss parts "
+            f"{ {k: float(v) for k, v in res.parts.items()} }); the run stopped. {good}. Lower train.lr, set "
+            f"train.grad_clip, or check those frames (tools/validate.py); train.max_nonfinite_steps sets how many "
+            f"skipped steps in a row are tolerated")
 
 
 def _train_epoch(run: _Run, epoch: int, stop: _StopRequest, progress: bool) -> _EpochRun:
@@ -416,36 +541,36 @@ def _train_epoch(run: _Run, epoch: int, stop: _StopRequest, progress: bool) -> _
     ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter())
     bar = tqdm(stop.start_iter(run.loader), total=len(run.batches), desc=f"epoch {epoch + 1}/{cfg.epochs}",
                unit="batch", disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
-    for batch in bar:
-        batch: Batch = batch.to(info.device, non_blocking=True)
-        loss, parts, ep.lr = _step(run, batch)
+    try:
+        for batch in bar:
+            batch: Batch = batch.to(info.device, non_blocking=True)
+            res = _step(run, batch, stop)
+            ep.lr = res.lr
 
-        run.state = TrainState(epoch, run.state.step_in_epoch + 1, run.state.global_step + 1, cfg.seed)
-        ep.n_steps += 1
-        ep.n_frames += batch.batch_size
-        loss_value = float(loss.detach())
-        values = {"loss": loss_value, **{k: float(v) for k, v in parts.items()}}
-        for k, v in values.items():
-            ep.sums[k] = ep.sums.get(k, 0.0) + v
-        if info.is_main and run.state.global_step % cfg.log_every == 0:
-            run.logger.scalars({**values, "lr": ep.lr}, run.state.global_step, prefix="train/")
-        bar.set_postfix(loss=f"{loss_value:.4f}", lr=f"{ep.lr:.2e}", refresh=False)
+            run.state = TrainState(epoch, run.state.step_in_epoch + 1, run.state.global_step + 1, cfg.seed)
+            ep.n_frames += batch.batch_size
+            if res.skipped is not None:
+                _nonfinite_step(run, ep, epoch, batch, res)
+            else:
+                run.nonfinite_streak = 0
+                ep.n_steps += 1
+                values = {"loss": res.loss, **{k: float(v) for k, v in res.parts.items()}}
+                for k, v in values.items():
+                    ep.sums[k] = ep.sums.get(k, 0.0) + v
+                if info.is_main and run.state.global_step % cfg.log_every == 0:
+                    run.logger.scalars({**values, "lr": ep.lr}, run.state.global_step, prefix="train/")
+            bar.set_postfix(loss=f"{res.loss:.4f}", lr=f"{ep.lr:.2e}", refresh=False)
 
-        stop_now, nonfinite = _any_rank([stop.requested, not math.isfinite(loss_value) and not run.use_amp], info)
-        if nonfinite:
-            raise FloatingPointError(
-                f"loss is not finite at epoch {epoch + 1}, step {run.state.step_in_epoch} (frames "
-                f"{batch.frame_ids}; parts {values}); the last good checkpoint is "
-                f"{run.ckpts.latest() or 'none (no checkpoint was written yet)'}. Lower train.lr or "
-                f"train.grad_clip, or check those frames")
-        at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
-        if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
-                                              and run.state.global_step % cfg.checkpoint_every_steps == 0)):
-            run.last_ckpt = run.save(run.state) or run.last_ckpt
-            if stop_now:
-                ep.interrupted = True
-                break
-    bar.close()
+            at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
+            stop_now = res.stop_requested
+            if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
+                                                  and run.state.global_step % cfg.checkpoint_every_steps == 0)):
+                run.last_ckpt = run.save(run.state) or run.last_ckpt
+                if stop_now:
+                    ep.interrupted = True
+                    break
+    finally:
+        bar.close()
     return ep
 
 
@@ -462,9 +587,11 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
     step, lr = run.state.global_step, ep.lr
     # the epoch's line goes to history.json before its checkpoint: a kill during the (long) evaluation
     # then loses only the metrics, and a kill before the checkpoint replays the epoch and its line
-    run.logger.add_epoch({"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
-                          "frames": frames_all, "losses": losses, "metrics": {},
-                          "checkpoint": run.ckpts.name_for(run.state)})
+    record = {"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
+              "frames": frames_all, "losses": losses, "metrics": {}, "checkpoint": run.ckpts.name_for(run.state)}
+    if ep.n_skipped:  # steps skipped for a non-finite loss or gradient (this rank's, listed with their frames)
+        record.update(skipped_steps=ep.n_skipped, nonfinite_steps=ep.skipped)
+    run.logger.add_epoch(record)
     run.last_ckpt = run.save(run.state) or run.last_ckpt
     if info.is_main:
         metrics = _evaluate(run, epoch, eval_fn)

@@ -32,11 +32,11 @@ def stall():
 if hook == "step":
     real_step, steps = loop._step, []
 
-    def step(run, batch):
+    def step(run, batch, *rest):
         steps.append(1)
         if len(steps) == 6:
             stall()
-        return real_step(run, batch)
+        return real_step(run, batch, *rest)
 
     loop._step = step
 elif hook == "eval":

@@ -41,10 +41,16 @@ def test_non_finite_outputs_are_reported_not_dropped(trained_run):
 
 
 def test_non_finite_loss_stops_training_naming_the_frames(fault_data, tool, tmp_path):
+    """lr 1e12 breaks the weights at the first step: every later step is skipped and logged with its frames, and
+    the fifth in a row (train.max_nonfinite_steps) stops the run naming the newest checkpoint (issue 19)."""
     out = tmp_path / "run"
-    code, err = tool("train", *train_argv(fault_data, out, "--set", "train.lr=1e12", "--set", "train.grad_clip=0"))
-    assert code == 2 and "loss is not finite at epoch 1" in err and "frames [" in err and "train.lr" in err
-    assert not (out / "checkpoints").exists()
+    code, err = tool("train", *train_argv(fault_data, out, "--set", "train.lr=1e12", "--set", "train.grad_clip=0",
+                                          "--set", "train.epochs=3", "--set", "train.eval_every=10"))
+    assert code == 2 and "epoch 1, step 2: non-finite loss (loss nan); step skipped" in err
+    assert "5 steps in a row had a non-finite loss or gradient (the last at epoch 2, step 2" in err
+    assert f"the newest checkpoint, {out / 'checkpoints' / 'epoch_001.pt'}" in err
+    assert "frames [" in err and "train.lr" in err and "Traceback" not in err
+    assert [p.name for p in (out / "checkpoints").iterdir()] == ["epoch_001.pt"]
 
 
 @pytest.mark.parametrize("kind, named", [

@@ -1,0 +1,120 @@
+#!/usr/bin/env python3
+"""Inference at reduced precision against float32 on one checkpoint: accuracy, box differences, NaN/inf.
+
+Runs the checkpoint's detector over the frames of a split once in float32 and once per
+reduced precision (autocast: bfloat16 on the CPU; float16 and bfloat16 on CUDA), and reports
+per precision: AP@R40 and recall per range (3D IoU 0.7, level All) and their difference to
+float32, the largest difference between the boxes the two runs give for the same vehicle
+(corner displacement, centre, size, heading, score), detections found by only one run, the
+NaN / inf values in the raw outputs, and seconds per frame. The computation is
+`detbench.train.precision.compare_precision` (docs/architecture.md, "Numerical stability").
+
+Examples:
+  python tools/precision.py --ckpt runs/second_h1.8/checkpoints/epoch_020.pt
+  python tools/precision.py --ckpt CKPT --frames 0 --precisions float32 bfloat16 --out runs/precision
+  python tools/precision.py --ckpt CKPT --device cuda            # float16 and bfloat16 on the GPU
+
+Writes OUT/precision.json and OUT/precision.md (default OUT: the run folder's precision_h<height>_<split>).
+Units: metres, radians, seconds per frame; AP@R40 and recall are fractions in [0, 1].
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+from pathlib import Path
+
+# Not installed (run from a checkout): the repository root holds detbench and models.
+if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
+from detbench.train.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
+from detbench.utils.cli import UserError, run_main  # noqa: E402
+from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="tools/precision.py", description=__doc__.split("\n\n")[0],
+                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ckpt", type=Path, required=True, help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt)")
+    ap.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
+    ap.add_argument("--height", type=float, default=None, help="LiDAR height of the frames, metres (default: the training height)")
+    ap.add_argument("--split", default="test", choices=("train", "test", "all"), help="split whose frames are used (default test)")
+    ap.add_argument("--frames", type=int, default=40, help="use the first N frames of the split; 0 = all (default 40)")
+    ap.add_argument("--precisions", nargs="+", default=None, choices=list(PRECISIONS),
+                    help="precisions to compare (float32 is always the reference; default: bfloat16 on cpu, "
+                         "float16 and bfloat16 on cuda)")
+    ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    ap.add_argument("--batch-size", type=int, default=4, help="frames per forward pass (default 4)")
+    ap.add_argument("--score-threshold", type=float, default=0.1, help="detections below are dropped (default 0.1)")
+    ap.add_argument("--match-iou", type=float, default=0.5,
+                    help="BEV IoU that makes two runs' detections the same vehicle (default 0.5)")
+    ap.add_argument("--out", type=Path, default=None, help="output folder")
+    ap.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    return ap
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    import torch
+
+    import models
+    from detbench.data import Height3Dataset
+    from detbench.data.errors import DatasetError
+    from detbench.data.frame import height_key
+    from detbench.train.checkpoint import CheckpointError
+
+    if args.frames < 0 or args.batch_size < 1:
+        raise UserError("--frames must be >= 0 (0 = all) and --batch-size >= 1")
+    if not 0.0 < args.match_iou <= 1.0:
+        raise UserError(f"--match-iou must lie in (0, 1], got {args.match_iou}")
+    try:
+        device = torch.device(args.device)
+    except RuntimeError as e:
+        raise UserError(f"--device {args.device!r}: {e}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {args.device}: CUDA is not available on this machine; use --device cpu")
+    try:
+        model, ck = models.load_from_checkpoint(args.ckpt, device)
+    except CheckpointError as e:
+        raise UserError(str(e)) from None
+    height = float(args.height if args.height is not None else ck["data"].get("height", float("nan")))
+    root = args.data or Path(ck["data"]["source"])
+    try:
+        dataset = Height3Dataset(root, height, args.split)
+    except (FileNotFoundError, ValueError, KeyError, DatasetError) as e:
+        raise UserError(f"{e} (give --data ROOT --height H of a dataset in the Height3 layout)") from None
+    n = len(dataset) if args.frames == 0 else min(args.frames, len(dataset))
+    if n == 0:
+        raise UserError(f"{root}: the {args.split!r} split at {height:g} m has no frames; try --split all")
+    frames = [dataset[i] for i in range(n)]
+    try:
+        report = compare_precision(model, frames, ck["config"]["model"]["point_cloud_range"], args.precisions, device,
+                                   args.batch_size, score_threshold=args.score_threshold, match_iou=args.match_iou,
+                                   progress=not args.no_progress)
+    except DatasetError as e:
+        raise UserError(str(e)) from None
+    report = {"checkpoint": str(args.ckpt), "model": ck["model_name"], "data": str(root), "height": height,
+              "split": args.split, "torch": torch.__version__, "threads": torch.get_num_threads(), **report}
+    out = args.out or Path(args.ckpt).resolve().parent.parent / f"precision_h{height_key(height)}_{args.split}"
+    atomic_write_json(out / "precision.json", report)
+    md = precision_markdown(report, f"{ck['model_name']} at {height:g} m: inference precision against float32")
+    atomic_write_text(out / "precision.md", md + f"\nCheckpoint: {args.ckpt}; torch {torch.__version__}, "
+                                                 f"{torch.get_num_threads()} threads.\n")
+    for name, e in report["precisions"].items():
+        line = (f"{name:9s} {e['seconds_per_frame']:.3f} s/frame, AP@R40 "
+                + " / ".join(f"{e['ap_r40'][r]:.3f}" if e["ap_r40"][r] is not None else "-" for r in e["ap_r40"])
+                + f", NaN/inf values {e['nonfinite_values']}")
+        if "boxes" in e:
+            b = e["boxes"]
+            line += (f", max |AP diff| {e['max_abs_ap_r40_diff']:.3f}" if e["max_abs_ap_r40_diff"] is not None else "")
+            line += (f", largest box difference {b['max_corner_diff_m']:.4f} m (corner) over {b['matched']} matched "
+                     f"detections, {b['unmatched_reference']} / {b['unmatched_other']} unmatched")
+        print(line)
+    print(f"wrote {out / 'precision.json'}, {out / 'precision.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_main(main))
