@@ -156,3 +156,9 @@ def test_detector_report_errors(tmp_path):
     b.write_text(json.dumps(_eval_report("m", 1.0, 0.6)))
     with pytest.raises(ValueError, match="b.json: model 'm' at 1.0 m is also in"):
         load_detector_reports([a, b])
+
+
+def test_four_heights_never_reach_a_verdict():
+    """Four heights: the exact permutation p is at least 2 / 24, so even a perfect order is 'no evidence'."""
+    a = rank_agreement(["0.5", "1.0", "1.5", "2.2"], [1, 2, 3, 4], [4, 3, 2, 1], replicates=300)
+    assert a["spearman"] == -1.0 and a["p_spearman"] == pytest.approx(2 / 24, abs=1e-5) and a["verdict"] == "no evidence"

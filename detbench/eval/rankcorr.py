@@ -166,7 +166,10 @@ def rank_agreement(heights: Sequence[str], score: Sequence[float], figure: Seque
     Returns {"n", "spearman", "kendall", "spearman_ci95", "kendall_ci95", "undefined_share",
     "p_spearman", "p_kendall", "best_by_score", "best_observed", "discordant_pairs": [[lower h,
     higher h]] the score orders opposite to the figure, "verdict": "predicts" (the interval of rho
-    lies above 0), "inverted" (below 0), "no evidence" (it holds 0) or "too few heights" (n < 3)}.
+    lies above 0 and the permutation p is below 1 - confidence), "inverted" (the same, below 0),
+    "no evidence" (otherwise) or "too few heights" (n < 3)}. Both conditions, because the pairs
+    bootstrap of very few heights is overconfident (four near-monotone triples rarely resample
+    to a positive rho), while the exact permutation p cannot go below 2 / n! (0.083 at n = 4).
     """
     heights = [str(h) for h in heights]
     x, y = _check_pair(score, figure)
@@ -192,11 +195,12 @@ def rank_agreement(heights: Sequence[str], score: Sequence[float], figure: Seque
                 pairs.append([lo, hi])
     out["discordant_pairs"] = pairs
     ci = out["spearman_ci95"]
+    significant = out["p_spearman"] is not None and out["p_spearman"] < 1.0 - confidence
     if x.size < 3 or out["spearman"] is None:
         out["verdict"] = "too few heights" if x.size < 3 else "undefined (constant score or figure)"
-    elif ci is not None and ci[0] > 0:
+    elif ci is not None and ci[0] > 0 and significant:
         out["verdict"] = "predicts"
-    elif ci is not None and ci[1] < 0:
+    elif ci is not None and ci[1] < 0 and significant:
         out["verdict"] = "inverted"
     else:
         out["verdict"] = "no evidence"
@@ -313,7 +317,7 @@ def _statements(rows: list[dict], scores: Sequence[str]) -> list[str]:
         label = {"recall": "recall", "ap_r40": "AP@R40"}.get(metric, metric)
         if not bad:
             out.append(f"{s} predicts {model}'s {label} order in all {len(mine)} range/level cells "
-                       f"(every 95 % interval of rho above 0).")
+                       f"(every 95 % interval of rho above 0, permutation p < 0.05).")
             continue
         parts = []
         for r in bad:

@@ -344,7 +344,7 @@ def sweep_markdown(report: dict, title: str = "Height sweep") -> str:
     if corr:
         from detbench.eval.rankcorr import correlation_markdown
 
-        out += [correlation_markdown(corr), ""]
+        out += [correlation_markdown(corr, report["scores"].get("primary")), ""]
     run = report.get("run")
     if run:
         out += ["## Run", "", ", ".join(f"{k}: {v}" for k, v in run.items() if not isinstance(v, dict)), ""]
