@@ -25,7 +25,7 @@ from typing import Sequence
 import numpy as np
 
 from detbench.data.frame import Frame, height_key
-from detbench.data.regions import DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, RANGES
+from detbench.data.regions import DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES
 from detbench.eval.ability import (
     CELLS, LDR_DISTANCE_HALF_WIDTH_M, LDR_DISTANCE_MAX_M, AbilityStudy, bootstrap_ratios, frame_lanes,
     percentile_interval, scene_bootstrap_weights, stacked_masks,
