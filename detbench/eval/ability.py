@@ -54,6 +54,39 @@ def ldr(detected: int, total: int) -> float:
     return float(detected) / float(total) if total else float("nan")
 
 
+def scene_bootstrap_weights(num_clusters: int, replicates: int, seed: int) -> np.ndarray:
+    """(replicates, num_clusters) float64: how often each scene is drawn in each bootstrap replicate.
+
+    Scenes are resampled with replacement (a multinomial draw of `num_clusters` out of
+    `num_clusters`), seeded, so the same counts and seed give the same intervals. Every
+    sum over scenes of a replicate is `weights @ per_scene_values`; the ability study and the
+    height sweep (detbench.eval.sweep) use the same draw, so their intervals agree."""
+    rng = np.random.default_rng(seed)
+    n = int(num_clusters)
+    return rng.multinomial(n, np.full(n, 1.0 / n), size=int(replicates)).astype(np.float64)
+
+
+def bootstrap_ratios(weights: np.ndarray, num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """Ratio of resampled sums: (B, ...) = (weights @ num) / (weights @ den), NaN where the
+    resampled denominator is 0. weights (B, C); num, den (C, ...) per-scene sums."""
+    bn = np.tensordot(weights, np.asarray(num, dtype=np.float64), axes=(1, 0))
+    bd = np.tensordot(weights, np.asarray(den, dtype=np.float64), axes=(1, 0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(bd > 0, bn / np.where(bd > 0, bd, 1.0), np.nan)
+
+
+def percentile_interval(samples: np.ndarray, confidence: float = 0.95) -> list | None:
+    """[lo, hi] percentile interval (rounded to 6 digits) of the finite bootstrap samples, or None when
+    fewer than 2 or fewer than half of them are finite."""
+    samples = np.asarray(samples, dtype=np.float64).reshape(-1)
+    good = samples[np.isfinite(samples)]
+    if good.size < max(2, samples.size // 2):
+        return None
+    q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
+    lo, hi = np.percentile(good, q)
+    return [round(float(lo), 6), round(float(hi), 6)]
+
+
 def stacked_masks(boxes: np.ndarray, lanes: np.ndarray) -> np.ndarray:
     """The nine (range, level) membership masks of one frame's boxes as a (9, M) bool array.
 
@@ -102,6 +135,9 @@ class AbilityStudy:
             range) for the bird's-eye figure; `example_frame_id` forces a given id instead.
         bootstrap: replicates of the scene bootstrap behind extras["uncertainty"] (0 = none).
         bootstrap_seed: seed of the bootstrap (the same counts and seed give the same intervals).
+        difference_pairs: which paired height differences extras["uncertainty"] holds: "all" pairs
+            (the default; three heights give three) or "adjacent" (each height against the next
+            lower one; a sweep of 20 heights would otherwise hold 190).
 
     Per frame the cost is one points_in_boxes call and a few vectorised numpy operations;
     the nine masks are computed once per instant and reused across heights.
@@ -109,13 +145,17 @@ class AbilityStudy:
 
     def __init__(self, thresholds: Sequence[int] = DEFAULT_THRESHOLDS, distance_bin: float = DEFAULT_BIN_M,
                  bottom_lift: float = DETECTED_BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
-                 example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP, bootstrap_seed: int = 0):
+                 example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP, bootstrap_seed: int = 0,
+                 difference_pairs: str = "all"):
         th = [int(t) for t in thresholds]
         if not th or th[0] != DETECTED_MIN_POINTS or any(t < 1 for t in th) or len(set(th)) != len(th):
             raise ValueError(f"thresholds must start with 1 (the paper's rule) and hold distinct integers >= 1, "
                              f"got {list(thresholds)}")
         if not distance_bin > 0:
             raise ValueError(f"distance_bin must be positive metres, got {distance_bin}")
+        if difference_pairs not in ("all", "adjacent"):
+            raise ValueError(f"difference_pairs must be 'all' or 'adjacent', got {difference_pairs!r}")
+        self.difference_pairs = difference_pairs
         if int(bootstrap) < 0:
             raise ValueError(f"bootstrap must be >= 0 replicates, got {bootstrap}")
         self.bootstrap = int(bootstrap)
@@ -367,22 +407,13 @@ class AbilityStudy:
         if not ok:
             out["note"] = "needs at least 2 scenes and bootstrap > 0"
         tot, det = arr[:, :, 0, :].astype(np.float64), arr[:, :, 1, :].astype(np.float64)  # (C, H, 9)
-        q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
         if ok:
-            rng = np.random.default_rng(self.bootstrap_seed)
-            w = rng.multinomial(n, np.full(n, 1.0 / n), size=self.bootstrap).astype(np.float64)  # (B, C)
-            bt = np.einsum("bc,chk->bhk", w, tot)
-            bd = np.einsum("bc,chk->bhk", w, det)
+            boot = bootstrap_ratios(scene_bootstrap_weights(n, self.bootstrap, self.bootstrap_seed), det, tot)
             with np.errstate(invalid="ignore", divide="ignore"):
-                boot = np.where(bt > 0, bd / np.where(bt > 0, bt, 1.0), np.nan)  # (B, H, 9)
                 per_scene = np.where(tot > 0, det / np.where(tot > 0, tot, 1.0), np.nan)  # (C, H, 9)
 
         def interval(samples: np.ndarray) -> list | None:
-            good = samples[np.isfinite(samples)]
-            if not ok or good.size < max(2, samples.size // 2):
-                return None
-            lo, hi = np.percentile(good, q)
-            return [round(float(lo), 6), round(float(hi), 6)]
+            return percentile_interval(samples, confidence) if ok else None
 
         def spread(values: np.ndarray) -> float | None:
             good = values[np.isfinite(values)]
@@ -392,19 +423,22 @@ class AbilityStudy:
             out["heights"][hk] = {r: {lv: {"ci95": interval(boot[:, j, CELLS.index((r, lv))]) if ok else None,
                                            "scene_std": spread(per_scene[:, j, CELLS.index((r, lv))]) if ok else None}
                                       for lv in LEVELS} for r in RANGE_NAMES}
-        for a in range(len(heights)):
-            for b in range(a + 1, len(heights)):
-                key = f"{heights[b]}-{heights[a]}"
-                cells = {}
-                for r in RANGE_NAMES:
-                    cells[r] = {}
-                    for lv in LEVELS:
-                        k = CELLS.index((r, lv))
-                        ta, tb = tot[:, a, k].sum(), tot[:, b, k].sum()
-                        d = (ldr(det[:, b, k].sum(), tb) - ldr(det[:, a, k].sum(), ta))
-                        cells[r][lv] = {"diff": None if math.isnan(d) else round(d, 6),
-                                        "ci95": interval(boot[:, b, k] - boot[:, a, k]) if ok else None}
-                out["differences"][key] = cells
+        if self.difference_pairs == "adjacent":
+            pairs = [(a, a + 1) for a in range(len(heights) - 1)]
+        else:
+            pairs = [(a, b) for a in range(len(heights)) for b in range(a + 1, len(heights))]
+        for a, b in pairs:
+            key = f"{heights[b]}-{heights[a]}"
+            cells = {}
+            for r in RANGE_NAMES:
+                cells[r] = {}
+                for lv in LEVELS:
+                    k = CELLS.index((r, lv))
+                    ta, tb = tot[:, a, k].sum(), tot[:, b, k].sum()
+                    d = (ldr(det[:, b, k].sum(), tb) - ldr(det[:, a, k].sum(), ta))
+                    cells[r][lv] = {"diff": None if math.isnan(d) else round(d, 6),
+                                    "ci95": interval(boot[:, b, k] - boot[:, a, k]) if ok else None}
+            out["differences"][key] = cells
         return out
 
 
@@ -540,4 +574,5 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
 
 
 __all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "stacked_masks", "frame_lanes",
-           "ldr", "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
+           "ldr", "scene_bootstrap_weights", "bootstrap_ratios", "percentile_interval",
+           "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
