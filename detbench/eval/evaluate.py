@@ -108,6 +108,9 @@ class EvalFrame:
     pred_boxes: (M, 7) predicted boxes, same layout as gt_boxes.
     pred_scores: (M,) confidence scores (compared with the score threshold, e.g. 0.1).
     frame_id: optional name used in error messages.
+    scene_id: optional scene the frame belongs to: the unit `evaluate(..., bootstrap=B)`
+        resamples (frames of one scene are 0.5 s apart and strongly correlated); a frame
+        without one is its own cluster.
 
     Arrays are converted on construction (float64 boxes and scores, int64 counts and lanes);
     empty inputs may be given as `[]` or arrays of shape (0,) / (0, 7).
@@ -119,6 +122,7 @@ class EvalFrame:
     pred_boxes: np.ndarray
     pred_scores: np.ndarray
     frame_id: str | None = None
+    scene_id: str | None = None
 
     def __post_init__(self) -> None:
         where = f"EvalFrame {self.frame_id!r}" if self.frame_id is not None else "EvalFrame"
@@ -405,6 +409,70 @@ def _results(prep: _Prepared, flags: np.ndarray) -> dict:
     return out
 
 
+def _weighted_ap_r40(tp_ranked: np.ndarray, weights: np.ndarray, num_gt: int) -> float:
+    """AP@R40 of ranked predictions each repeated `weights[k]` times (copies kept adjacent)."""
+    return ap_r40_ranked(np.repeat(tp_ranked, weights), num_gt) if num_gt else float("nan")
+
+
+def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicates: int, seed: int,
+               confidence: float = 0.95) -> dict:
+    """Percentile bootstrap over clusters (scenes) of recall and AP@R40 for each range/level.
+
+    A replicate draws as many clusters as there are, with replacement; a frame drawn k times
+    counts its ground truth and its predictions k times. Also returns the per-cluster TP and
+    LiDAR-detected counts, so that two reports on the same frames can be compared in pairs.
+    """
+    labels = [str(c) for c in clusters]
+    names = sorted(set(labels))
+    index = {c: i for i, c in enumerate(names)}
+    frame_cluster = np.array([index[c] for c in labels], dtype=np.int64)
+    n = len(names)
+    q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
+    gt_frame = np.repeat(np.arange(prep.num_frames), np.diff(prep.gt_off))
+    pred_frame = np.repeat(np.arange(prep.num_frames), np.diff(prep.pred_off))
+    det_cluster = np.zeros((n, len(PAIRS)), dtype=np.int64)  # LiDAR-detected boxes per cluster
+    tp_cluster = np.zeros((n, len(PAIRS)), dtype=np.int64)
+    if len(gt_frame):
+        np.add.at(det_cluster, frame_cluster[gt_frame], prep.gt_eval.astype(np.int64))
+    if len(flags):
+        np.add.at(tp_cluster, frame_cluster[pred_frame], (flags == TP).astype(np.int64))
+    out: dict = {"method": "percentile bootstrap over scenes (scenes resampled with replacement)",
+                 "num_clusters": n, "replicates": int(replicates), "seed": int(seed), "confidence": confidence,
+                 "clusters": names,
+                 "per_cluster": {r: {lv: {"tp": tp_cluster[:, p].tolist(), "lidar_detected": det_cluster[:, p].tolist()}
+                                     for lv in LEVELS for p in [PAIRS.index((r, lv))]} for r in RANGE_NAMES},
+                 "results": {r: {} for r in RANGE_NAMES}}
+    ok = n >= 2 and replicates > 0
+    if not ok:
+        out["note"] = "needs at least 2 scenes and replicates > 0"
+    rng = np.random.default_rng(seed)
+    draws = rng.multinomial(n, np.full(n, 1.0 / n), size=replicates) if ok else np.zeros((0, n), np.int64)
+
+    def interval(samples: np.ndarray) -> list | None:
+        good = samples[np.isfinite(samples)]
+        if not ok or good.size < max(2, samples.size // 2):
+            return None
+        lo, hi = np.percentile(good, q)
+        return [round(float(lo), 6), round(float(hi), 6)]
+
+    for p, (r, lv) in enumerate(PAIRS):
+        col = flags[:, p] if len(flags) else np.zeros(0, dtype=np.int8)
+        keep = np.flatnonzero(col >= 0)
+        order = keep[np.argsort(-prep.pred_scores[keep], kind="stable")]
+        tp_ranked = col[order] == TP
+        cl_ranked = frame_cluster[pred_frame[order]]
+        aps = np.full(len(draws), np.nan)
+        recalls = np.full(len(draws), np.nan)
+        for b, w in enumerate(draws):
+            num_gt = int(w @ det_cluster[:, p])
+            if num_gt == 0:
+                continue
+            recalls[b] = float(w @ tp_cluster[:, p]) / num_gt
+            aps[b] = _weighted_ap_r40(tp_ranked, w[cl_ranked], num_gt)
+        out["results"][r][lv] = {"recall_ci95": interval(recalls), "ap_r40_ci95": interval(aps)}
+    return out
+
+
 def _as_eval_frames(frames: Iterable[EvalFrame]) -> list[EvalFrame]:
     out = []
     for i, f in enumerate(frames):
@@ -453,6 +521,8 @@ def evaluate(
     extras: bool | Sequence[tuple[str, float]] = False,
     progress: bool = False,
     timings: dict | None = None,
+    bootstrap: int = 0,
+    bootstrap_seed: int = 0,
 ) -> dict:
     """Recall and AP@R40 per range and level, as in the paper's Section V.
 
@@ -466,6 +536,12 @@ def evaluate(
     progress: show tqdm progress bars over frames.
     timings: if a dict is given, it receives the wall seconds of each stage
         ("prepare", "iou", "match", "ap").
+    bootstrap: replicates of a percentile bootstrap over scenes (`EvalFrame.scene_id`; a frame
+        without one is its own cluster) of the main variant's recall and AP@R40; 0 = none.
+        The report then has "uncertainty" = {"method", "num_clusters", "replicates", "seed",
+        "confidence", "clusters", "per_cluster": {range: {level: {"tp", "lidar_detected"}}},
+        "results": {range: {level: {"recall_ci95", "ap_r40_ci95"}}}} (intervals [lo, hi] or
+        null when fewer than 2 scenes).
 
     Returns {"iou_threshold", "iou_kind", "score_threshold", "num_frames",
     "results": {range_name: {level: {"total", "lidar_detected", "ldr", "tp", "fp", "recall",
@@ -512,6 +588,13 @@ def evaluate(
         "num_frames": prep.num_frames,
         "results": run(iou_kind, iou_threshold),
     }
+    if int(bootstrap) < 0:
+        raise ValueError(f"bootstrap must be >= 0 replicates, got {bootstrap}")
+    if bootstrap:
+        flags = _match_kernel(*iou_cache[iou_kind], prep.pred_off, prep.gt_off, prep.gt_eval,
+                              prep.pred_in_range, pair_range, iou_threshold - IOU_EPS)
+        clusters = [f.scene_id if f.scene_id is not None else f"frame:{i}" for i, f in enumerate(frame_list)]
+        report["uncertainty"] = _bootstrap(prep, flags, clusters, int(bootstrap), int(bootstrap_seed))
     if extra_list:
         report["extras"] = {
             extra_key(kind, thr): {"iou_kind": kind, "iou_threshold": thr, "results": run(kind, thr)}
@@ -539,7 +622,8 @@ def eval_frame_from_frame(frame, predictions: Predictions | tuple | None) -> Eva
         pb, ps = np.zeros((0, 7)), np.zeros(0)
     else:
         pb, ps = predictions
-    return EvalFrame(boxes, np.asarray(counts), np.asarray(frame.lanes), pb, ps, frame_id=frame.frame_id)
+    return EvalFrame(boxes, np.asarray(counts), np.asarray(frame.lanes), pb, ps, frame_id=frame.frame_id,
+                     scene_id=getattr(frame, "scene_id", None))
 
 
 def evaluate_predictions(
@@ -550,6 +634,7 @@ def evaluate_predictions(
     iou_kind: str = "3d",
     extras: bool | Sequence[tuple[str, float]] = True,
     progress: bool = True,
+    bootstrap: int = 0,
 ) -> dict:
     """Evaluate predictions against a dataset's frames (the path shared by --pred and --ckpt).
 
@@ -583,7 +668,7 @@ def evaluate_predictions(
             raise KeyError(f"predictions for {len(unknown)} frame id(s) not in the dataset, e.g. "
                            f"{unknown[:3]}; check the split and the file names")
     return evaluate(frames, iou_threshold=iou_threshold, score_threshold=score_threshold,
-                    iou_kind=iou_kind, extras=extras, progress=progress)
+                    iou_kind=iou_kind, extras=extras, progress=progress, bootstrap=bootstrap)
 
 
 PREDICTION_SUFFIX = ".txt"

@@ -98,18 +98,28 @@ def _header(report: dict) -> list[str]:
 # one report
 # --------------------------------------------------------------------------------------------
 
-def _results_table(results: dict) -> list[str]:
-    lines = [
-        "| Range | Level | Total | LiDAR detected | LDR | TP | Recall | FP | AP@R40 |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
-    ]
+def _interval(ci) -> str:
+    return f"[{ci[0]:.3f}, {ci[1]:.3f}]" if ci else MISSING
+
+
+def _results_table(results: dict, uncertainty: dict | None = None) -> list[str]:
+    """Rows range x level; with `uncertainty` (the report's bootstrap) two interval columns."""
+    ci = (uncertainty or {}).get("results")
+    head = "| Range | Level | Total | LiDAR detected | LDR | TP | Recall | FP | AP@R40 |"
+    rule = "|---|---|---:|---:|---:|---:|---:|---:|---:|"
+    if ci:
+        head += " Recall 95 % | AP@R40 95 % |"
+        rule += "---:|---:|"
+    lines = [head, rule]
     for r in RANGE_NAMES:
         for lv in LEVELS:
             c = results[r][lv]
-            lines.append(
-                f"| {RANGE_LABELS[r]} | {LEVEL_LABELS[lv]} | {c['total']} | {c['lidar_detected']} | "
-                f"{_frac(c['ldr'])} | {c['tp']} | {_frac(c['recall'])} | {c['fp']} | {_frac(c['ap_r40'])} |"
-            )
+            row = (f"| {RANGE_LABELS[r]} | {LEVEL_LABELS[lv]} | {c['total']} | {c['lidar_detected']} | "
+                   f"{_frac(c['ldr'])} | {c['tp']} | {_frac(c['recall'])} | {c['fp']} | {_frac(c['ap_r40'])} |")
+            if ci:
+                cell = ci.get(r, {}).get(lv, {})
+                row += f" {_interval(cell.get('recall_ci95'))} | {_interval(cell.get('ap_r40_ci95'))} |"
+            lines.append(row)
     return lines
 
 
@@ -134,7 +144,12 @@ def report_to_markdown(report: dict, title: str | None = None) -> str:
         label = f"{kind.upper()} IoU >= {thr:g}"
         out.append(f"## {label}" + ("" if name == "main" else " (extra)"))
         out.append("")
-        out.extend(_results_table(results))
+        unc = report.get("uncertainty") if name == "main" else None
+        out.extend(_results_table(results, unc))
+        if unc and unc.get("results"):
+            out.append("")
+            out.append(f"95 % intervals: {unc['method']}, {unc['num_clusters']} scenes, {unc['replicates']} "
+                       f"replicates.")
     return "\n".join(out) + "\n"
 
 
