@@ -94,3 +94,32 @@ def test_benchmark_idle_and_loaded_table(load_tool):
     assert idle["loaded"]["ratio"] == {"total": 1.5, "train_step": 2.0}
     md = "\n".join(bench._idle_loaded_markdown([idle]))
     assert "| second | cpu | 100.0 | 150.0 | 1.5 | 400.0 | 800.0 | 2.0 |" in md and "1 busy-loop process" in md
+
+
+def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tmp_path):
+    out = tmp_path / "study"
+    args = ["tools/study.py", "--preset", "smoke", "--models", "second", "--heights", "0.5", "1.8", "--data",
+            str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.epochs=1",
+            "--set", "train.tensorboard=false"]
+    proc = run(args)
+    # the progress line names the stage k of n, the model and height, and the time left
+    assert "=== [1/7] dataset (smoke preset)" in proc.stdout
+    assert "=== [3/7] train second at 0.5 m" in proc.stdout
+    later = proc.stdout.split("=== [5/7] train second at 1.8 m")[1].splitlines()[0]
+    assert "left" in later and "measured after" not in later  # known once the first training ran
+    md = (out / "study.md").read_text()
+    assert md.index("## Summary") < md.index("## 1. LiDAR detection ability")
+    assert "Which height sees the most vehicles?" in md and "Which detector finds the most" in md
+    assert "| 0.5 m | second |" in md and "| 1.8 m | second |" in md
+    assert "--preset paper --device cuda" in md and "proves that the pipeline runs" in md
+    # every table names the preset and data that produced it
+    for section in md.split("\n#")[1:]:
+        if "\n|---" in section:
+            assert "*Preset `smoke`" in section, section[:200]
+    study = json.loads((out / "study.json").read_text())
+    assert set(study["summary"]) == {"heights", "detectors"} and study["test_frames"] == 3
+    rep = json.loads((out / "second_h1.8" / "eval_h1.8_test" / "report.json").read_text())
+    assert "uncertainty" in rep  # the evaluation ran with the scene bootstrap
+    # a second call finds every stage done: only the combine step runs again
+    proc = run(args)
+    assert "train second" not in proc.stdout and "[7/7] combine reports" in proc.stdout
