@@ -581,7 +581,14 @@ def _curve_epochs(sw: Sweep, model: str) -> int:
 
 
 def _curve_train_id(sw: Sweep, model: str) -> str:
-    return "preset" if _curve_epochs(sw, model) == int(sw.preset_cfgs[model]["train"]["epochs"]) else "curve"
+    """The learning-curve run's folder: the preset's own run at --curve-scale 1, else curve-<epochs>ep."""
+    epochs = _curve_epochs(sw, model)
+    return "preset" if epochs == int(sw.preset_cfgs[model]["train"]["epochs"]) else f"curve-{epochs}ep"
+
+
+def _curve_dir(sw: Sweep, model: str) -> Path:
+    """Where the learning-curve run's checkpoint evaluations go (one JSON per checkpoint)."""
+    return sw.out / "curve" / model / _curve_train_id(sw, model)
 
 
 def _checkpoint_every(sw: Sweep, model: str) -> int:
@@ -603,7 +610,7 @@ def _train_overrides(sw: Sweep, model: str, train_id: str, point_over: dict) -> 
     sets = {"train.tensorboard": False, "train.bev_image": False, "train.keep_checkpoints": 1, **point_over}
     if "curve" in sw.args.knobs and train_id == _curve_train_id(sw, model):
         sets.update({"train.keep_checkpoints": 0, "train.checkpoint_every_steps": _checkpoint_every(sw, model)})
-    if train_id == "curve":
+    if train_id.startswith("curve-"):
         sets["train.epochs"] = _curve_epochs(sw, model)
     return [f"{k}={json.dumps(v)}" for k, v in sets.items()]
 
@@ -630,7 +637,7 @@ def _curve_done(sw: Sweep, model: str) -> bool:
     if not _train_done(run):
         return False
     ckpts = sorted((run / "checkpoints").glob("epoch_*.pt"))
-    return bool(ckpts) and all((sw.out / "curve" / model / f"{c.stem}.json").is_file() for c in ckpts)
+    return bool(ckpts) and all((_curve_dir(sw, model) / f"{c.stem}.json").is_file() for c in ckpts)
 
 
 def run_until_deadline(cmd: list[str], log: Path, deadline: float | None, stop_signal=signal.SIGTERM) -> dict:
@@ -732,8 +739,8 @@ def do_curve(sw: Sweep, model: str) -> None:
     run = _run_dir(sw, model, _curve_train_id(sw, model))
     n = len(list((run / "checkpoints").glob("epoch_*.pt")))
     spec = {"mode": "curve", "run": str(run), "device": sw.device, "data": str(sw.root), "height": sw.args.height,
-            "eval_frames": sw.args.eval_frames, "out": str(sw.out / "curve" / model)}
-    todo = sum(not (sw.out / "curve" / model / f"{c.stem}.json").is_file()
+            "eval_frames": sw.args.eval_frames, "out": str(_curve_dir(sw, model))}
+    todo = sum(not (_curve_dir(sw, model) / f"{c.stem}.json").is_file()
                for c in (run / "checkpoints").glob("epoch_*.pt"))
     res = _worker(sw, spec, sw.out / "logs" / f"curve_{model}.log")
     if todo == n and n:
@@ -902,7 +909,7 @@ def collect_curves(sw: Sweep) -> tuple[dict, dict]:
     curves, ends = {}, {}
     for model in sw.preset_cfgs:
         run = _run_dir(sw, model, _curve_train_id(sw, model))
-        files = sorted((sw.out / "curve" / model).glob("*.json"))
+        files = sorted(_curve_dir(sw, model).glob("*.json"))
         hist, ratio = _history(run), _cpu_ratio(run)
         if files and hist and ratio is not None:
             per_epoch = hist[0]["global_step"]
