@@ -270,8 +270,9 @@ def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_p
     """`tools/tradeoff.py --preset smoke` on one model and the inference-only knobs: at least five points,
     each with latency, memory, AP@R40 per range and a Pareto flag; a rerun reuses every point."""
     out = tmp_path / "t"
-    argv = ["--preset", "smoke", "--models", "second", "--knobs", "points", "precision", "threads", "--frames", "2",
-            "--warmup", "1", "--data", str(tiny_dataset), "--out", str(out), "--no-progress"]
+    argv = ["--preset", "smoke", "--models", "second", "--knobs", "points", "precision", "threads", "curve",
+            "--frames", "2", "--warmup", "1", "--curve-points", "3", "--data", str(tiny_dataset), "--out", str(out),
+            "--no-progress"]
     tool = load_tool("tradeoff")
     assert tool.main(argv) == 0
     res = json.loads((out / "tradeoff.json").read_text())
@@ -293,7 +294,18 @@ def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_p
     assert any(any(v for v in p["pareto"].values()) for p in pts)  # some point is on a front
     assert (out / "tradeoff.md").read_text().count("| second |") == len(pts)
     assert (out / "tradeoff.png").stat().st_size > 10_000
+    # the learning curve: a 4-epoch run (2 x the preset's 2), every checkpoint evaluated, time increasing
+    curve = res["curves"]["second"]
+    assert curve["epochs"] == 4 and curve["run"] == "runs/second/curve-4ep"
+    steps = [e["global_step"] for e in curve["points"]]
+    assert len(steps) >= 4 and steps == sorted(steps) and curve["points"][-1]["epochs_done"] == pytest.approx(4.0)
+    cpu = [e["train_cpu_s"] for e in curve["points"]]
+    assert all(b > a for a, b in zip(cpu, cpu[1:])) and cpu[0] > 0
+    assert all(set(e["accuracy"]) == {"small", "moderate", "large"} for e in curve["points"])
+    assert res["preset_run_ends"]["second"]["train_cpu_s"] > 0
+    assert (out / "learning_curve.png").stat().st_size > 10_000 and "## Training budget" in (out / "tradeoff.md").read_text()
     before = {f: f.stat().st_mtime_ns for f in (out / "points").rglob("*.json")}
     assert tool.main(argv) == 0  # resumed: nothing measured again
     assert {f: f.stat().st_mtime_ns for f in (out / "points").rglob("*.json")} == before
+    assert json.loads((out / "tradeoff.json").read_text())["curves"] == res["curves"]
     assert not math.isnan(json.loads((out / "tradeoff.json").read_text())["meta"]["elapsed_s"])
