@@ -1,6 +1,7 @@
 """Shared pytest set-up: the `slow` marker is skipped unless --runslow is given; `load_tool` fixture."""
 import importlib.util
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -35,6 +36,7 @@ def load_tool():
     def load(name: str):
         spec = importlib.util.spec_from_file_location(f"detbench_tools_{name}", ROOT / "tools" / f"{name}.py")
         mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # dataclasses defined by the tool look their module up here
         spec.loader.exec_module(mod)
         return mod
 

@@ -42,7 +42,7 @@ import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults b
 import models  # noqa: E402
 from detbench import runtime  # noqa: E402
 from detbench.train.run_config import preset_names  # noqa: E402
-from detbench.utils.bench import idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
+from detbench.utils.bench import StageTimer, idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
 
 
@@ -70,38 +70,6 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", default="runs/benchmark", help="output folder (default runs/benchmark)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: one model in a child process
     return ap
-
-
-class StageTimer:
-    """Wall time of a model's top-level stages via forward hooks (CUDA synchronised)."""
-
-    def __init__(self, model, stages: dict[str, list[str]], device):
-        import torch
-
-        self.sync = (lambda: torch.cuda.synchronize(device)) if str(device).startswith("cuda") else (lambda: None)
-        self.times: dict[str, float] = {k: 0.0 for k in stages}
-        self._start: dict[str, float] = {}
-        owner = {child: stage for stage, children in stages.items() for child in children}
-        for name, module in model.named_children():
-            if name in owner:
-                module.register_forward_pre_hook(self._pre(name))
-                module.register_forward_hook(self._post(name, owner[name]))
-
-    def _pre(self, name):
-        def hook(module, inputs):
-            self.sync()
-            self._start[name] = time.perf_counter()
-        return hook
-
-    def _post(self, name, stage):
-        def hook(module, inputs, output):
-            self.sync()
-            self.times[stage] += time.perf_counter() - self._start[name]
-        return hook
-
-    def reset(self):
-        for k in self.times:
-            self.times[k] = 0.0
 
 
 def worker(args) -> dict:

@@ -1,5 +1,6 @@
-"""Measuring helpers shared by the benchmarks (tools/bench_*.py, tools/benchmark.py): timed
-repeats, achieved GFLOP/s, and a competing CPU load (`BusyLoad`) for idle-vs-loaded figures."""
+"""Measuring helpers shared by the benchmarks (tools/bench_*.py, tools/benchmark.py, tools/tradeoff.py):
+timed repeats, achieved GFLOP/s, a competing CPU load (`BusyLoad`) for idle-vs-loaded figures, a
+detector's latency split by stage (`StageTimer`) and the median / 90th percentile of timed rows."""
 from __future__ import annotations
 
 import os
@@ -148,4 +149,94 @@ def runtime_line(desc: dict) -> str:
     return "; ".join(parts)
 
 
-__all__ = ["timed", "gflops", "BusyLoad", "idle_and_loaded", "ratio", "load_line", "runtime_line"]
+def median_p90(rows: list[dict]) -> dict:
+    """{key: {"median", "p90"}} over the rows (dicts of numbers with the same keys), rounded to 0.01;
+    p90 is the 90th percentile with linear interpolation between the sorted values."""
+    out = {}
+    for k in rows[0] if rows else []:
+        vals = sorted(float(r[k]) for r in rows)
+        pos = 0.9 * (len(vals) - 1)
+        lo = int(pos)
+        hi = min(lo + 1, len(vals) - 1)
+        p90 = vals[lo] + (vals[hi] - vals[lo]) * (pos - lo)
+        out[k] = {"median": round(statistics.median(vals), 2), "p90": round(p90, 2)}
+    return out
+
+
+def _proc_status_kib(field: str) -> int | None:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def reset_peak_rss() -> bool:
+    """Start this process's peak resident memory (Linux VmHWM) again from its current RSS, so a
+    later `peak_rss_mib()` covers only what ran since (not the start-up's imports). False when the
+    system cannot (not Linux, or /proc/self/clear_refs refused): the peak then covers the whole process."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def rss_mib() -> float | None:
+    """This process's resident memory now, MiB (Linux; None elsewhere)."""
+    kib = _proc_status_kib("VmRSS")
+    return None if kib is None else kib / 1024
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident memory, MiB: VmHWM since the last `reset_peak_rss()` (Linux), else
+    the high-water mark since the process started (`getrusage`)."""
+    kib = _proc_status_kib("VmHWM")
+    if kib is None:
+        import resource
+
+        kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return kib / 1024
+
+
+class StageTimer:
+    """Wall time of a model's top-level stages via forward hooks (CUDA synchronised).
+
+    `stages` maps a stage name to the model's top-level child modules it covers (a detector's
+    `STAGES`); `times` holds the seconds of each stage since the last `reset()`."""
+
+    def __init__(self, model, stages: dict[str, list[str]], device):
+        import torch
+
+        self.sync = (lambda: torch.cuda.synchronize(device)) if str(device).startswith("cuda") else (lambda: None)
+        self.times: dict[str, float] = {k: 0.0 for k in stages}
+        self._start: dict[str, float] = {}
+        owner = {child: stage for stage, children in stages.items() for child in children}
+        for name, module in model.named_children():
+            if name in owner:
+                module.register_forward_pre_hook(self._pre(name))
+                module.register_forward_hook(self._post(name, owner[name]))
+
+    def _pre(self, name):
+        def hook(module, inputs):
+            self.sync()
+            self._start[name] = time.perf_counter()
+        return hook
+
+    def _post(self, name, stage):
+        def hook(module, inputs, output):
+            self.sync()
+            self.times[stage] += time.perf_counter() - self._start[name]
+        return hook
+
+    def reset(self):
+        for k in self.times:
+            self.times[k] = 0.0
+
+
+__all__ = ["timed", "gflops", "BusyLoad", "idle_and_loaded", "ratio", "load_line", "runtime_line", "median_p90",
+           "StageTimer", "reset_peak_rss", "rss_mib", "peak_rss_mib"]
