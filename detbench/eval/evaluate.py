@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit, prange
 
 from detbench.config import ConfigError, section_with_defaults, shipped_defaults
+from detbench.eval.ability import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.data.layout import SPLIT_CHOICES
 from detbench.data.regions import (
     DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
@@ -427,7 +428,6 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
     index = {c: i for i, c in enumerate(names)}
     frame_cluster = np.array([index[c] for c in labels], dtype=np.int64)
     n = len(names)
-    q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
     gt_frame = np.repeat(np.arange(prep.num_frames), np.diff(prep.gt_off))
     pred_frame = np.repeat(np.arange(prep.num_frames), np.diff(prep.pred_off))
     det_cluster = np.zeros((n, len(PAIRS)), dtype=np.int64)  # LiDAR-detected boxes per cluster
@@ -445,15 +445,11 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
     ok = n >= 2 and replicates > 0
     if not ok:
         out["note"] = "needs at least 2 scenes and replicates > 0"
-    rng = np.random.default_rng(seed)
-    draws = rng.multinomial(n, np.full(n, 1.0 / n), size=replicates) if ok else np.zeros((0, n), np.int64)
+    draws = (scene_bootstrap_weights(n, replicates, seed).astype(np.int64) if ok
+             else np.zeros((0, n), np.int64))
 
     def interval(samples: np.ndarray) -> list | None:
-        good = samples[np.isfinite(samples)]
-        if not ok or good.size < max(2, samples.size // 2):
-            return None
-        lo, hi = np.percentile(good, q)
-        return [round(float(lo), 6), round(float(hi), 6)]
+        return percentile_interval(samples, confidence) if ok else None
 
     for p, (r, lv) in enumerate(PAIRS):
         col = flags[:, p] if len(flags) else np.zeros(0, dtype=np.int8)
@@ -461,14 +457,12 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
         order = keep[np.argsort(-prep.pred_scores[keep], kind="stable")]
         tp_ranked = col[order] == TP
         cl_ranked = frame_cluster[pred_frame[order]]
+        recalls = bootstrap_ratios(draws, tp_cluster[:, p], det_cluster[:, p])
         aps = np.full(len(draws), np.nan)
-        recalls = np.full(len(draws), np.nan)
         for b, w in enumerate(draws):
             num_gt = int(w @ det_cluster[:, p])
-            if num_gt == 0:
-                continue
-            recalls[b] = float(w @ tp_cluster[:, p]) / num_gt
-            aps[b] = _weighted_ap_r40(tp_ranked, w[cl_ranked], num_gt)
+            if num_gt:
+                aps[b] = _weighted_ap_r40(tp_ranked, w[cl_ranked], num_gt)
         out["results"][r][lv] = {"recall_ci95": interval(recalls), "ap_r40_ci95": interval(aps)}
     return out
 

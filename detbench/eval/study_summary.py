@@ -21,6 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
+from detbench.eval.ability import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
 RANGE_WORDS = {"small": "small", "moderate": "moderate", "large": "large"}
 LEVEL_WORDS = {"all": "All", "top3": "Top3", "top6": "Top6"}
@@ -144,14 +145,8 @@ def paired_recall_difference(rep_a: dict, rep_b: dict, r: str, lv: str, replicat
     n = len(det)
     ci = None
     if n >= 2 and replicates > 0:
-        w = np.random.default_rng(seed).multinomial(n, np.full(n, 1.0 / n), size=replicates).astype(np.float64)
-        dd = w @ det
-        ok = dd > 0
-        boot = (w[ok] @ (ta - tb)) / dd[ok]
-        q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
-        if boot.size >= 2:
-            lo, hi = np.percentile(boot, q)
-            ci = [round(float(lo), 6), round(float(hi), 6)]
+        boot = bootstrap_ratios(scene_bootstrap_weights(n, replicates, seed), ta - tb, det)
+        ci = percentile_interval(boot, confidence)
     return {"diff": round(diff, 6), "ci95": ci}
 
 
