@@ -100,12 +100,12 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     out = tmp_path / "study"
     args = ["tools/study.py", "--preset", "smoke", "--models", "second", "--heights", "0.5", "1.8", "--data",
             str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.epochs=1",
-            "--set", "train.tensorboard=false"]
+            "--set", "train.tensorboard=false", "--cross-height"]
     proc = run(args)
     # the progress line names the stage k of n, the model and height, and the time left
-    assert "=== [1/7] dataset (smoke preset)" in proc.stdout
-    assert "=== [3/7] train second at 0.5 m" in proc.stdout
-    later = proc.stdout.split("=== [5/7] train second at 1.8 m")[1].splitlines()[0]
+    assert "=== [1/9] dataset (smoke preset)" in proc.stdout
+    assert "=== [3/9] train second at 0.5 m" in proc.stdout
+    later = proc.stdout.split("=== [5/9] train second at 1.8 m")[1].splitlines()[0]
     assert "left" in later and "measured after" not in later  # known once the first training ran
     md = (out / "study.md").read_text()
     assert md.index("## Summary") < md.index("## 1. LiDAR detection ability")
@@ -120,6 +120,12 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     assert set(study["summary"]) == {"heights", "detectors"} and study["test_frames"] == 3
     rep = json.loads((out / "second_h1.8" / "eval_h1.8_test" / "report.json").read_text())
     assert "uncertainty" in rep  # the evaluation ran with the scene bootstrap
+    # --cross-height: each checkpoint tested at the other height, a matrix per model in the report
+    assert "evaluate second trained at 0.5 m on 1.8 m" in proc.stdout
+    cross = json.loads((out / "cross_height" / "cross_height.json").read_text())["matrices"]
+    assert cross[0]["heights"] == [0.5, 1.8] and all(v is not None for row in cross[0]["values"]["second"] for v in row)
+    assert "## 3. Cross-height matrix" in md and (out / "cross_height" / "cross_height_ap_r40_small.png").is_file()
     # a second call finds every stage done: only the combine step runs again
     proc = run(args)
-    assert "train second" not in proc.stdout and "[7/7] combine reports" in proc.stdout
+    assert "train second" not in proc.stdout and "evaluate" not in proc.stdout
+    assert "[9/9] combine reports" in proc.stdout

@@ -8,10 +8,12 @@ split; (4) each evaluated on the same height's test split (Table VII); (5) one c
 report with the paper's Fig. 8-10.
 
 Examples:
-  python tools/study.py --preset smoke                 # the quick start: minutes on a CPU
+  python tools/study.py --preset quick                 # the quick start: real figures in ~30-40 min on 2 CPU cores
+  python tools/study.py --preset smoke                 # the pipeline end to end in a minute (tests, CI)
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
+  python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
 
 The study resumes: a stage whose output exists is skipped, an interrupted training run is
 resumed from its last checkpoint. Delete OUT (or pass --fresh) to start over.
@@ -37,6 +39,7 @@ import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults b
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
+from detbench.eval.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height  # noqa: E402
 from detbench.eval.study_summary import (  # noqa: E402
     detector_summary, detector_summary_lines, height_summary, height_summary_lines,
 )
@@ -62,9 +65,10 @@ PRESET_CAVEATS = {
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--preset", default="smoke", choices=preset_names(),
-                    help="smoke (minutes, CPU; proves the pipeline), cpu (learns for real; ~10 min per model and "
-                         "height on 2 cores), paper (the paper's scale; a GPU). Default smoke")
+    ap.add_argument("--preset", default="quick", choices=preset_names(),
+                    help="quick (every model learns visibly; the whole study in about 30-40 min on 2 CPU cores), "
+                         "smoke (a minute; proves the pipeline, learns nothing: tests and CI), cpu (~10 min per model "
+                         "and height on 2 cores), paper (the paper's scale; a GPU). Default quick")
     ap.add_argument("--models", nargs="+", default=None, help=f"detectors (default all: "
                                                                f"{', '.join(sorted(models.REGISTRY))})")
     ap.add_argument("--heights", type=float, nargs="+", default=None,
@@ -74,6 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--out", default=None, help="output folder (default runs/study_<preset>)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="config override passed to every training run, e.g. --set train.epochs=4")
+    ap.add_argument("--cross-height", action="store_true",
+                    help="also test each model at every other height (the cross-height matrix: rows trained at, "
+                         "columns tested at; evaluations only, no extra training)")
     ap.add_argument("--fresh", action="store_true", help="delete OUT first instead of resuming")
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return ap
@@ -175,6 +182,8 @@ def main(argv=None) -> int:
     for name in names:
         for _h in heights:
             stages += [("train", name), ("eval", name)]
+    if args.cross_height:
+        stages += [("eval", name) for name in names for _h in heights for _t in heights if _t != _h]
     stages.append(("combine", None))
     progress = Progress(stages)
 
@@ -235,6 +244,25 @@ def main(argv=None) -> int:
             run([py, "tools/eval.py", "--ckpt", ckpt, "--split", "test", "--out", str(report.parent),
                  "--device", eval_device, *quiet], f"evaluate {name} at {h:g} m", progress, "eval", name)
 
+    # 4b. the cross-height matrix: each checkpoint tested at the other heights
+    cross_reports = []
+    if args.cross_height:
+        for name in names:
+            for h in heights:
+                run_dir = out / f"{name}_h{height_key(h)}"
+                ckpt = read_json(run_dir / "train_summary.json")["checkpoint"]
+                for t in heights:
+                    report = run_dir / f"eval_h{height_key(t)}_test" / "report.json"
+                    cross_reports.append(report)
+                    if t == h:
+                        continue
+                    if report.is_file():
+                        progress.skip()
+                        continue
+                    run([py, "tools/eval.py", "--ckpt", ckpt, "--test-height", str(t), "--split", "test",
+                         "--out", str(report.parent), "--device", eval_device, *quiet],
+                        f"evaluate {name} trained at {h:g} m on {t:g} m", progress, "eval", name)
+
     # 5. combined report and figures
     run([py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")],
         "combine reports", progress, "combine")
@@ -263,6 +291,21 @@ def main(argv=None) -> int:
              "summary": {"heights": height_summary(ability),
                          "detectors": {str(h): c for h, c in detector_summary(report_dicts).items()}},
              "ability": ability, "detection": combined}
+    cross_lines: list[str] = []
+    if cross_reports:
+        cross_dicts = [read_json(r) for r in cross_reports]
+        mats = [cross_height_matrix(cross_dicts, "ap_r40", "small", "all"),
+                cross_height_matrix(cross_dicts, "recall", "large", "all")]
+        (out / "cross_height").mkdir(exist_ok=True)
+        atomic_write_json(out / "cross_height" / "cross_height.json", {"matrices": mats})
+        for mat in mats:
+            plot_cross_height(mat, out / "cross_height" / f"cross_height_{mat['metric']}_{mat['range']}.png")
+        cross_lines = ["## 3. Cross-height matrix", "", source_detect.replace("tested on the test split",
+                                                                               "tested on the test split at each height"),
+                       "", *[ln for mat in mats for ln in cross_height_markdown(mat)]]
+        atomic_write_text(out / "cross_height" / "cross_height.md", "\n".join(["# Cross-height matrix", "",
+                                                                             *cross_lines[2:]]))
+        study["cross_height"] = mats
     atomic_write_json(out / "study.json", study)
 
     def embed(md_path: Path, source: str) -> str:
@@ -295,6 +338,7 @@ def main(argv=None) -> int:
              embed(out / "ability" / "ability.md", source_ability), "",
              "## 2. Detectors on the LiDAR-detected vehicles (test split)", "",
              embed(out / "combined" / "combined.md", source_detect), "",
+             *cross_lines,
              "Per-run reports with 95 % intervals: " + ", ".join(
                  f"`{r.parent.relative_to(out)}/report.md`" for r in reports), "",
              "Figures: " + ", ".join(f"`{p.relative_to(out)}`" for p in sorted(out.glob("*/*.png"))), ""]
