@@ -129,3 +129,26 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     proc = run(args)
     assert "train second" not in proc.stdout and "evaluate" not in proc.stdout
     assert "[9/9] combine reports" in proc.stdout
+
+
+def test_study_progress_time_left_counts_the_stage_starting_now(load_tool, capsys):
+    """The time left names every stage not yet finished, the one starting included: with SECOND's
+    training measured at 100 s and its evaluation at 10 s, starting its second training leaves
+    100 + 10 + 100 + 10 s (a guess-free figure), not the 120 s of the stages after it."""
+    study = load_tool("study")
+    stages = [("train", "second"), ("eval", "second")] * 3 + [("combine", None)]
+    prog = study.Progress(stages)
+    prog.start("train second at 0.5 m")
+    assert "measured after the first training" in capsys.readouterr().out
+    prog.finish("train", "second", 100.0)
+    prog.start("evaluate second at 0.5 m")
+    prog.finish("eval", "second", 10.0)
+    left, guess = prog.left_s()
+    assert left == pytest.approx(220.0) and not guess
+    prog.start("train second at 1 m")
+    assert "about 4 min left" in capsys.readouterr().out  # 220 s; 120 s would print "about 2 min"
+    prog.finish("train", "second", 100.0)
+    prog.start("evaluate second at 1 m")
+    prog.finish("eval", "second", 10.0)
+    prog.start("train second at 1.8 m")
+    assert "about 2 min left" in capsys.readouterr().out.splitlines()[-1]  # 110 s, the last training included

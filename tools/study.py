@@ -102,6 +102,7 @@ class Progress:
         self.t0 = time.perf_counter()
 
     def left_s(self) -> tuple[float | None, bool]:
+        """Seconds left for the stages not yet finished (the one starting now included)."""
         rest = self.stages[self.k:]
         total, guess = 0.0, False
         for kind, model in rest:
@@ -120,9 +121,9 @@ class Progress:
         return total, guess
 
     def start(self, what: str) -> None:
-        self.k += 1
         elapsed = (time.perf_counter() - self.t0) / 60.0
-        left, guess = self.left_s()
+        left, guess = self.left_s()  # before counting this stage: it has still to run
+        self.k += 1
         if left is None:
             eta = "time left: measured after the first training"
         else:
