@@ -6,6 +6,7 @@ import numpy as np
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.study_summary import (
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, paired_recall_difference,
+    unlearned_lines, unlearned_models,
 )
 
 
@@ -88,3 +89,21 @@ def test_equal_ldrs_are_reported_as_a_tie_not_a_lead():
     assert c["tied"] == ["1.8"]
     text = "\n".join(height_summary_lines(ab))
     assert "0.5 m = 1.8 m (tied)" in text and "a tie in 9 of 9" in text
+
+
+def _ap_report(model: str, height: float, ap_small: float) -> dict:
+    cell = {"recall": ap_small, "ap_r40": ap_small}
+    return {"model": model, "height": height, "results": {r: {lv: dict(cell) for lv in LEVELS} for r in RANGE_NAMES}}
+
+
+def test_a_model_below_the_learning_floor_at_every_height_is_named_and_one_that_learned_somewhere_is_not():
+    reps = [_ap_report("pointrcnn", 1.8, 0.049), _ap_report("pointrcnn", 0.5, 0.035), _ap_report("pointrcnn", 1.0, 0.012),
+            _ap_report("second", 0.5, 0.52), _ap_report("second", 1.8, 0.55),
+            _ap_report("pillarnet", 0.5, 0.02), _ap_report("pillarnet", 1.8, 0.30)]  # learned at 1.8 m: not named
+    bad = unlearned_models(reps)
+    assert bad == {"pointrcnn": [0.035, 0.012, 0.049]}  # in height order
+    text = "\n".join(unlearned_lines(reps))
+    assert "pointrcnn (AP@R40 small 0.012-0.049)" in text and "second" not in text and "pillarnet" not in text
+    assert unlearned_lines([_ap_report("second", 0.5, 0.52)]) == []
+    assert unlearned_models(reps, threshold=0.6) == {"pillarnet": [0.02, 0.3], "pointrcnn": [0.035, 0.012, 0.049],
+                                                     "second": [0.52, 0.55]}

@@ -8,7 +8,7 @@ split; (4) each evaluated on the same height's test split (Table VII); (5) one c
 report with the paper's Fig. 8-10.
 
 Examples:
-  python tools/study.py --preset quick                 # the quick start: real figures in ~30-40 min on 2 CPU cores
+  python tools/study.py --preset quick                 # the quick start: real figures in ~50 min on 2 CPU cores
   python tools/study.py --preset smoke                 # the pipeline end to end in a minute (tests, CI)
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
@@ -41,7 +41,7 @@ from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
 from detbench.eval.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height  # noqa: E402
 from detbench.eval.study_summary import (  # noqa: E402
-    detector_summary, detector_summary_lines, height_summary, height_summary_lines,
+    detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
@@ -53,7 +53,7 @@ PRESET_CAVEATS = {
              "Its detectors have not learned; their recall and AP (near 0) say nothing about the models or the "
              "heights. Run `--preset quick` for figures that do.*",
     "quick": "*Preset `quick` trains narrow models for a few minutes each on a small simulated dataset: the "
-             "detectors have learned (AP@R40 well above 0) and their ranking per height is meaningful within the "
+             "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful within the "
              "intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
              "80 epochs). The ability figures are at the paper's scale.*",
     "cpu": "*Preset `cpu` trains each detector about 10 minutes on 2 CPU cores: absolute figures are below the "
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="quick", choices=preset_names(),
-                    help="quick (every model learns visibly; the whole study in about 30-40 min on 2 CPU cores), "
+                    help="quick (real figures: the whole study in about 50 min on 2 CPU cores, 15 for SECOND and PillarNet), "
                          "smoke (a minute; proves the pipeline, learns nothing: tests and CI), cpu (~10 min per model "
                          "and height on 2 cores), paper (the paper's scale; a GPU). Default quick")
     ap.add_argument("--models", nargs="+", default=None, help=f"detectors (default all: "
@@ -332,6 +332,7 @@ def main(argv=None) -> int:
              "|y| <= 15 m), at 3D IoU >= 0.7 and score >= 0.1; intervals from a bootstrap over test scenes, the "
              "lead paired over the same scenes.", "", source_detect, "",
              *detector_summary_lines(report_dicts), "",
+             *unlearned_lines(report_dicts),
              PRESET_CAVEATS.get(args.preset, ""), "",
              "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
              "`python tools/study.py --preset paper --device cuda`.", "",

@@ -197,5 +197,33 @@ def detector_summary_lines(reports: Sequence[dict], range_name: str = "large", l
     return lines
 
 
+# Below this AP@R40 (small range, all vehicles) at every height, a detector is reported as not
+# having learned: a tenth of the cpu-preset figures of the models that do learn (0.42-0.68).
+NOT_LEARNED_AP = 0.1
+
+
+def unlearned_models(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP, range_name: str = "small",
+                     level: str = "all") -> dict[str, list[float]]:
+    """{model: its AP@R40 per height (in height order)} for every model whose AP@R40 in
+    `range_name` / `level` stays below `threshold` at every height it was tested at: figures
+    that say nothing about the model or the heights, which the summary must say."""
+    aps: dict[str, list[tuple[float, float]]] = {}
+    for rep in reports:
+        ap = rep["results"][range_name][level].get("ap_r40")
+        aps.setdefault(str(rep.get("model")), []).append((float(rep["height"]), float(ap) if ap is not None else 0.0))
+    return {m: [a for _, a in sorted(v)] for m, v in sorted(aps.items()) if v and all(a < threshold for _, a in v)}
+
+
+def unlearned_lines(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP) -> list[str]:
+    """A warning paragraph naming the models that have not learned (empty when every model has)."""
+    bad = unlearned_models(reports, threshold)
+    if not bad:
+        return []
+    parts = [f"{m} (AP@R40 small {min(v):.3f}-{max(v):.3f})" for m, v in bad.items()]
+    return [f"**Not learned at this preset:** {', '.join(parts)}: below {threshold:g} at every height, so "
+            "its recall and AP say nothing about the model or the heights; rank the others without it "
+            "(a larger preset, or more epochs with `--set train.epochs=N`, trains it further).", ""]
+
+
 __all__ = ["height_summary", "height_summary_lines", "paired_recall_difference", "detector_summary",
-           "detector_summary_lines"]
+           "detector_summary_lines", "NOT_LEARNED_AP", "unlearned_models", "unlearned_lines"]
