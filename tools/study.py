@@ -128,7 +128,7 @@ class Progress:
             eta = "time left: measured after the first training"
         else:
             eta = ("under a minute left" if left < 60 else f"about {left / 60.0:.0f} min left") + \
-                (" (a guess until each model has trained once)" if guess else "")
+                (" (a guess: some model has not run this kind of stage yet)" if guess else "")
         print(f"\n=== [{self.k}/{len(self.stages)}] {what} | {elapsed:.1f} min elapsed, {eta}", flush=True)
 
     def finish(self, kind: str, model: str | None, seconds: float) -> None:
