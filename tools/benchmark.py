@@ -43,6 +43,7 @@ import models  # noqa: E402
 from detbench import runtime  # noqa: E402
 from detbench.train.run_config import preset_names  # noqa: E402
 from detbench.utils.bench import StageTimer, idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
 
 
@@ -192,6 +193,13 @@ def main(argv=None) -> int:
     from detbench.data.frame import height_key
 
     names = args.models or sorted(models.REGISTRY)
+    for name in names:
+        try:
+            models.get_model_class(name)
+        except ValueError as e:
+            raise UserError(f"--models: {e}") from None
+    if args.study and not Path(args.study).is_dir():
+        raise UserError(f"--study {args.study}: no such folder; give the --out folder of a tools/study.py run")
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     results = []
     for name in names:
@@ -218,7 +226,8 @@ def main(argv=None) -> int:
             def run_worker():
                 proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
                 if proc.returncode != 0:
-                    raise SystemExit(f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}")
+                    msg = f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}"
+                    raise UserError(msg) if proc.returncode == EXIT_USER_ERROR else SystemExit(msg)
                 return json.loads(proc.stdout.strip().splitlines()[-1])
 
             res, loaded, load_info = idle_and_loaded(run_worker, args.load)
@@ -310,4 +319,4 @@ def _idle_loaded_markdown(results: list[dict]) -> list[str]:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

@@ -44,6 +44,7 @@ from detbench.eval.study_summary import (  # noqa: E402
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
 
 
@@ -149,8 +150,10 @@ def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str =
     t0 = time.perf_counter()
     proc = subprocess.run(cmd, cwd=ROOT)
     if proc.returncode != 0:
-        raise SystemExit(f"study: {what} failed (exit {proc.returncode}); fix the error above and run the same "
-                         f"command again: finished stages are kept and skipped")
+        msg = (f"study: {what} failed (exit {proc.returncode}); fix the error above and run the same "
+               f"command again: finished stages are kept and skipped")
+        # a stage that stopped on the user's error (exit 2) is the user's error here too; anything else is a bug
+        raise UserError(msg) if proc.returncode == EXIT_USER_ERROR else SystemExit(msg)
     seconds = time.perf_counter() - t0
     if progress is not None:
         progress.finish(kind, model, seconds)
@@ -161,16 +164,24 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     py = sys.executable
     out = Path(args.out or f"runs/study_{args.preset}").resolve()
-    if args.fresh and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
     names = args.models or sorted(models.REGISTRY)
     try:
         for n in names:
             models.get_model_class(n)
         base_cfg = load_run_config(names[0], args.preset, overrides=args.overrides)
-    except (ConfigError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
+    except (ConfigError, ValueError, KeyError) as e:
+        raise UserError(str(e).strip("'\"")) from None
+    if args.data and not Path(args.data).is_dir():
+        raise UserError(f"--data {args.data}: no such folder; give a dataset written by tools/simulate.py or "
+                        f"python -m detbench.data.convert, or leave --data out for the simulated default")
+    bad_heights = [h for h in (args.heights or []) if not (h > 0 and h < 10)]
+    if bad_heights:
+        raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
+                        f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    # only now, with the arguments known to be good, is anything deleted or created
+    if args.fresh and out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
     heights = args.heights or [float(h) for h in base_cfg["data"]["heights"]]
     quiet = ["--no-progress"] if args.no_progress else []
     t_start = time.perf_counter()
@@ -350,4 +361,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))
