@@ -297,9 +297,19 @@ def main(argv=None) -> int:
     source_detect = (f"*Preset `{args.preset}`; trained on the train split and tested on the test split of "
                      f"{data_words}: {test_frames} test frames" + (f" from {test_scenes} scenes" if test_scenes
                                                                     else "") + ".*")
+    # training time per model from the runs' own summaries: true across resumed invocations
+    train_s: dict[str, float] = {}
+    for name in names:
+        for h in heights:
+            summ = read_json(out / f"{name}_h{height_key(h)}" / "train_summary.json")
+            train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
+    train_words = ("Training time (the runs' own, summed over heights; resumed invocations included): "
+                   + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
+                   + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names,
              "ability_frames": ability_frames or None, "test_frames": test_frames, "test_scenes": test_scenes,
              "seconds_this_invocation": round(seconds, 1),
+             "train_seconds": {m: round(t, 1) for m, t in train_s.items()},
              "summary": {"heights": height_summary(ability),
                          "detectors": {str(h): c for h, c in detector_summary(report_dicts).items()}},
              "ability": ability, "detection": combined}
@@ -332,7 +342,7 @@ def main(argv=None) -> int:
 
     lines = [f"# Height3 study ({args.preset} preset)", "",
              f"Heights: {', '.join(f'{h:g} m' for h in heights)}. Models: {', '.join(names)}. "
-             f"Detection data: {data_words}. Ran {seconds / 60:.1f} min in this invocation.", "",
+             f"Detection data: {data_words}. Ran {seconds / 60:.1f} min in this invocation. {train_words}", "",
              "## Summary", "",
              "**Which height sees the most vehicles?** LiDAR detection rate (LDR: vehicles with >= 1 point / all "
              "vehicles), best height per importance level and range, and its paired lead over the next height "
