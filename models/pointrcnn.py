@@ -5,7 +5,8 @@ The model is the composition of shared stages, read top to bottom:
 
   points --sample_frame_points (fixed budget per frame, far points first)--> (B * N, 4)
   --PointNet2MSG (set abstraction down, feature propagation up)--> a feature per point
-  --PointHead--> foreground logit + a box per point (residual coding on the mean vehicle size)
+  --PointHead--> foreground logit + a box per point (residual coding on the mean vehicle size,
+     or the paper's bin-based coding: point_head.box_coding)
   --select_proposals (NMS; train / test budgets)--> RoIs
   --sample_proposal_targets (training: fg / bg ratio, IoU thresholds)--> RoIs with targets
   --PointRCNNRoIHead (RoI point pooling, canonical coordinates + depth + score, set
@@ -62,8 +63,10 @@ class PointRCNN(nn.Module):
                              "(tools/train.py does) or give [length, width, height] in metres")
         npoints = [None if v in (None, -1) else int(v) for v in bb["npoints"]]
         self.backbone = PointNet2MSG(1, npoints, bb["radii"], bb["nsamples"], bb["mlps"], bb["fp_mlps"])
+        # checkpoints written before box_coding existed used the residual coding
         self.point_head = PointHead(self.backbone.out_channels, ph["cls_fc"], ph["reg_fc"], ph["mean_size"],
-                                    ph["extra_width"])
+                                    ph["extra_width"], box_coding=ph.get("box_coding", "residual"),
+                                    bin_cfg=ph.get("bin"), loss_weights=ph.get("loss_weights"))
         self.proposal_cfg = proposal_budgets(rh["proposals"], "pointrcnn model.roi_head.proposals")
         self.target_cfg = require_keys(rh["targets"], TARGET_KEYS, "pointrcnn model.roi_head.targets")
         sa_np = [None if v in (None, -1) else int(v) for v in rh["sa_npoints"]]

@@ -174,3 +174,120 @@ def test_roi_head_with_no_roi_slots():
     xyz, feats = torch.randn(2 * n, 3), torch.randn(2 * n, model.backbone.out_channels)
     out = head(xyz, feats, torch.rand(2 * n), torch.zeros(2, 0, 7), n)
     assert out.shape == (2, 0, head.out_channels)
+
+
+# --------------------------------------------------------------------------------------
+# the bin-based box coding of the point head (point_head.box_coding: bin)
+# --------------------------------------------------------------------------------------
+def perfect_bin_output(coder, t):
+    """The raw output (N, code_size) that puts all weight on the target bins with the target residuals."""
+    L, K = coder.num_loc_bins, coder.num_heading_bins
+    onehot = lambda b, k: torch.nn.functional.one_hot(b, k).double() * 20.0  # noqa: E731
+    res = lambda b, k, v: torch.zeros(len(b), k, dtype=torch.float64).scatter_(1, b[:, None], v[:, None])  # noqa: E731
+    return torch.cat([onehot(t.x_bin, L), onehot(t.y_bin, L), res(t.x_bin, L, t.x_res), res(t.y_bin, L, t.y_res),
+                      t.z_res[:, None], onehot(t.h_bin, K), res(t.h_bin, K, t.h_res), t.size_res], dim=1)
+
+
+def test_bin_coder_round_trip():
+    from detbench.ops import PointBinCoder
+    coder = PointBinCoder([4.5, 1.9, 1.6], loc_scope=3.0, loc_bin_size=0.5, num_heading_bins=12)
+    assert coder.num_loc_bins == 12 and coder.code_size == 4 * 12 + 1 + 2 * 12 + 3
+    g = torch.Generator().manual_seed(0)
+    n = 2000
+    pts = torch.randn(n, 3, generator=g, dtype=torch.float64) * 20
+    centre = pts + (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 5.98  # within +-2.99 m
+    size = torch.tensor([4.5, 1.9, 1.6], dtype=torch.float64) * (0.5 + torch.rand(n, 3, generator=g, dtype=torch.float64))
+    heading = (torch.rand(n, 1, generator=g, dtype=torch.float64) - 0.5) * 2 * np.pi
+    boxes = torch.cat([centre, size, heading], dim=1)
+    t = coder.encode(boxes, pts)
+    assert int(t.x_bin.min()) >= 0 and int(t.x_bin.max()) <= 11 and int(t.h_bin.max()) <= 11
+    assert float(t.x_res.abs().max()) <= 0.5 + 1e-9 and float(t.h_res.min()) >= -1 and float(t.h_res.max()) < 1
+    dec = coder.decode(perfect_bin_output(coder, t), pts)
+    dh = torch.remainder(dec[:, 6] - boxes[:, 6] + np.pi, 2 * np.pi) - np.pi
+    assert torch.allclose(dec[:, :6], boxes[:, :6], atol=1e-9) and float(dh.abs().max()) < 1e-9
+    assert float(dec[:, 6].min()) >= -np.pi and float(dec[:, 6].max()) < np.pi
+
+
+def test_bin_coder_edges_and_clamping():
+    from detbench.ops import PointBinCoder
+    coder = PointBinCoder([4.5, 1.9, 1.6])
+    pts = torch.zeros(7, 3, dtype=torch.float64)
+    # x offsets: the lower edge of the search range, a bin border, just inside the upper edge,
+    # the upper edge itself, beyond it on both sides, far beyond
+    dx = torch.tensor([-3.0, 0.0, 2.99, 3.0, 4.0, -5.0, 80.0], dtype=torch.float64)
+    boxes = torch.zeros(7, 7, dtype=torch.float64)
+    boxes[:, 0] = dx
+    boxes[:, 3:6] = torch.tensor([4.5, 1.9, 1.6], dtype=torch.float64)
+    boxes[:, 6] = torch.tensor([0.0, np.pi - 1e-6, -np.pi, 0.2618, -0.2619, 1.0, 2.0], dtype=torch.float64)
+    t = coder.encode(boxes, pts)
+    assert t.x_bin.tolist() == [0, 6, 11, 11, 11, 0, 11]
+    assert abs(float(t.x_res[0]) + 0.5) < 1e-9 and abs(float(t.x_res[1]) + 0.5) < 1e-9  # a bin's lower border
+    assert torch.allclose(t.x_res[2], torch.tensor(0.48, dtype=torch.float64))
+    # beyond the range: clamped into the edge bins, just inside the range
+    assert (t.x_res[3:5] > 0.49).all() and (t.x_res[6] > 0.49) and abs(float(t.x_res[5]) + 0.5) < 1e-9
+    dec = coder.decode(perfect_bin_output(coder, t), pts)
+    assert torch.allclose(dec[:3, 0], dx[:3], atol=1e-9)
+    assert torch.allclose(dec[3:, 0], torch.tensor([3.0, 3.0, -3.0, 3.0], dtype=torch.float64), atol=2e-3)
+    # heading: 0 sits in the middle of bin 0, +-pi in bin 6; a bin border at pi / 12
+    assert t.h_bin.tolist()[:5] == [0, 6, 6, 1, 11] and abs(float(t.h_res[0])) < 1e-9
+    assert t.y_bin.tolist() == [6] * 7 and (t.y_res == -0.5).all() and (t.size_res == 0).all()
+    with pytest.raises(ValueError, match="whole number"):
+        PointBinCoder([4.5, 1.9, 1.6], loc_scope=3.0, loc_bin_size=0.7)
+    with pytest.raises(ValueError, match="code_size"):
+        coder.decode(torch.zeros(2, 8), torch.zeros(2, 3))
+
+
+def test_bin_coding_point_head_losses_are_finite_and_learnable():
+    from models.stages.point_head import PointHead, PointHeadOutput, PointTargets
+    torch.manual_seed(0)
+    head = PointHead(16, [32], [32], [4.5, 1.9, 1.6], box_coding="bin")
+    assert head.code_size == head.bin_coder.code_size
+    xyz = torch.tensor([[[10.0, 2.0, 0.8], [7.8, 1.2, 0.2], [40.0, 0.0, 0.5], [9.0, 2.0, 0.8]]])
+    # point 1 lies 2.2 m behind the centre; point 3's box is 25 m away (clamped to the range's edge)
+    boxes = torch.tensor([[CAR, CAR, [0.0] * 7, [34.0, 2.0, 0.8, 4.5, 1.9, 1.6, np.pi]]])
+    t = PointTargets(torch.tensor([[1, 1, 0, 1]]), boxes)
+    feats = torch.randn(4, 16)
+    out = head(feats, 1)
+    assert out.box_deltas.shape == (1, 4, head.code_size)
+    loss, parts = head.loss(out, t, xyz)
+    loss.backward()
+    assert torch.isfinite(loss) and parts["loss_point_box"] > 0
+    assert all(torch.isfinite(p.grad).all() for p in head.parameters() if p.grad is not None)
+    # no foreground point at all: a zero box loss that still backpropagates
+    head.zero_grad()
+    none = PointTargets(torch.tensor([[0, 0, -1, 0]]), torch.zeros(1, 4, 7))
+    loss0, parts0 = head.loss(head(feats, 1), none, xyz)
+    loss0.backward()
+    assert torch.isfinite(loss0) and parts0["loss_point_box"] == 0.0
+    # the box loss is smallest at the perfect output, and decoding it gives back the boxes
+    fg = t.labels[0] == 1
+    tb = head.bin_coder.encode(boxes[0][fg].double(), xyz[0][fg].double())
+    perfect = torch.zeros(1, 4, head.code_size)
+    perfect[0, fg] = perfect_bin_output(head.bin_coder, tb).float()
+    good = head.loss(PointHeadOutput(out.cls_logits.detach(), perfect), t, xyz)[1]["loss_point_box"]
+    assert good < 0.01 * parts["loss_point_box"]
+    dec, _ = head.decode(PointHeadOutput(out.cls_logits.detach(), perfect), xyz)
+    assert torch.allclose(dec[0, :2], boxes[0, :2], atol=1e-4)
+    assert torch.allclose(dec[0, 3, :6], torch.tensor([12.0, 2.0, 0.8, 4.5, 1.9, 1.6]), atol=2e-3)  # 9 + 3 m
+    # an in-place training step on the bin loss lowers it (the gradients point the right way)
+    opt = torch.optim.Adam(head.parameters(), lr=0.01)
+    first = None
+    for _ in range(100):
+        loss, parts = head.loss(head(feats, 1), t, xyz)
+        first = parts["loss_point_box"] if first is None else first
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert parts["loss_point_box"] < 0.3 * first
+    with pytest.raises(ValueError, match="box_coding"):
+        PointHead(16, [32], [32], [4.5, 1.9, 1.6], box_coding="bins")
+
+
+def test_both_box_codings_build_and_old_configs_default_to_residual():
+    cfg = tiny_cfg()
+    assert cfg["point_head"]["box_coding"] == "bin"
+    assert models.build_model("pointrcnn", cfg).point_head.code_size == 76
+    cfg["point_head"]["box_coding"] = "residual"
+    assert models.build_model("pointrcnn", cfg).point_head.code_size == 8
+    del cfg["point_head"]["box_coding"]  # a checkpoint written before the key existed
+    assert models.build_model("pointrcnn", cfg).point_head.box_coding == "residual"

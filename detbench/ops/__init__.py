@@ -6,6 +6,8 @@ numpy inputs return numpy arrays; torch inputs return tensors on the inputs' dev
 operations take tensors or arrays and always return tensors).
 """
 from detbench.ops.box_coder import (
+    BinTargets,
+    PointBinCoder,
     ResidualBoxCoder,
     boxes_to_corners_3d,
     boxes_to_corners_bev,

@@ -10,6 +10,8 @@ Contents
 - `boxes_to_corners_bev(boxes)` -> (M, 4, 2) and `boxes_to_corners_3d(boxes)` -> (M, 8, 3),
   numpy in -> numpy out, torch in -> torch out.
 - `ResidualBoxCoder`: the SECOND / OpenPCDet residual encoding of boxes against anchors.
+- `PointBinCoder`: PointRCNN's bin-based coding of a box relative to a point (BEV centre
+  offset and heading as a bin class plus a residual inside the bin).
 
 The small `check_boxes` / `check_points` helpers validate shapes for every op in
 `detbench.ops` so that each error names the function, the argument and the fix.
@@ -17,7 +19,7 @@ The small `check_boxes` / `check_points` helpers validate shapes for every op in
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -30,6 +32,8 @@ __all__ = [
     "boxes_to_corners_bev",
     "boxes_to_corners_3d",
     "ResidualBoxCoder",
+    "PointBinCoder",
+    "BinTargets",
 ]
 
 TWO_PI = 2.0 * math.pi
@@ -301,3 +305,125 @@ class ResidualBoxCoder:
         if extra > 0:
             out = torch.cat([out, deltas[..., self.code_size:] + anchors[..., 7:]], dim=-1)
         return out
+
+
+# ----------------------------------------------------------------------------------------
+# bin-based coder (PointRCNN)
+# ----------------------------------------------------------------------------------------
+class BinTargets(NamedTuple):
+    """Targets of `PointBinCoder.encode` for boxes (..., 7) seen from points (..., 3)."""
+    x_bin: torch.Tensor  # (...) int64 bin of the x offset, 0 .. num_loc_bins - 1
+    y_bin: torch.Tensor  # (...) int64 bin of the y offset
+    x_res: torch.Tensor  # (...) offset inside the x bin / bin size, in [-0.5, 0.5]
+    y_res: torch.Tensor  # (...) offset inside the y bin / bin size
+    z_res: torch.Tensor  # (...) box centre z - point z, metres
+    h_bin: torch.Tensor  # (...) int64 heading bin, 0 .. num_heading_bins - 1
+    h_res: torch.Tensor  # (...) heading inside its bin / half the bin width, in [-1, 1)
+    size_res: torch.Tensor  # (..., 3) (size - mean size) / mean size
+
+
+class PointBinCoder:
+    """PointRCNN's bin-based box coding (Shi et al., CVPR 2019, Sec. 3.1), ground plane x / y.
+
+    A box (x, y, z, dx, dy, dz, heading) is coded relative to a point (px, py, pz):
+
+    - x (and y alike): the offset x - px is shifted by the search range S (`loc_scope`, m) and
+      clamped into [0, 2 S): offsets beyond +-S fall into the first or last bin. Its bin
+      b = floor(shift / B) (B = `loc_bin_size`, m; 2 S / B bins) is classified; the residual
+      inside the bin, (shift - (b + 0.5) B) / B in [-0.5, 0.5], is regressed.
+    - z: the plain offset z - pz in metres (one value).
+    - heading: shifted by half a bin and wrapped into [0, 2 pi), then `num_heading_bins` bins
+      of 2 pi / K; the residual inside the bin is normalised by half the bin width, [-1, 1).
+    - size: (size - mean size) / mean size per axis.
+
+    The network output per point (`code_size` channels) is laid out as
+    [x bin logits (L) | y bin logits (L) | x residuals (L) | y residuals (L) | z (1) |
+     heading bin logits (K) | heading residuals (K) | size (3)], L = 2 S / B, K bins:
+    each bin has its own residual channel, and decoding reads the residual of the arg-max bin.
+    """
+
+    def __init__(self, mean_size: Sequence[float], loc_scope: float = 3.0, loc_bin_size: float = 0.5,
+                 num_heading_bins: int = 12):
+        ms = [float(v) for v in mean_size]
+        if len(ms) != 3 or min(ms) <= 0:
+            raise ValueError(f"PointBinCoder: mean_size must be [length, width, height] > 0 m, got {mean_size}")
+        if not (loc_scope > 0 and loc_bin_size > 0):
+            raise ValueError(f"PointBinCoder: loc_scope ({loc_scope}) and loc_bin_size ({loc_bin_size}) must be > 0 m")
+        nb = 2.0 * float(loc_scope) / float(loc_bin_size)
+        if abs(nb - round(nb)) > 1e-6:
+            raise ValueError(f"PointBinCoder: 2 * loc_scope ({loc_scope} m) must be a whole number of "
+                             f"loc_bin_size ({loc_bin_size} m) bins; e.g. loc_scope 3.0 with loc_bin_size 0.5")
+        if int(num_heading_bins) < 1:
+            raise ValueError(f"PointBinCoder: num_heading_bins must be >= 1, got {num_heading_bins}")
+        self.mean_size = ms
+        self.loc_scope, self.loc_bin_size = float(loc_scope), float(loc_bin_size)
+        self.num_loc_bins = int(round(nb))
+        self.num_heading_bins = int(num_heading_bins)
+        self.code_size = 4 * self.num_loc_bins + 1 + 2 * self.num_heading_bins + 3
+
+    def __repr__(self) -> str:
+        return (f"PointBinCoder(mean_size={self.mean_size}, loc_scope={self.loc_scope}, "
+                f"loc_bin_size={self.loc_bin_size}, num_heading_bins={self.num_heading_bins})")
+
+    def split(self, pred: torch.Tensor) -> dict:
+        """The named slices of a raw output (..., code_size)."""
+        if pred.shape[-1] != self.code_size:
+            raise ValueError(f"PointBinCoder: the output has {pred.shape[-1]} channels, expected code_size "
+                             f"{self.code_size} ({self!r})")
+        L, K = self.num_loc_bins, self.num_heading_bins
+        names = [("x_bin", L), ("y_bin", L), ("x_res", L), ("y_res", L), ("z_res", 1), ("h_bin", K), ("h_res", K),
+                 ("size_res", 3)]
+        out, i = {}, 0
+        for name, n in names:
+            out[name] = pred[..., i:i + n]
+            i += n
+        out["z_res"] = out["z_res"][..., 0]
+        return out
+
+    def _loc(self, offset: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        s, b = self.loc_scope, self.loc_bin_size
+        shift = (offset + s).clamp(0.0, 2.0 * s - 1e-3)
+        bins = torch.floor(shift / b).long().clamp(0, self.num_loc_bins - 1)
+        res = (shift - (bins.to(shift.dtype) + 0.5) * b) / b
+        return bins, res
+
+    def encode(self, boxes: torch.Tensor, points: torch.Tensor) -> BinTargets:
+        """Targets of boxes (..., 7) relative to points (..., 3) (broadcasting allowed)."""
+        if boxes.shape[-1] < 7 or points.shape[-1] < 3:
+            raise ValueError(f"PointBinCoder.encode: boxes must be (..., 7) and points (..., 3), got "
+                             f"{tuple(boxes.shape)} and {tuple(points.shape)}")
+        x_bin, x_res = self._loc(boxes[..., 0] - points[..., 0])
+        y_bin, y_res = self._loc(boxes[..., 1] - points[..., 1])
+        z_res = boxes[..., 2] - points[..., 2]
+        k = self.num_heading_bins
+        width = TWO_PI / k
+        h = torch.remainder(boxes[..., 6] + 0.5 * width, TWO_PI)
+        h_bin = torch.floor(h / width).long().clamp(0, k - 1)
+        h_res = (h - (h_bin.to(h.dtype) + 0.5) * width) / (0.5 * width)
+        mean = torch.as_tensor(self.mean_size, dtype=boxes.dtype, device=boxes.device)
+        size_res = (boxes[..., 3:6] - mean) / mean
+        return BinTargets(x_bin, y_bin, x_res, y_res, z_res, h_bin, h_res, size_res)
+
+    def decode(self, pred: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Boxes (..., 7) from raw outputs (..., code_size) at points (..., 3): arg-max bins + their residuals.
+
+        Sizes are kept at >= 1 % of the mean size (a residual below -1 would give a negative size).
+        """
+        p = self.split(pred)
+        s, b = self.loc_scope, self.loc_bin_size
+
+        def loc(bin_logits, res):
+            bins = bin_logits.argmax(dim=-1, keepdim=True)
+            r = res.gather(-1, bins)[..., 0]
+            return (bins[..., 0].to(res.dtype) + 0.5 + r) * b - s
+
+        x = points[..., 0] + loc(p["x_bin"], p["x_res"])
+        y = points[..., 1] + loc(p["y_bin"], p["y_res"])
+        z = points[..., 2] + p["z_res"]
+        width = TWO_PI / self.num_heading_bins
+        hb = p["h_bin"].argmax(dim=-1, keepdim=True)
+        hr = p["h_res"].gather(-1, hb)[..., 0]
+        heading = normalize_heading((hb[..., 0].to(hr.dtype) + 0.5) * width + hr * 0.5 * width - 0.5 * width)
+        mean = torch.as_tensor(self.mean_size, dtype=pred.dtype, device=pred.device)
+        size = (p["size_res"] * mean + mean).clamp(min=0.01 * mean)
+        return torch.cat([torch.stack([x, y, z], dim=-1), size, heading[..., None]], dim=-1)

@@ -4,14 +4,16 @@
   box enlarged by `extra_width` (0.2 m per side, the published value) but outside the box are
   ignored by the segmentation loss (their label is unsure: a box edge, a mirror); the rest is
   background. A foreground point's box target is the box it lies in.
-- Box coding: residual coding against a box of the mean vehicle size centred on the point
-  (OpenPCDet's PointResidualCoder with mean sizes): centre offsets divided by the mean BEV
-  diagonal (z by the mean height), log size ratios, heading as (cos, sin). We chose this over
-  the PointRCNN paper's bin-based coding: one vehicle class on a highway needs no multi-bin
-  search for x/y, the residual form has no bin-size hyper-parameters tied to the scene extent,
-  and it is what OpenPCDet's maintained PointRCNN uses; docs/architecture.md says the same.
+- Box coding, chosen by `box_coding` (docs/architecture.md says which the presets use and why):
+  - `residual`: against a box of the mean vehicle size centred on the point (OpenPCDet's
+    PointResidualCoder with mean sizes): centre offsets divided by the mean BEV diagonal (z by
+    the mean height), log size ratios, heading as (cos, sin); smooth-L1 on all 8 values.
+  - `bin`: the PointRCNN paper's bin-based coding (`detbench.ops.PointBinCoder`): the x and y
+    offsets as 0.5 m bins within +-3 m of the point (cross-entropy) plus a residual inside the
+    true bin (smooth-L1), z as a plain residual, the heading as 12 bins + residual, the size
+    as a residual against the mean size (weighted 3, as the authors' code).
 - `PointHead`: two shared-MLP branches on the backbone's per-point features; `loss` (sigmoid
-  focal loss for segmentation, smooth-L1 for the foreground boxes) and `decode`.
+  focal loss for segmentation, the coding's box loss on the foreground points) and `decode`.
 """
 from __future__ import annotations
 
@@ -20,7 +22,9 @@ from typing import NamedTuple, Sequence
 import torch
 import torch.nn as nn
 
-from detbench.ops import ResidualBoxCoder, points_in_boxes_mask
+import torch.nn.functional as F
+
+from detbench.ops import PointBinCoder, ResidualBoxCoder, points_in_boxes_mask
 
 from .losses import sigmoid_focal_loss, weighted_smooth_l1
 
@@ -60,7 +64,7 @@ def point_targets(xyz: torch.Tensor, valid: torch.Tensor, gt_boxes: torch.Tensor
 
 class PointHeadOutput(NamedTuple):
     cls_logits: torch.Tensor  # (B, N) foreground logits
-    box_deltas: torch.Tensor  # (B, N, 8) residuals against the mean-size box at each point
+    box_deltas: torch.Tensor  # (B, N, C) the box code at each point (residual: C = 8; bin: the coder's code_size)
 
 
 class PointHead(nn.Module):
@@ -68,19 +72,31 @@ class PointHead(nn.Module):
 
     def __init__(self, in_channels: int, cls_fc: Sequence[int], reg_fc: Sequence[int],
                  mean_size: Sequence[float], extra_width: float = 0.2, focal_alpha: float = 0.25,
-                 focal_gamma: float = 2.0, loss_weights: dict | None = None):
+                 focal_gamma: float = 2.0, loss_weights: dict | None = None, box_coding: str = "residual",
+                 bin_cfg: dict | None = None):
         super().__init__()
-        self.cls = self._branch(in_channels, cls_fc, 1)
-        self.reg = self._branch(in_channels, reg_fc, 8)
-        nn.init.constant_(self.cls[-1].bias, -4.6)  # prior foreground probability 0.01
-        self.coder = ResidualBoxCoder(encode_angle_by_sincos=True)
         ms = [float(v) for v in mean_size]
         if len(ms) != 3 or min(ms) <= 0:
             raise ValueError(f"PointRCNN: point_head.mean_size must be [length, width, height] > 0 m, got {mean_size}")
+        if box_coding not in ("residual", "bin"):
+            raise ValueError(f"PointRCNN: point_head.box_coding must be 'residual' or 'bin', got {box_coding!r}")
+        self.box_coding = box_coding
+        if box_coding == "bin":
+            b = {"loc_scope": 3.0, "loc_bin_size": 0.5, "num_heading_bins": 12, **(bin_cfg or {})}
+            self.bin_coder = PointBinCoder(ms, float(b["loc_scope"]), float(b["loc_bin_size"]),
+                                           int(b["num_heading_bins"]))
+            code_size = self.bin_coder.code_size
+        else:
+            code_size = 8
+        self.code_size = code_size
+        self.cls = self._branch(in_channels, cls_fc, 1)
+        self.reg = self._branch(in_channels, reg_fc, code_size)
+        nn.init.constant_(self.cls[-1].bias, -4.6)  # prior foreground probability 0.01
+        self.coder = ResidualBoxCoder(encode_angle_by_sincos=True)
         self.register_buffer("mean_size", torch.tensor(ms), persistent=False)
         self.extra_width = float(extra_width)
         self.focal_alpha, self.focal_gamma = float(focal_alpha), float(focal_gamma)
-        self.loss_weights = {"point_cls": 1.0, "point_box": 1.0, **(loss_weights or {})}
+        self.loss_weights = {"point_cls": 1.0, "point_box": 1.0, "point_size": 3.0, **(loss_weights or {})}
 
     @staticmethod
     def _branch(cin: int, fc: Sequence[int], cout: int) -> nn.Sequential:
@@ -92,10 +108,10 @@ class PointHead(nn.Module):
         return nn.Sequential(*layers)
 
     def forward(self, features: torch.Tensor, batch_size: int) -> PointHeadOutput:
-        """features (B * N, C) -> logits (B, N), deltas (B, N, 8)."""
+        """features (B * N, C) -> logits (B, N), box codes (B, N, code_size)."""
         n = features.shape[0] // max(batch_size, 1)
         return PointHeadOutput(self.cls(features).reshape(batch_size, n),
-                               self.reg(features).reshape(batch_size, n, 8))
+                               self.reg(features).reshape(batch_size, n, self.code_size))
 
     def anchors(self, xyz: torch.Tensor) -> torch.Tensor:
         """(B, N, 7) mean-size boxes centred on the points, heading 0."""
@@ -107,6 +123,8 @@ class PointHead(nn.Module):
     def decode(self, out: PointHeadOutput, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Boxes (B, N, 7) and foreground probabilities (B, N)."""
         deltas = out.box_deltas.float()
+        if self.box_coding == "bin":
+            return self.bin_coder.decode(deltas, xyz[..., :3].float()), torch.sigmoid(out.cls_logits.float())
         deltas = torch.cat([deltas[..., :3], deltas[..., 3:6].clamp(-3.0, 3.0), deltas[..., 6:]], dim=-1)
         return self.coder.decode(deltas, self.anchors(xyz)), torch.sigmoid(out.cls_logits.float())
 
@@ -116,10 +134,35 @@ class PointHead(nn.Module):
         n_fg = fg.sum().clamp(min=1).float()
         cls_w = (targets.labels >= 0).float() / n_fg
         loss_cls = sigmoid_focal_loss(out.cls_logits.float(), fg.float(), cls_w, self.focal_alpha, self.focal_gamma)
-        target = self.coder.encode(targets.boxes, self.anchors(xyz))
-        target = torch.where(fg[..., None], target, torch.zeros_like(target))
-        loss_box = weighted_smooth_l1(out.box_deltas.float(), target, fg.float() / n_fg)
+        if self.box_coding == "bin":
+            loss_box = self._bin_loss(out.box_deltas.float(), targets.boxes, xyz, fg) / n_fg
+        else:
+            target = self.coder.encode(targets.boxes, self.anchors(xyz))
+            target = torch.where(fg[..., None], target, torch.zeros_like(target))
+            loss_box = weighted_smooth_l1(out.box_deltas.float(), target, fg.float() / n_fg)
         w = self.loss_weights
         total = w["point_cls"] * loss_cls + w["point_box"] * loss_box
         return total, {"loss_point_cls": float(loss_cls.detach()), "loss_point_box": float(loss_box.detach()),
                        "num_fg_points": float(fg.sum()) / max(b, 1)}
+
+    def _bin_loss(self, pred: torch.Tensor, boxes: torch.Tensor, xyz: torch.Tensor, fg: torch.Tensor) -> torch.Tensor:
+        """Sum over foreground points of the bin coding's loss (PointRCNN Sec. 3.1): cross-entropy
+        of the x, y and heading bins, smooth-L1 of the residuals in the true bins, of z, and of the
+        size (weight `point_size`)."""
+        if not bool(fg.any()):
+            return pred.sum() * 0.0
+        p = self.bin_coder.split(pred[fg])
+        t = self.bin_coder.encode(boxes[fg].float(), xyz[fg].float())
+        ones = torch.ones_like(t.x_res)
+
+        def in_bin(res, bins):
+            return res.gather(-1, bins[:, None])[:, 0]
+
+        loss = (F.cross_entropy(p["x_bin"], t.x_bin, reduction="sum")
+                + F.cross_entropy(p["y_bin"], t.y_bin, reduction="sum")
+                + F.cross_entropy(p["h_bin"], t.h_bin, reduction="sum"))
+        res_pred = torch.stack([in_bin(p["x_res"], t.x_bin), in_bin(p["y_res"], t.y_bin), p["z_res"],
+                                in_bin(p["h_res"], t.h_bin)], dim=-1)
+        res_target = torch.stack([t.x_res, t.y_res, t.z_res, t.h_res], dim=-1)
+        loss = loss + weighted_smooth_l1(res_pred, res_target, ones)
+        return loss + self.loss_weights["point_size"] * weighted_smooth_l1(p["size_res"], t.size_res, ones)
