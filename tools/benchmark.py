@@ -114,25 +114,15 @@ def worker(args) -> dict:
     samples = [frame_sample(test[i % len(test)], cfg_model["point_cloud_range"]) for i in range(n)]
     stages = model.STAGES
     timer = StageTimer(model, stages, device)
-    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+    sync = timer.sync  # CUDA-synchronising on a GPU, a no-op on CPU
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     rows = []
     with torch.no_grad():
         for i, s in enumerate(samples):
-            batch = collate([s]).to(device)
-            timer.reset()
-            sync()
-            t0 = time.perf_counter()
-            out = model(batch)
-            sync()
-            t1 = time.perf_counter()
-            model.predict(out, batch)
-            sync()
-            t2 = time.perf_counter()
+            ms = timer.time_inference(model, collate([s]).to(device))
             if i >= args.warmup:
-                rows.append({**{k: v * 1000 for k, v in timer.times.items()}, "post": (t2 - t1) * 1000,
-                             "total": (t2 - t0) * 1000, "points": int(len(s.points))})
+                rows.append({**ms, "points": int(len(s.points))})
     med = {k: round(statistics.median(r[k] for r in rows), 2) for k in rows[0]}
     peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     result = {"model": name, "device": str(device), "checkpoint": ckpt, "parameters": params,

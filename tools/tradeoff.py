@@ -470,7 +470,6 @@ def measure_point(spec: dict) -> dict:
     pcr = cfg_model["point_cloud_range"]
     sub = SubsampledFrames(test, pcr, *infer["subsample"]) if infer.get("subsample") else None
     timer = StageTimer(model, model.STAGES, device)
-    sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
     rows, npts = [], []
@@ -484,20 +483,12 @@ def measure_point(spec: dict) -> dict:
                 ts = time.perf_counter()
                 points = sub.subsample(points, i % len(test))
                 t_sub = time.perf_counter() - ts
-            batch = collate([Sample(points, np.zeros((0, 7), np.float32), frame.frame_id)]).to(device)
-            timer.reset()
-            sync()
-            t0 = time.perf_counter()
-            out = model(batch)
-            sync()
-            t1 = time.perf_counter()
-            model.predict(out, batch)
-            sync()
-            t2 = time.perf_counter()
+            ms = timer.time_inference(model, collate([Sample(points, np.zeros((0, 7), np.float32),
+                                                             frame.frame_id)]).to(device))
             if i >= spec["warmup"]:
                 row = {"subsample": t_sub * 1000} if sub is not None else {}
-                row.update({k: v * 1000 for k, v in timer.times.items()})
-                row.update({"post": (t2 - t1) * 1000, "total": (t2 - t0 + t_sub) * 1000})
+                row.update(ms)
+                row["total"] += t_sub * 1000
                 rows.append(row)
                 npts.append(len(points))
     peak_rss = peak_rss_mib()

@@ -237,6 +237,20 @@ class StageTimer:
         for k in self.times:
             self.times[k] = 0.0
 
+    def time_inference(self, model, batch) -> dict[str, float]:
+        """One timed inference of `batch` (forward, then `model.predict`), in milliseconds: each
+        stage of the hooks, `post` (predict: decoding and NMS) and `total` (forward + post)."""
+        self.reset()
+        self.sync()
+        t0 = time.perf_counter()
+        out = model(batch)
+        self.sync()
+        t1 = time.perf_counter()
+        model.predict(out, batch)
+        self.sync()
+        t2 = time.perf_counter()
+        return {**{k: v * 1000 for k, v in self.times.items()}, "post": (t2 - t1) * 1000, "total": (t2 - t0) * 1000}
+
 
 __all__ = ["timed", "gflops", "BusyLoad", "idle_and_loaded", "ratio", "load_line", "runtime_line", "median_p90",
            "StageTimer", "reset_peak_rss", "rss_mib", "peak_rss_mib"]
