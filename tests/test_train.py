@@ -352,3 +352,25 @@ def test_two_process_distributed_run_ends_with_identical_weights(tmp_path):
     assert meta["frames"] == [8, 8] and meta["steps"] == 4  # 8 frames split over 2 ranks, 2 per batch
     ckpt = load_checkpoint(CheckpointManager(tmp_path / "run" / "checkpoints").latest())
     assert all(torch.equal(ckpt["model"][k], w0[k]) for k in w0) and len(ckpt["rng"]) == 2
+
+
+def _cleanup_worker(rank: int, world: int, port: int, out: str) -> None:
+    import time as _time
+    from pathlib import Path
+
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    info = init_distributed("cpu")
+    if rank == 1:  # a peer that fails elsewhere and never reaches its cleanup (it stays alive a while)
+        _time.sleep(3.0)
+        os._exit(0)
+    t0 = _time.perf_counter()
+    cleanup(info, wait_for_peers=False)  # the error path: must not wait for the peer
+    Path(out).write_text(f"{_time.perf_counter() - t0:.3f}")
+
+
+def test_cleanup_on_an_error_path_does_not_wait_for_a_peer_that_never_comes(tmp_path):
+    import torch.multiprocessing as mp
+
+    mp.spawn(_cleanup_worker, args=(2, _free_port(), str(tmp_path / "t")), nprocs=2, join=True)
+    assert float((tmp_path / "t").read_text()) < 2.0  # a barrier would have waited the peer's 3 s (or forever)

@@ -180,10 +180,10 @@ def main(argv=None) -> int:
                        resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
                        resume_hint=f"run the same command again with --resume (--out {out})")
     except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
-        cleanup(info)
+        cleanup(info, wait_for_peers=False)  # a peer may not reach its cleanup: no barrier
         raise UserError(str(e)) from None
     except DiskFullError as e:
-        cleanup(info)
+        cleanup(info, wait_for_peers=False)  # a peer may not reach its cleanup: no barrier
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:

@@ -152,12 +152,15 @@ def main_process_first(info: DistInfo) -> Iterator[None]:
         barrier(info)
 
 
-def cleanup(info: DistInfo) -> None:
+def cleanup(info: DistInfo, wait_for_peers: bool = True) -> None:
     """Leave the process group (call once at the end of a run).
 
-    Every rank waits for the others first: a rank that tore its group down while a peer was
-    still finishing made the peer's gloo threads abort ("terminate called without an active
-    exception", SIGABRT) in about one two-process run in five on CPU."""
+    At the end of a run every rank waits for the others first: a rank that tore its group down
+    while a peer was still finishing made the peer's gloo threads abort ("terminate called
+    without an active exception", SIGABRT) in about one two-process run in five on CPU. On an
+    error path pass `wait_for_peers=False`: the other ranks may never get here, and a barrier
+    would hang the failing rank instead of letting it report its error."""
     if info.distributed and dist.is_initialized():
-        dist.barrier()
+        if wait_for_peers:
+            dist.barrier()
         dist.destroy_process_group()
