@@ -105,5 +105,6 @@ def test_a_model_below_the_learning_floor_at_every_height_is_named_and_one_that_
     text = "\n".join(unlearned_lines(reps))
     assert "pointrcnn (AP@R40 small 0.012-0.049)" in text and "second" not in text and "pillarnet" not in text
     assert unlearned_lines([_ap_report("second", 0.5, 0.52)]) == []
+    assert unlearned_models([_ap_report("second", 0.5, None)]) == {}  # no AP at all: not evidence of anything
     assert unlearned_models(reps, threshold=0.6) == {"pillarnet": [0.02, 0.3], "pointrcnn": [0.035, 0.012, 0.049],
                                                      "second": [0.52, 0.55]}

@@ -294,9 +294,11 @@ def main(argv=None) -> int:
     else:
         ability_words = f"every frame of {data_words}"
     source_ability = f"*Preset `{args.preset}`; data: {ability_words}.*"
-    source_detect = (f"*Preset `{args.preset}`; trained on the train split and tested on the test split of "
-                     f"{data_words}: {test_frames} test frames" + (f" from {test_scenes} scenes" if test_scenes
-                                                                    else "") + ".*")
+    def detect_source(tested: str = "tested on the test split") -> str:
+        return (f"*Preset `{args.preset}`; trained on the train split and {tested} of {data_words}: "
+                f"{test_frames} test frames" + (f" from {test_scenes} scenes" if test_scenes else "") + ".*")
+
+    source_detect = detect_source()
     # training time per model from the runs' own summaries: true across resumed invocations
     train_s: dict[str, float] = {}
     for name in names:
@@ -322,8 +324,7 @@ def main(argv=None) -> int:
         atomic_write_json(out / "cross_height" / "cross_height.json", {"matrices": mats})
         for mat in mats:
             plot_cross_height(mat, out / "cross_height" / f"cross_height_{mat['metric']}_{mat['range']}.png")
-        cross_lines = ["## 3. Cross-height matrix", "", source_detect.replace("tested on the test split",
-                                                                               "tested on the test split at each height"),
+        cross_lines = ["## 3. Cross-height matrix", "", detect_source("tested on the test split at each height"),
                        "", *[ln for mat in mats for ln in cross_height_markdown(mat)]]
         atomic_write_text(out / "cross_height" / "cross_height.md", "\n".join(["# Cross-height matrix", "",
                                                                              *cross_lines[2:]]))

@@ -13,7 +13,7 @@ from typing import Sequence
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
 
-METRICS = ("ap_r40", "recall")
+METRICS = {"ap_r40": "AP@R40", "recall": "Recall"}  # report key -> the name printed
 
 
 def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_name: str = "small",
@@ -50,7 +50,7 @@ def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_n
 def cross_height_markdown(mat: dict) -> list[str]:
     """One table per model: rows trained at, columns tested at; the diagonal in bold."""
     hs = mat["heights"]
-    name = {"ap_r40": "AP@R40", "recall": "Recall"}[mat["metric"]]
+    name = METRICS[mat["metric"]]
     out = []
     for m in mat["models"]:
         out += [f"{name} of {m} ({mat['range']} range, {mat['level']} level); rows: trained at, columns: tested at "
@@ -77,7 +77,7 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
 
     hs, models = mat["heights"], mat["models"]
     fig = Figure(figsize=(3.2 * len(models) + 0.6, 3.2))
-    name = {"ap_r40": "AP@R40", "recall": "Recall"}[mat["metric"]]
+    name = METRICS[mat["metric"]]
     for k, m in enumerate(models):
         ax = fig.add_subplot(1, len(models), k + 1)
         grid = [[math.nan if v is None else v for v in row] for row in mat["values"][m]]

@@ -210,7 +210,8 @@ def unlearned_models(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP,
     aps: dict[str, list[tuple[float, float]]] = {}
     for rep in reports:
         ap = rep["results"][range_name][level].get("ap_r40")
-        aps.setdefault(str(rep.get("model")), []).append((float(rep["height"]), float(ap) if ap is not None else 0.0))
+        if ap is not None:  # no AP (no LiDAR-detected vehicle in the range) says nothing about learning
+            aps.setdefault(str(rep.get("model")), []).append((float(rep["height"]), float(ap)))
     return {m: [a for _, a in sorted(v)] for m, v in sorted(aps.items()) if v and all(a < threshold for _, a in v)}
 
 
