@@ -34,7 +34,7 @@ import torch  # noqa: E402
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
-from detbench.train.checkpoint import CheckpointError  # noqa: E402
+from detbench.train.checkpoint import CheckpointError, init_from_checkpoint  # noqa: E402
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text  # noqa: E402
@@ -60,6 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, repeatable, e.g. --set train.lr=0.002 --set model.voxel_size=[0.2,0.2,0.15]")
+    ap.add_argument("--init-from", default=None, metavar="CKPT",
+                    help="start from the weights of another run's checkpoint wherever layer names and shapes match "
+                         "(e.g. ct3d from a second checkpoint trained on the same data with the same preset: its "
+                         "proposal network starts trained); ignored with --resume once the run has a checkpoint")
     ap.add_argument("--no-eval", action="store_true", help="skip the per-epoch evaluation on the test split")
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return ap
@@ -123,14 +127,15 @@ def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
     return eval_fn
 
 
-def write_summary(out: Path, args, model_name: str, root: Path, result, seconds: float) -> None:
+def write_summary(out: Path, args, model_name: str, root: Path, result, seconds: float,
+                  init: dict | None = None) -> None:
     """OUT/train_summary.json and .md."""
     last = result.history[-1] if result.history else {}
     summary = {"model": model_name, "height": float(args.height), "preset": args.preset, "data": str(root),
                "epochs_completed": result.epochs_completed, "global_step": result.global_step,
                "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
                "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
-               "last_epoch": last}
+               "init_from": init, "last_epoch": last}
     atomic_write_json(out / "train_summary.json", summary)
     lines = [f"# Training summary: {model_name} at {args.height:g} m ({args.preset} preset)", "",
              "| item | value |", "| --- | --- |"]
@@ -162,13 +167,20 @@ def main(argv=None) -> int:
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
         model = models.build_model(model_name, model_cfg)
+        init = None
+        resuming = args.resume and any((out / "checkpoints").glob("*.pt"))
+        if args.init_from and not resuming:
+            init = init_from_checkpoint(model, args.init_from, model_cfg)
         ecfg = EvalConfig.from_dict(cfg["eval"])
         eval_fn = None if args.no_eval else make_eval_fn(eval_frames(root, args.height, ecfg), ecfg,
                                                          model_cfg["point_cloud_range"], info.device,
                                                          tcfg.batch_size)
-    except (FileNotFoundError, ValueError, KeyError, ConfigError) as e:
+    except (FileNotFoundError, ValueError, KeyError, ConfigError, CheckpointError) as e:
         raise UserError(str(e)) from None
 
+    if info.is_main and init:
+        print(f"initialised {init['loaded_tensors']} weight tensors from {init['path']} ({init['model']}); "
+              f"{init['new_tensors']} start from scratch")
     if info.is_main:
         print(f"{model_name} at {args.height:g} m: {len(train_set)} training frames from {root}; "
               f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters; device {info.device}; "
@@ -187,7 +199,7 @@ def main(argv=None) -> int:
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:
-        write_summary(out, args, model_name, root, result, seconds)
+        write_summary(out, args, model_name, root, result, seconds, init)
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
             print(f"interrupted: resume with the same command and --resume")

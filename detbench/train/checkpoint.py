@@ -36,7 +36,7 @@ from detbench.utils.io import atomic_save
 __all__ = [
     "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
     "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "check_finite_weights",
-    "config_diff",
+    "config_diff", "init_from_checkpoint",
 ]
 
 CKPT_FORMAT = "detbench-checkpoint"
@@ -217,6 +217,53 @@ def load_model_weights(model: nn.Module, ckpt: Mapping, path: str | os.PathLike 
         raise CheckpointError(f"{path}: weights do not fit this model ({str(e).splitlines()[0]} ...); the checkpoint "
                               f"was written by a model built with another config; build the model from the "
                               f"checkpoint's config (ckpt['config'])") from None
+
+
+def _common_model_config_diff(src: Mapping, dst: Mapping) -> list[str]:
+    """Model-config keys present in both (flattened, `name` excepted) whose values differ."""
+    a, b = _flatten(src), _flatten(dst)
+    return [f"{k}: {a[k]!r} (checkpoint) vs {b[k]!r} (now)" for k in sorted(set(a) & set(b))
+            if k != "name" and a[k] != b[k]]
+
+
+def init_from_checkpoint(model: nn.Module, path: str | os.PathLike, model_config: Mapping) -> dict:
+    """Start `model` from the weights of another run's checkpoint wherever name and shape match.
+
+    What OpenPCDet users do with `--pretrained_model`: e.g. a two-stage CT3D starts from a
+    SECOND trained on the same data (its proposal network is SECOND's every layer), and only
+    the refinement head starts from scratch. Refused with a CheckpointError naming the file
+    and the fix when no weight fits, when a shared weight has another shape, when the
+    weights are not finite, or when a model-config key both configs hold differs (a voxel
+    size or anchor size changes the meaning of every weight without changing its shape).
+
+    Returns a record for the run's summary: path, source model, loaded / new / unused counts.
+    """
+    path = Path(path)
+    ckpt = load_checkpoint(path)
+    check_finite_weights(ckpt["model"], path)
+    fix = ("train the source with the same model settings (preset and --set model.* options), or start this run "
+           "without --init-from")
+    bad_cfg = _common_model_config_diff((ckpt.get("config") or {}).get("model") or {}, model_config)
+    if bad_cfg:
+        shown = "; ".join(bad_cfg[:4]) + (f"; and {len(bad_cfg) - 4} more" if len(bad_cfg) > 4 else "")
+        raise CheckpointError(f"{path}: --init-from checkpoint was built with another model config ({shown}); {fix}")
+    core = unwrap_model(model)
+    own, src = core.state_dict(), ckpt["model"]
+    wrong_shape = [f"{k} {tuple(src[k].shape)} vs {tuple(v.shape)}" for k, v in own.items()
+                   if k in src and tuple(src[k].shape) != tuple(v.shape)]
+    if wrong_shape:
+        raise CheckpointError(f"{path}: --init-from weights of another shape ({'; '.join(wrong_shape[:3])}"
+                              f"{' ...' if len(wrong_shape) > 3 else ''}); {fix}")
+    loaded = [k for k in own if k in src]
+    if not loaded:
+        raise CheckpointError(f"{path}: no weight of this {ckpt['model_name']} checkpoint fits model "
+                              f"{getattr(core, 'name', type(core).__name__)}; --init-from needs a checkpoint whose "
+                              f"layers the model shares (e.g. a second checkpoint for ct3d)")
+    merged = dict(own)
+    merged.update({k: src[k] for k in loaded})
+    core.load_state_dict(merged)
+    return {"path": str(path), "model": ckpt["model_name"], "loaded_tensors": len(loaded),
+            "new_tensors": len(own) - len(loaded), "unused_tensors": len([k for k in src if k not in own])}
 
 
 def restore_training(ckpt: Mapping, *, model: nn.Module, optimizer: torch.optim.Optimizer | None = None,

@@ -1,0 +1,18 @@
+"""tools/train.py --init-from with a checkpoint that cannot start the model: refused before any training,
+naming the file and the fix, and nothing is written."""
+from faultkit import train_argv
+
+
+def test_missing_init_checkpoint_is_refused(tool, fault_data, tmp_path):
+    out = tmp_path / "run"
+    code, err = tool("train", *train_argv(fault_data, out, "--init-from", tmp_path / "nope.pt"))
+    assert code == 2 and f"{tmp_path / 'nope.pt'}: checkpoint not found" in err, err
+    assert not out.exists()
+
+
+def test_init_checkpoint_of_an_unrelated_model_is_refused(tool, fault_data, trained_run, tmp_path):
+    ckpt = trained_run / "checkpoints" / "epoch_002.pt"
+    out = tmp_path / "run"
+    code, err = tool("train", *train_argv(fault_data, out, "--model", "pointrcnn", "--init-from", ckpt))
+    assert code == 2 and str(ckpt) in err and "fits model pointrcnn" in err, err
+    assert not out.exists()
