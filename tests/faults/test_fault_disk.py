@@ -29,13 +29,15 @@ def test_disk_full_during_training(trained_run, fault_data, tmp_path):
 
 
 def test_disk_full_while_simulating(tmp_path):
+    """The dataset is built beside OUT (`.tmp-new-sim-PID`): the error names the file in it that could not be
+    written, the half-built folder is removed and OUT is never created."""
     out = tmp_path / "sim"
     proc = run_python(["tools/simulate.py", "--out", str(out), "--frames", "2", "--heights", "1.8",
                        "--no-progress"], preexec_fn=_limited)
     assert proc.returncode == 2, proc.stderr[-3000:]
-    assert f"error: {out / 'points' / '1.8'}" in proc.stderr and "File too large" in proc.stderr
-    assert "left unfinished (it has no dataset.json" in proc.stderr
-    assert not [p for p in out.rglob(".tmp-*")] and not (out / "dataset.json").exists()
+    assert f"error: {tmp_path / '.tmp-new-sim-'}" in proc.stderr and "/points/1.8/0000_000.npy" in proc.stderr
+    assert "File too large" in proc.stderr and f"{out} is unchanged" in proc.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
 def test_abandoned_and_failed_default_dataset_builds_are_removed(tmp_path, monkeypatch):
