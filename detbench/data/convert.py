@@ -30,6 +30,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shutil
 import sys
@@ -78,6 +79,18 @@ def _pairs(items, what: str) -> dict[str, str]:
             out[height_key(float(k))] = v
         except ValueError:
             raise ValueError(f"--{what} {it!r}: {k!r} is not a mounting height in metres (e.g. 1.8)") from None
+    return out
+
+
+def _pitches(items) -> dict[str, float]:
+    out = {}
+    for k, v in _pairs(items, "pitch").items():
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise ValueError(f"--pitch {k}={v}: {v!r} is not a pitch in degrees (e.g. 1.8=2.5)") from None
+        if not math.isfinite(out[k]) or abs(out[k]) >= 90:
+            raise ValueError(f"--pitch {k}={v}: a pitch is degrees in (-90, 90), positive = down")
     return out
 
 
@@ -185,6 +198,16 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         raise ValueError(f"points_frame must be one of {', '.join(POINTS_FRAME_CHOICES)}, got {points_frame!r}")
     if labels_frame not in LABELS_FRAME_CHOICES:
         raise ValueError(f"labels_frame must be one of {', '.join(LABELS_FRAME_CHOICES)}, got {labels_frame!r}")
+    if isinstance(frames_per_scene, bool) or not isinstance(frames_per_scene, (int, np.integer)) \
+            or frames_per_scene < 1:
+        raise ValueError(f"--frames-per-scene {frames_per_scene}: must be an integer >= 1 (consecutive frame ids "
+                         f"forming one scene; Height3: 200)")
+    if not 0.0 <= float(test_fraction) < 1.0:
+        raise ValueError(f"--test-fraction {test_fraction}: must be in [0, 1) (the share of scenes in test)")
+    if lane_width is not None and not (math.isfinite(float(lane_width)) and float(lane_width) > 0):
+        raise ValueError(f"--lane-width {lane_width}: must be a positive number of metres (default 3.5)")
+    if not (math.isfinite(float(label_tolerance)) and float(label_tolerance) >= 0):
+        raise ValueError(f"--label-tolerance {label_tolerance}: must be a number of metres >= 0 (default 0.05)")
     cmap = class_map if isinstance(class_map, ClassMap) else parse_class_map(class_map, DEFAULT_IMPORT_CLASS_MAP)
     out = Path(out)
     pitch_deg = {height_key(float(k)): float(v) for k, v in (pitch_deg or {}).items()}
@@ -410,7 +433,7 @@ def main(argv=None) -> int:
     try:
         info = convert_openpcdet_custom(
             _pairs(args.src, "src"), args.out,
-            pitch_deg={k: float(v) for k, v in _pairs(args.pitch, "pitch").items()},
+            pitch_deg=_pitches(args.pitch),
             points_frame=args.points_frame, labels_frame=args.labels_frame, class_map=args.class_map,
             frames_per_scene=args.frames_per_scene, test_fraction=args.test_fraction, keep_split=not args.resplit,
             lane_width=args.lane_width, label_tolerance=args.label_tolerance, frame_checks=not args.no_frame_check,
