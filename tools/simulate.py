@@ -148,8 +148,9 @@ def main(argv=None) -> int:
     except (FileExistsError, ValueError, TypeError) as e:
         raise UserError(str(e)) from None
     except DiskFullError as e:
-        raise UserError(f"{e}; {out} is unchanged (the dataset was being built beside it, and that is removed); "
-                        f"free space, then run the same command again") from None
+        raise UserError(f"{e.path}: could not be written: {e.reason}; the new dataset was being built there, "
+                        f"beside {out}, and that folder is removed, so {out} is unchanged; free some space in "
+                        f"{out.parent} (or raise the limit), then run the same command again") from None
     seconds = time.perf_counter() - t0
     print(f"wrote {frames} frames x {len(lidars)} heights to {out} in {seconds:.1f} s "
           f"(summary: {out / 'simulate_run.md'})")

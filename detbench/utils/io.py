@@ -33,7 +33,12 @@ _LOW_SPACE = 1 << 20  # bytes: a write that fails with less free than this faile
 
 
 class DiskFullError(OSError):
-    """A write failed because the disk, the quota or the file-size limit is full; names the file."""
+    """A write failed because the disk, the quota or the file-size limit is full; names the file.
+
+    Attributes `path` (the file) and `reason` (e.g. "No space left on device") when raised by `atomic_path`."""
+
+    path: Path | None = None
+    reason: str = ""
 
 
 def _full_reason(exc: BaseException, tmp: Path) -> str | None:
@@ -68,6 +73,7 @@ def _disk_full(exc: BaseException, path: Path, tmp: Path) -> DiskFullError | Non
                         f"some space (or raise the limit) and run the same command again; any previous version "
                         f"of the file is unchanged")
     err.errno = errno.ENOSPC
+    err.path, err.reason = path, reason  # for a caller that words its own message
     return err
 
 
