@@ -28,6 +28,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before numba starts)
+from detbench.utils.cli import check_out_dir, require, run_main  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -103,9 +104,12 @@ def synthetic_frames(num_frames: int, gt_per_frame: float, preds_per_frame: int,
 def main(argv: list[str] | None = None) -> int:
     """Build the load, time `evaluate`, print and (with --out) write JSON and Markdown."""
     args = build_parser().parse_args(argv)
-    if args.frames < 1 or args.repeats < 1 or args.threads < 1:
-        print("tools/bench_eval.py: error: --frames, --repeats and --threads must be >= 1", file=sys.stderr)
-        return 2
+    for flag, v in (("--frames", args.frames), ("--repeats", args.repeats), ("--threads", args.threads)):
+        require(v >= 1, f"{flag} {v}: must be an integer >= 1")
+    require(args.gt_per_frame >= 0, f"--gt-per-frame {args.gt_per_frame}: must be >= 0 (mean vehicles per frame)")
+    require(args.preds_per_frame >= 0, f"--preds-per-frame {args.preds_per_frame}: must be >= 0")
+    if args.out is not None:
+        check_out_dir(args.out)
     os.environ["NUMBA_NUM_THREADS"] = str(args.threads)
     import numba
 
@@ -192,4 +196,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

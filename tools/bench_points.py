@@ -36,6 +36,7 @@ from detbench.ops.points import (ball_query, farthest_point_sample, group_neighb
                                  roi_point_pool, three_nn_interpolate)
 from detbench.sim.scans import load_scans  # noqa: E402
 from detbench.utils.bench import timed  # noqa: E402
+from detbench.utils.cli import check_out_dir, require, run_main, torch_device  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 # PointRCNN (OpenPCDet pointrcnn.yaml, PointNet2MSG backbone)
@@ -81,11 +82,16 @@ def car_rois(rng: np.random.Generator, n: int) -> np.ndarray:
 def main(argv=None) -> int:
     ap = build_parser()
     args = ap.parse_args(argv)
-    if min(args.frames, args.points, args.samples, args.repeats, args.threads, args.channels) < 1 or args.rois < 0:
-        ap.error("--frames, --points, --samples, --channels, --repeats and --threads must be >= 1, --rois >= 0")
+    for flag in ("frames", "points", "samples", "channels", "repeats", "threads"):
+        v = getattr(args, flag)
+        require(v >= 1, f"--{flag} {v}: must be an integer >= 1")
+    require(args.rois >= 0, f"--rois {args.rois}: must be an integer >= 0")
+    require(args.samples <= args.points, f"--samples {args.samples}: more than the {args.points} points per scan "
+                                         f"(--points); sample at most as many")
+    check_out_dir(args.out)
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
+    device = torch_device(args.device)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     rng = np.random.default_rng(args.seed)
     scans, source = load_scans(args.frames, args.seed, args.source)
@@ -197,4 +203,4 @@ def markdown(r: dict) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_main(main))

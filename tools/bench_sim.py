@@ -32,6 +32,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 from detbench import runtime  # noqa: E402  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.config import ConfigError  # noqa: E402
 from detbench.utils.bench import idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
+from detbench.utils.cli import UserError, check_out_dir, require, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 STAGES = [
@@ -117,8 +118,11 @@ def _pib_time(sim_factory, lidars, frames, fps):
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    if args.frames < 1 or args.load < 0:
-        raise SystemExit("--frames must be >= 1 and --load >= 0")
+    require(args.frames >= 1, f"--frames {args.frames}: must be an integer >= 1")
+    require(args.load >= 0, f"--load {args.load}: must be an integer >= 0 (busy processes beside the second run)")
+    require(args.frames_per_scene is None or args.frames_per_scene >= 1,
+            f"--frames-per-scene {args.frames_per_scene}: must be an integer >= 1")
+    check_out_dir(args.out)
     t_import = time.perf_counter()
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
     import numba
@@ -127,7 +131,7 @@ def main(argv=None) -> int:
         cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
         lidars = [lidar_preset(h) for h in args.heights]
     except (ConfigError, ValueError) as e:
-        raise SystemExit(f"error: {e}") from None
+        raise UserError(str(e)) from None
     fps = args.frames_per_scene or int(cfg["scene"]["frames_per_scene"])
 
     def factory():
@@ -200,4 +204,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

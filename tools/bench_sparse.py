@@ -44,6 +44,7 @@ from detbench.sparse import (SparseConv3d, SparseConvTensor, SubMConv3d, build_c
 from detbench.sparse.bench import backbone, implicit_gemm  # noqa: E402
 from detbench import runtime  # noqa: E402
 from detbench.utils.bench import gflops, idle_and_loaded, load_line, ratio, runtime_line, timed  # noqa: E402
+from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 
@@ -76,16 +77,23 @@ def main(argv=None) -> int:
     ap.add_argument("--dense-max-gb", type=float, default=2.0,
                     help="skip the dense comparison when its input + output tensors exceed this many GB")
     args = ap.parse_args(argv)
-    if args.scans < 1 or args.repeats < 1 or (args.threads is not None and args.threads < 1) or args.load < 0:
-        ap.error("--scans, --repeats and --threads must be >= 1, --load >= 0")
+    for flag in ("scans", "repeats", "threads", "max_points"):
+        v = getattr(args, flag)
+        require(v is None or v >= 1, f"--{flag.replace('_', '-')} {v}: must be an integer >= 1")
+    require(args.load >= 0, f"--load {args.load}: must be an integer >= 0 (busy processes beside the second run)")
+    require(args.dense_crop_x > 0 and args.dense_max_gb > 0, "--dense-crop-x and --dense-max-gb must be > 0")
+    check_out_dir(args.out)
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
+    device = torch_device(args.device)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     torch.manual_seed(args.seed)
 
+    try:
+        grid_xyz = voxel_grid_size(args.voxel_size, args.range)
+    except ValueError as e:
+        raise UserError(f"--voxel-size / --range: {e}") from None
     scans, source = load_scans(args.scans, args.seed, args.source)
-    grid_xyz = voxel_grid_size(args.voxel_size, args.range)
     # OpenPCDet adds one z layer so that the strided z sizes divide evenly: (Z + 1, Y, X).
     spatial = [grid_xyz[2] + 1, grid_xyz[1], grid_xyz[0]]
     results: dict = {
@@ -343,4 +351,4 @@ def markdown(r: dict) -> str:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_main(main))

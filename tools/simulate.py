@@ -30,7 +30,7 @@ import numpy as np  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text, recover_staged  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="probability in [0, 1] that a return is dropped, for every LiDAR (default 0)")
     ap.add_argument("--test-fraction", type=float, default=1 / 3,
                     help="share of scenes in the test split (default 1/3)")
-    ap.add_argument("--overwrite", action="store_true", help="replace a dataset already in --out")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace a dataset already in --out (the new one is built beside it and swapped in when "
+                         "complete, so an interrupted run leaves the old one; --out must hold only a dataset's files)")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap
 
@@ -111,38 +113,45 @@ def main(argv=None) -> int:
             n_points[i] += f.points.shape[0]
             n_detected[i] += int((f.hit_counts >= 1).sum())
 
+    def write_report(folder: Path) -> None:
+        """The summary, written into the finished dataset before it replaces OUT."""
+        seconds = time.perf_counter() - t0
+        scenes = math.ceil(frames / fps)
+        report = {
+            "out": str(out), "frames": frames, "scenes": scenes, "frames_per_scene": fps, "seed": args.seed,
+            "preset": args.preset, "overrides": list(args.overrides), "seconds": round(seconds, 2),
+            "frames_per_second": round(frames / max(seconds, 1e-9), 2),
+            "boxes_per_frame": round(n_boxes / max(frames, 1), 3),
+            "heights": {height_key(l.height): {
+                "lidar": l.to_dict(),
+                "points_per_frame": round(float(n_points[i]) / max(frames, 1), 1),
+                "hit_boxes_per_frame": round(float(n_detected[i]) / max(frames, 1), 3),
+            } for i, l in enumerate(lidars)},
+        }
+        atomic_write_json(folder / "simulate_run.json", report)
+        lines = [f"# Simulated dataset: {out}", "",
+                 f"{frames} frames in {scenes} scene(s) of {fps}, seed {args.seed}, preset `{args.preset}`"
+                 + (f", overrides {', '.join(args.overrides)}" if args.overrides else "") + ".",
+                 f"Wall time {seconds:.1f} s ({report['frames_per_second']} frames/s, all heights), "
+                 f"{report['boxes_per_frame']} vehicle boxes per frame.", "",
+                 "| height (m) | LiDAR | points per frame | boxes with >= 1 point per frame |", "|---|---|---|---|"]
+        for hk, h in report["heights"].items():
+            lines.append(f"| {hk} | {h['lidar']['name']} | {h['points_per_frame']} | {h['hit_boxes_per_frame']} |")
+        atomic_write_text(folder / "simulate_run.md", "\n".join(lines) + "\n")
+
+    for note in recover_staged(out):
+        print(f"note: {note}", file=sys.stderr)
     try:
         write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
                          test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,
-                         on_step=tally)
+                         on_step=tally, finish=write_report)
     except (FileExistsError, ValueError, TypeError) as e:
         raise UserError(str(e)) from None
     except DiskFullError as e:
-        raise UserError(f"{e}; {out} is left unfinished (it has no dataset.json, so no command will read it); "
-                        f"free space, then run the same command again") from None
+        raise UserError(f"{e.path}: could not be written: {e.reason}; the new dataset was being built there, "
+                        f"beside {out}, and that folder is removed, so {out} is unchanged; free some space in "
+                        f"{out.parent} (or raise the limit), then run the same command again") from None
     seconds = time.perf_counter() - t0
-    scenes = math.ceil(frames / fps)
-    report = {
-        "out": str(out), "frames": frames, "scenes": scenes, "frames_per_scene": fps, "seed": args.seed,
-        "preset": args.preset, "overrides": list(args.overrides), "seconds": round(seconds, 2),
-        "frames_per_second": round(frames / max(seconds, 1e-9), 2),
-        "boxes_per_frame": round(n_boxes / max(frames, 1), 3),
-        "heights": {height_key(l.height): {
-            "lidar": l.to_dict(),
-            "points_per_frame": round(float(n_points[i]) / max(frames, 1), 1),
-            "hit_boxes_per_frame": round(float(n_detected[i]) / max(frames, 1), 3),
-        } for i, l in enumerate(lidars)},
-    }
-    atomic_write_json(out / "simulate_run.json", report)
-    lines = [f"# Simulated dataset: {out}", "",
-             f"{frames} frames in {scenes} scene(s) of {fps}, seed {args.seed}, preset `{args.preset}`"
-             + (f", overrides {', '.join(args.overrides)}" if args.overrides else "") + ".",
-             f"Wall time {seconds:.1f} s ({report['frames_per_second']} frames/s, all heights), "
-             f"{report['boxes_per_frame']} vehicle boxes per frame.", "",
-             "| height (m) | LiDAR | points per frame | boxes with >= 1 point per frame |", "|---|---|---|---|"]
-    for hk, h in report["heights"].items():
-        lines.append(f"| {hk} | {h['lidar']['name']} | {h['points_per_frame']} | {h['hit_boxes_per_frame']} |")
-    atomic_write_text(out / "simulate_run.md", "\n".join(lines) + "\n")
     print(f"wrote {frames} frames x {len(lidars)} heights to {out} in {seconds:.1f} s "
           f"(summary: {out / 'simulate_run.md'})")
     return 0

@@ -94,6 +94,16 @@ def run_config_from_args(args) -> dict:
     return cfg
 
 
+def check_training_frames(frames) -> None:
+    """Read every training frame once now (about 1 ms a frame), so a bad file stops the run before it trains
+    instead of when the data loader reaches it mid-epoch."""
+    from detbench.data.validate import check_frames
+
+    check_frames(frames, fix=f"a training frame cannot be read: fix or re-create the file (python tools/validate.py "
+                             f"{frames.root} lists every problem), or remove its id from "
+                             f"{frames.root / 'ImageSets' / 'train.txt'}")
+
+
 def eval_frames(root: Path, height: float, ecfg):
     """The frames evaluated after each epoch, each read once now, so a bad file stops the run before it trains."""
     from detbench.data import Height3Dataset
@@ -164,6 +174,8 @@ def main(argv=None) -> int:
             train_set = TrainingSet.from_dataset(root, args.height, cfg["model"]["point_cloud_range"],
                                                  augment=AugmentConfig.from_dict(cfg["augment"]), seed=tcfg.seed,
                                                  progress=info.is_main and not args.no_progress)
+        if train_set.sampler is None:  # with ground-truth sampling on, building its database read every frame
+            check_training_frames(train_set.frames)
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
         model = models.build_model(model_name, model_cfg)

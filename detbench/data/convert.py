@@ -30,6 +30,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shutil
 import sys
@@ -41,7 +42,7 @@ from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.data.layout import (
     FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule, assign_splits,
-    check_frame_id, imageset_path, label_path, points_path,
+    check_frame_id, check_replaceable, imageset_path, label_path, points_path,
 )
 from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
     DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame,
@@ -49,7 +50,7 @@ from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exporte
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.io import atomic_write_json, atomic_write_text, recover_staged, staged_folder
 
 POINTS_FRAME_CHOICES = ("auto", "sensor", "ground")
 LABELS_FRAME_CHOICES = ("points", "sensor", "ground")
@@ -78,6 +79,18 @@ def _pairs(items, what: str) -> dict[str, str]:
             out[height_key(float(k))] = v
         except ValueError:
             raise ValueError(f"--{what} {it!r}: {k!r} is not a mounting height in metres (e.g. 1.8)") from None
+    return out
+
+
+def _pitches(items) -> dict[str, float]:
+    out = {}
+    for k, v in _pairs(items, "pitch").items():
+        try:
+            out[k] = float(v)
+        except ValueError:
+            raise ValueError(f"--pitch {k}={v}: {v!r} is not a pitch in degrees (e.g. 1.8=2.5)") from None
+        if not math.isfinite(out[k]) or abs(out[k]) >= 90:
+            raise ValueError(f"--pitch {k}={v}: a pitch is degrees in (-90, 90), positive = down")
     return out
 
 
@@ -185,13 +198,25 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         raise ValueError(f"points_frame must be one of {', '.join(POINTS_FRAME_CHOICES)}, got {points_frame!r}")
     if labels_frame not in LABELS_FRAME_CHOICES:
         raise ValueError(f"labels_frame must be one of {', '.join(LABELS_FRAME_CHOICES)}, got {labels_frame!r}")
+    if isinstance(frames_per_scene, bool) or not isinstance(frames_per_scene, (int, np.integer)) \
+            or frames_per_scene < 1:
+        raise ValueError(f"--frames-per-scene {frames_per_scene}: must be an integer >= 1 (consecutive frame ids "
+                         f"forming one scene; Height3: 200)")
+    if not 0.0 <= float(test_fraction) < 1.0:
+        raise ValueError(f"--test-fraction {test_fraction}: must be in [0, 1) (the share of scenes in test)")
+    if lane_width is not None and not (math.isfinite(float(lane_width)) and float(lane_width) > 0):
+        raise ValueError(f"--lane-width {lane_width}: must be a positive number of metres (default 3.5)")
+    if not (math.isfinite(float(label_tolerance)) and float(label_tolerance) >= 0):
+        raise ValueError(f"--label-tolerance {label_tolerance}: must be a number of metres >= 0 (default 0.05)")
     cmap = class_map if isinstance(class_map, ClassMap) else parse_class_map(class_map, DEFAULT_IMPORT_CLASS_MAP)
     out = Path(out)
-    if (out / INFO_FILE).exists() and not overwrite:
-        raise FileExistsError(f"{out / INFO_FILE}: a dataset already exists here; choose another --out or "
-                              f"pass --overwrite")
     pitch_deg = {height_key(float(k)): float(v) for k, v in (pitch_deg or {}).items()}
     srcs = {height_key(float(k)): Path(v) for k, v in sources.items()}
+    for k, src in srcs.items():  # a replaced --out is removed whole: it must not hold a source
+        if out.exists() and src.exists() and (out.resolve() == src.resolve() or out.resolve() in src.resolve().parents):
+            raise ValueError(f"--out {out} holds the source folder {src} (--src {k}=...); choose another --out")
+    recover_staged(out)
+    check_replaceable(out, overwrite)
     unknown = sorted(set(pitch_deg) - set(srcs))
     if unknown:
         raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")
@@ -244,78 +269,81 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
                                                               frame_checks))
         frames[k], lframes[k] = rec, lf
 
-    iterator = ids
-    if progress:
-        from tqdm import tqdm
+    # ---- the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
+    # or is killed leaves `out` as it was (see detbench.utils.io.staged_folder)
+    with staged_folder(out) as staged:
+        iterator = ids
+        if progress:
+            from tqdm import tqdm
 
-        iterator = tqdm(ids, desc="convert", unit="frame")
-    classes: list[str] = []
-    class_counts: dict = {}
-    road_z: dict[str, float] = {}
-    for k in srcs:
-        (out / "points" / k).mkdir(parents=True, exist_ok=True)
-    (out / "labels").mkdir(parents=True, exist_ok=True)
-    for fid in iterator:
-        ground = {}
-        for k, src in srcs.items():
-            boxes, names = read_labels(src / "labels" / f"{fid}.txt")
-            if k == ref_key:
-                count_classes(names.tolist(), cmap, class_counts)
-            keep, new_names = cmap.apply(names.tolist())
-            boxes, names = boxes[keep], np.asarray(new_names, dtype=str).reshape(-1)
-            if lframes[k] == "sensor":
-                boxes = boxes_sensor_to_ground(boxes, float(k), sensors[k].pitch_deg)
-            ground[k] = (boxes, names)
-        rb, rn = ground[ref_key]
-        for k, (b, n) in ground.items():
-            if k == ref_key:
-                continue
-            if len(b) != len(rb) or (len(b) and (np.abs(b[:, :6] - rb[:, :6]).max() > label_tolerance
-                                                 or not np.array_equal(n, rn))):
-                raise DatasetError(
-                    f"labels at {k} m do not match those at {ref_key} m after moving both to the ground frame "
-                    f"(tolerance {label_tolerance} m); check --pitch/--labels-frame, or that both folders hold the "
-                    f"same frames", path=srcs[k] / "labels" / f"{fid}.txt")
-        for n in rn.tolist():
-            if n not in classes:
-                classes.append(n)
-        atomic_write_text(label_path(out, fid), format_labels(rb, rn))
-        for k, src in srcs.items():
-            sp = src / "points" / f"{fid}{exts[k]}"
-            pts = read_points(sp)  # validates before copying
-            dst = points_path(out, k, fid, exts[k])
-            if k not in road_z:
-                g = pts if frames[k]["frame"] == "ground" else sensor_to_ground(pts, float(k), sensors[k].pitch_deg)
-                road_z[k] = road_surface_z(g)
-            dst.unlink(missing_ok=True)
-            if link:
-                os.link(sp, dst)
-            else:
-                shutil.copyfile(sp, dst)
+            iterator = tqdm(ids, desc="convert", unit="frame")
+        classes: list[str] = []
+        class_counts: dict = {}
+        road_z: dict[str, float] = {}
+        for k in srcs:
+            (staged / "points" / k).mkdir(parents=True, exist_ok=True)
+        (staged / "labels").mkdir(parents=True, exist_ok=True)
+        for fid in iterator:
+            ground = {}
+            for k, src in srcs.items():
+                boxes, names = read_labels(src / "labels" / f"{fid}.txt")
+                if k == ref_key:
+                    count_classes(names.tolist(), cmap, class_counts)
+                keep, new_names = cmap.apply(names.tolist())
+                boxes, names = boxes[keep], np.asarray(new_names, dtype=str).reshape(-1)
+                if lframes[k] == "sensor":
+                    boxes = boxes_sensor_to_ground(boxes, float(k), sensors[k].pitch_deg)
+                ground[k] = (boxes, names)
+            rb, rn = ground[ref_key]
+            for k, (b, n) in ground.items():
+                if k == ref_key:
+                    continue
+                if len(b) != len(rb) or (len(b) and (np.abs(b[:, :6] - rb[:, :6]).max() > label_tolerance
+                                                     or not np.array_equal(n, rn))):
+                    raise DatasetError(
+                        f"labels at {k} m do not match those at {ref_key} m after moving both to the ground frame "
+                        f"(tolerance {label_tolerance} m); check --pitch/--labels-frame, or that both folders hold the "
+                        f"same frames", path=srcs[k] / "labels" / f"{fid}.txt")
+            for n in rn.tolist():
+                if n not in classes:
+                    classes.append(n)
+            atomic_write_text(label_path(staged, fid), format_labels(rb, rn))
+            for k, src in srcs.items():
+                sp = src / "points" / f"{fid}{exts[k]}"
+                pts = read_points(sp)  # validates before copying
+                dst = points_path(staged, k, fid, exts[k])
+                if k not in road_z:
+                    g = pts if frames[k]["frame"] == "ground" else sensor_to_ground(pts, float(k), sensors[k].pitch_deg)
+                    road_z[k] = road_surface_z(g)
+                dst.unlink(missing_ok=True)
+                if link:
+                    os.link(sp, dst)
+                else:
+                    shutil.copyfile(sp, dst)
 
-    rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
-    scene_of = rule.scenes(ids)
-    if kept is not None:
-        split = {"rule": "kept", "source": str(ref_src / "ImageSets"), "files": split_files,
-                 "num_train": len(train), "num_test": len(test)}
-    else:
-        train, test, split = assign_splits(ids, scene_of, test_fraction)
-        split = dict(split, num_train=len(train), num_test=len(test))
-    atomic_write_text(imageset_path(out, "train"), "".join(f + "\n" for f in train))
-    atomic_write_text(imageset_path(out, "test"), "".join(f + "\n" for f in test))
-    heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame=frames[k]["frame"], points_ext=exts[k])
-               for k in srcs}
-    info = DatasetInfo(heights=heights, classes=classes or ["car"], split=split, has_meta=False,
-                       lane_width=DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width),
-                       scene_rule=rule, num_frames=len(ids), format=FORMAT_NAME, version=FORMAT_VERSION,
-                       source={"kind": "external", "converted_from": {k: str(v) for k, v in srcs.items()},
-                               "format": "openpcdet-custom", "frames": frames,
-                               "labels_frame": {k: lframes[k] for k in srcs}, "class_map": cmap.spec,
-                               "class_counts": class_counts, "road_surface_z_m": road_z, "notes": notes})
-    atomic_write_json(out / "convert_report.json", {"out": str(out), "num_frames": info.num_frames,
-                                                    "split": info.split, **info.source})
-    atomic_write_text(out / "convert_report.md", convert_report_markdown(info, out))
-    atomic_write_json(out / INFO_FILE, info.to_dict())  # last: marks a finished dataset
+        rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
+        scene_of = rule.scenes(ids)
+        if kept is not None:
+            split = {"rule": "kept", "source": str(ref_src / "ImageSets"), "files": split_files,
+                     "num_train": len(train), "num_test": len(test)}
+        else:
+            train, test, split = assign_splits(ids, scene_of, test_fraction)
+            split = dict(split, num_train=len(train), num_test=len(test))
+        atomic_write_text(imageset_path(staged, "train"), "".join(f + "\n" for f in train))
+        atomic_write_text(imageset_path(staged, "test"), "".join(f + "\n" for f in test))
+        heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame=frames[k]["frame"], points_ext=exts[k])
+                   for k in srcs}
+        info = DatasetInfo(heights=heights, classes=classes or ["car"], split=split, has_meta=False,
+                           lane_width=DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width),
+                           scene_rule=rule, num_frames=len(ids), format=FORMAT_NAME, version=FORMAT_VERSION,
+                           source={"kind": "external", "converted_from": {k: str(v) for k, v in srcs.items()},
+                                   "format": "openpcdet-custom", "frames": frames,
+                                   "labels_frame": {k: lframes[k] for k in srcs}, "class_map": cmap.spec,
+                                   "class_counts": class_counts, "road_surface_z_m": road_z, "notes": notes})
+        atomic_write_json(staged / "convert_report.json", {"out": str(out), "num_frames": info.num_frames,
+                                                        "split": info.split, **info.source})
+        atomic_write_text(staged / "convert_report.md", convert_report_markdown(info, out))
+        atomic_write_json(staged / INFO_FILE, info.to_dict())  # last: marks a finished dataset
     return info
 
 
@@ -389,7 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-frame-check", action="store_true",
                     help="convert even when the road or the boxes' bottoms contradict --points-frame/--labels-frame")
     ap.add_argument("--link", action="store_true", help="hard-link point files instead of copying them")
-    ap.add_argument("--overwrite", action="store_true", help="write into a folder that already holds a dataset")
+    ap.add_argument("--overwrite", action="store_true",
+                    help="replace a dataset already in --out (the new one is built beside it and swapped in when "
+                         "complete, so a failed or interrupted run leaves the old one)")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap
 
@@ -403,7 +433,7 @@ def main(argv=None) -> int:
     try:
         info = convert_openpcdet_custom(
             _pairs(args.src, "src"), args.out,
-            pitch_deg={k: float(v) for k, v in _pairs(args.pitch, "pitch").items()},
+            pitch_deg=_pitches(args.pitch),
             points_frame=args.points_frame, labels_frame=args.labels_frame, class_map=args.class_map,
             frames_per_scene=args.frames_per_scene, test_fraction=args.test_fraction, keep_split=not args.resplit,
             lane_width=args.lane_width, label_tolerance=args.label_tolerance, frame_checks=not args.no_frame_check,

@@ -366,3 +366,35 @@ def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction:
                                                "scenes evenly spread (positions floor((i+1)*S/n_test)-1) go to test",
             "test_fraction": test_fraction, "train_scenes": train_sc, "test_scenes": test_sc}
     return train, test, rule
+
+
+# what a dataset folder may hold: the layout, the side files written into it by detbench (the ground-truth
+# database, the simulator's and the converter's reports) and temporary files of atomic writes
+DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "gt_database", "simulate_run.json",
+                   "simulate_run.md", "convert_report.json", "convert_report.md")
+
+
+def check_replaceable(root: str | os.PathLike, overwrite: bool, flag: str = "--overwrite") -> None:
+    """Refuse (FileExistsError) to write a dataset over `root` unless it is new or empty, or `overwrite`
+    is set and it holds only a dataset's files (a replacement removes the whole folder)."""
+    root = Path(root)
+    if not root.exists():
+        return
+    if not root.is_dir():
+        raise FileExistsError(f"{root}: exists and is not a folder; choose another output folder")
+    entries = sorted(p.name for p in root.iterdir() if not p.name.startswith(".tmp-"))
+    if not entries:
+        return
+    if not overwrite:
+        if INFO_FILE in entries:
+            raise FileExistsError(f"{root / INFO_FILE}: a dataset already exists here; choose another output "
+                                  f"folder or pass {flag} to replace it")
+        raise FileExistsError(f"{root}: the folder is not empty and holds no dataset.json ({', '.join(entries[:5])}"
+                              f"{', ...' if len(entries) > 5 else ''}); choose an empty or new output folder, or "
+                              f"pass {flag} to replace it (an unfinished dataset)")
+    foreign = [e for e in entries if e not in DATASET_ENTRIES]
+    if foreign:
+        raise FileExistsError(f"{root}: holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, "
+                              f"which {'is' if len(foreign) == 1 else 'are'} not part of a dataset; {flag} replaces "
+                              f"the whole folder, so move {'it' if len(foreign) == 1 else 'them'} elsewhere first "
+                              f"or choose another output folder")

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -45,7 +44,7 @@ from detbench.data.errors import DatasetError
 from detbench.data.layout import IMAGESETS_DIR, LABELS_DIR, POINTS_DIR, POINTS_FRAMES
 from detbench.data.readers import format_labels
 from detbench.data.transforms import boxes_ground_to_sensor, ground_to_sensor, sensor_to_ground
-from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text
+from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text, recover_staged, staged_folder
 
 # OpenPCDet's split files: DATA_SPLIT {'train': train, 'test': val} in its custom_dataset.yaml
 OPENPCDET_SPLITS = {"train": "train", "test": "val"}  # detbench split -> OpenPCDet ImageSets name
@@ -236,17 +235,21 @@ def label_bottom_z(boxes: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- export
 
-def _prepare_export_dir(out: Path, overwrite: bool) -> list[str]:
-    """Make `out` ready for an export; returns what was removed. Refuses a folder with foreign content."""
-    removed: list[str] = []
+def _check_export_dir(out: Path, overwrite: bool) -> list[str]:
+    """Refuse an `out` that an export may not replace (DatasetError); returns what a replacement removes.
+
+    `out` may be new, empty, or (with `overwrite`) an earlier export holding only the export's files
+    and what OpenPCDet's info generation adds; the export is built beside it and swapped in whole."""
     if not out.exists():
-        out.mkdir(parents=True)
-        return removed
+        return []
     if not out.is_dir():
         raise DatasetError("exists and is not a folder; choose another --out", path=out)
-    entries = [p for p in out.iterdir() if not p.name.startswith(".")]
-    if not entries:
-        return removed
+    entries = sorted(p.name for p in out.iterdir() if not p.name.startswith(".tmp-"))
+    if not [e for e in entries if not e.startswith(".")]:
+        if entries:
+            raise DatasetError(f"holds only hidden entries ({', '.join(entries[:5])}); choose an empty or new --out",
+                               path=out)
+        return []
     if not (out / EXPORT_MANIFEST).is_file():
         raise DatasetError(f"the folder is not empty and holds no earlier export ({EXPORT_MANIFEST}); choose an "
                            f"empty or new --out", path=out)
@@ -254,15 +257,15 @@ def _prepare_export_dir(out: Path, overwrite: bool) -> list[str]:
         raise DatasetError("an earlier export is here; pass --overwrite to replace it (its OpenPCDet infos and "
                            "gt_database are removed too, as they describe the old files) or choose another --out",
                            path=out)
-    for name in (POINTS_DIR, LABELS_DIR, IMAGESETS_DIR) + _OPENPCDET_GENERATED:
-        p = out / name
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-            removed.append(str(p))
-        elif p.exists() or p.is_symlink():
-            p.unlink()
-            removed.append(str(p))
-    return removed
+    ours = (POINTS_DIR, LABELS_DIR, IMAGESETS_DIR, EXPORT_MANIFEST, EXPORT_MARKDOWN, EXPORT_YAML,
+            EXPORT_SCRIPT) + _OPENPCDET_GENERATED
+    foreign = [e for e in entries if e not in ours]
+    if foreign:
+        raise DatasetError(f"holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, not written by an "
+                           f"export or by OpenPCDet's info generation; --overwrite replaces the whole folder, so "
+                           f"move {'it' if len(foreign) == 1 else 'them'} elsewhere first or choose another --out",
+                           path=out)
+    return [str(out / e) for e in entries]
 
 
 def _fmt_num(v: float) -> str:
@@ -425,103 +428,106 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     root, out = Path(root), Path(out)
     datasets = {s: Height3Dataset(root, height, s) for s in OPENPCDET_SPLITS}
     hk = datasets["train"].height_key
-    removed = _prepare_export_dir(out, overwrite)
-    (out / POINTS_DIR).mkdir(exist_ok=True)
-    (out / LABELS_DIR).mkdir(exist_ok=True)
-    counts: dict = {}
-    written: dict[str, list[str]] = {}
-    empty: dict[str, list[str]] = {}
-    out_classes: list[str] = []
-    sensors_used: dict[tuple, int] = {}
-    n_boxes = 0
-    total = sum(len(d) for d in datasets.values())
-    bar = None
-    if progress:
-        from tqdm import tqdm
+    removed = _check_export_dir(out, overwrite)
+    recover_staged(out)
+    # built beside `out` and swapped in whole when complete: a failed or killed export leaves `out` as it was
+    with staged_folder(out) as dst:
+        (dst / POINTS_DIR).mkdir()
+        (dst / LABELS_DIR).mkdir()
+        counts: dict = {}
+        written: dict[str, list[str]] = {}
+        empty: dict[str, list[str]] = {}
+        out_classes: list[str] = []
+        sensors_used: dict[tuple, int] = {}
+        n_boxes = 0
+        total = sum(len(d) for d in datasets.values())
+        bar = None
+        if progress:
+            from tqdm import tqdm
 
-        bar = tqdm(total=total, desc="export", unit="frame")
-    for split, ds in datasets.items():
-        written[split], empty[split] = [], []
-        for fid in ds.frame_ids:
-            f = ds.load(fid)
-            count_classes(f.classes, cmap, counts)
-            keep, names = cmap.apply(f.classes)
-            boxes = f.boxes[keep]
-            if bar is not None:
-                bar.update(1)
-            if len(boxes) == 0:
-                empty[split].append(fid)
-                continue
-            points = f.points
-            s = f.sensor
-            sensors_used[(float(s.height), float(s.pitch_deg))] = sensors_used.get((float(s.height),
-                                                                                    float(s.pitch_deg)), 0) + 1
-            if frame == "sensor":
-                points = ground_to_sensor(points, s.height, s.pitch_deg)
-                boxes = boxes_ground_to_sensor(boxes, s.height, s.pitch_deg)
-            pts = np.ascontiguousarray(points, dtype=np.float32)
+            bar = tqdm(total=total, desc="export", unit="frame")
+        for split, ds in datasets.items():
+            written[split], empty[split] = [], []
+            for fid in ds.frame_ids:
+                f = ds.load(fid)
+                count_classes(f.classes, cmap, counts)
+                keep, names = cmap.apply(f.classes)
+                boxes = f.boxes[keep]
+                if bar is not None:
+                    bar.update(1)
+                if len(boxes) == 0:
+                    empty[split].append(fid)
+                    continue
+                points = f.points
+                s = f.sensor
+                sensors_used[(float(s.height), float(s.pitch_deg))] = sensors_used.get((float(s.height),
+                                                                                        float(s.pitch_deg)), 0) + 1
+                if frame == "sensor":
+                    points = ground_to_sensor(points, s.height, s.pitch_deg)
+                    boxes = boxes_ground_to_sensor(boxes, s.height, s.pitch_deg)
+                pts = np.ascontiguousarray(points, dtype=np.float32)
 
-            def saver(tmp: Path, arr=pts):
-                with open(tmp, "wb") as fh:
-                    np.save(fh, arr, allow_pickle=False)
+                def saver(tmp: Path, arr=pts):
+                    with open(tmp, "wb") as fh:
+                        np.save(fh, arr, allow_pickle=False)
 
-            atomic_save(out / POINTS_DIR / f"{fid}.npy", saver)
-            atomic_write_text(out / LABELS_DIR / f"{fid}.txt", format_labels(boxes.astype(np.float32), names))
-            for n in names:
-                if n not in out_classes:
-                    out_classes.append(n)
-            n_boxes += len(boxes)
-            written[split].append(fid)
-    if bar is not None:
-        bar.close()
-    for split, name in OPENPCDET_SPLITS.items():
-        atomic_write_text(out / IMAGESETS_DIR / f"{name}.txt", "".join(f + "\n" for f in written[split]))
-    (s_h, s_p), _ = max(sensors_used.items(), key=lambda kv: kv[1]) if sensors_used else \
-        ((float(datasets["train"].sensor.height), float(datasets["train"].sensor.pitch_deg)), 0)
-    yaml_text = openpcdet_dataset_yaml(out.resolve(), out_classes or ["Vehicle"], frame, s_h, s_p,
-                                       source=f"{root.resolve()} at {hk} m")
-    atomic_write_text(out / EXPORT_YAML, yaml_text)
-    commands = openpcdet_commands(out, root, hk, frame)
-    atomic_write_text(out / EXPORT_SCRIPT, _create_infos_script(out, commands))
-    notes = []
-    if frame == "sensor" and any(p for (_, p) in sensors_used):
-        notes.append(f"the sensor is pitched {s_p:g} deg: labels are upright boxes about the exact centre in its frame "
-                     f"(their tilt by the pitch is dropped), and the road rises with x in this frame, beyond the "
-                     f"6 m z range far ahead; --frame ground avoids both")
-    n_empty = sum(len(v) for v in empty.values())
-    if n_empty:
-        notes.append(f"{n_empty} frame(s) without boxes after the class map were left out (OpenPCDet's info generation "
-                     f"cannot read an empty label file); OpenPCDet neither trains nor evaluates on them, and its "
-                     f"predictions will lack them (detbench counts no false positives there)")
-    for split, name in OPENPCDET_SPLITS.items():
-        if not written[split]:
-            notes.append(f"ImageSets/{name}.txt lists no frames: the detbench {split} split has no frame with boxes")
-    manifest = {
-        "format": "openpcdet-custom",
-        "written_by": "detbench tools/export_openpcdet.py",
-        "source": {"root": str(root.resolve()), "height": hk, "dataset_source": datasets["train"].info.source},
-        "frame": frame,
-        "frame_description": ("ego ground frame (origin on the road below the LiDAR; m)" if frame == "ground" else
-                              "the LiDAR's own frame (origin at the sensor; m): ground z = sensor z + height "
-                              "(pitch undone)"),
-        "sensor": {"height_m": s_h, "pitch_deg": s_p,
-                   "per_frame": [{"height_m": h, "pitch_deg": p, "frames": n} for (h, p), n in sensors_used.items()]},
-        "class_map": cmap.spec,
-        "classes": out_classes,
-        "class_counts": counts,
-        "map_class_to_kitti": {c: (c if c in KITTI_EVAL_CLASSES else "Car") for c in out_classes},
-        "splits": {OPENPCDET_SPLITS[s]: {"from_detbench_split": s, "frames": len(written[s]),
-                                         "frames_without_boxes_left_out": len(empty[s])} for s in OPENPCDET_SPLITS},
-        "frames_without_boxes": {OPENPCDET_SPLITS[s]: empty[s] for s in OPENPCDET_SPLITS},
-        "boxes": n_boxes,
-        "point_cloud_range": openpcdet_point_cloud_range(frame, s_h),
-        "files": {"yaml": EXPORT_YAML, "create_infos": EXPORT_SCRIPT, "markdown": EXPORT_MARKDOWN},
-        "commands": commands,
-        "notes": notes,
-        "removed_from_earlier_export": removed,
-    }
-    atomic_write_text(out / EXPORT_MARKDOWN, export_markdown(manifest))
-    atomic_write_json(out / EXPORT_MANIFEST, manifest)  # last: marks a finished export
+                atomic_save(dst / POINTS_DIR / f"{fid}.npy", saver)
+                atomic_write_text(dst / LABELS_DIR / f"{fid}.txt", format_labels(boxes.astype(np.float32), names))
+                for n in names:
+                    if n not in out_classes:
+                        out_classes.append(n)
+                n_boxes += len(boxes)
+                written[split].append(fid)
+        if bar is not None:
+            bar.close()
+        for split, name in OPENPCDET_SPLITS.items():
+            atomic_write_text(dst / IMAGESETS_DIR / f"{name}.txt", "".join(f + "\n" for f in written[split]))
+        (s_h, s_p), _ = max(sensors_used.items(), key=lambda kv: kv[1]) if sensors_used else \
+            ((float(datasets["train"].sensor.height), float(datasets["train"].sensor.pitch_deg)), 0)
+        yaml_text = openpcdet_dataset_yaml(out.resolve(), out_classes or ["Vehicle"], frame, s_h, s_p,
+                                           source=f"{root.resolve()} at {hk} m")
+        atomic_write_text(dst / EXPORT_YAML, yaml_text)
+        commands = openpcdet_commands(out, root, hk, frame)
+        atomic_write_text(dst / EXPORT_SCRIPT, _create_infos_script(out, commands))
+        notes = []
+        if frame == "sensor" and any(p for (_, p) in sensors_used):
+            notes.append(f"the sensor is pitched {s_p:g} deg: labels are upright boxes about the exact centre in its frame "
+                         f"(their tilt by the pitch is dropped), and the road rises with x in this frame, beyond the "
+                         f"6 m z range far ahead; --frame ground avoids both")
+        n_empty = sum(len(v) for v in empty.values())
+        if n_empty:
+            notes.append(f"{n_empty} frame(s) without boxes after the class map were left out (OpenPCDet's info generation "
+                         f"cannot read an empty label file); OpenPCDet neither trains nor evaluates on them, and its "
+                         f"predictions will lack them (detbench counts no false positives there)")
+        for split, name in OPENPCDET_SPLITS.items():
+            if not written[split]:
+                notes.append(f"ImageSets/{name}.txt lists no frames: the detbench {split} split has no frame with boxes")
+        manifest = {
+            "format": "openpcdet-custom",
+            "written_by": "detbench tools/export_openpcdet.py",
+            "source": {"root": str(root.resolve()), "height": hk, "dataset_source": datasets["train"].info.source},
+            "frame": frame,
+            "frame_description": ("ego ground frame (origin on the road below the LiDAR; m)" if frame == "ground" else
+                                  "the LiDAR's own frame (origin at the sensor; m): ground z = sensor z + height "
+                                  "(pitch undone)"),
+            "sensor": {"height_m": s_h, "pitch_deg": s_p,
+                       "per_frame": [{"height_m": h, "pitch_deg": p, "frames": n} for (h, p), n in sensors_used.items()]},
+            "class_map": cmap.spec,
+            "classes": out_classes,
+            "class_counts": counts,
+            "map_class_to_kitti": {c: (c if c in KITTI_EVAL_CLASSES else "Car") for c in out_classes},
+            "splits": {OPENPCDET_SPLITS[s]: {"from_detbench_split": s, "frames": len(written[s]),
+                                             "frames_without_boxes_left_out": len(empty[s])} for s in OPENPCDET_SPLITS},
+            "frames_without_boxes": {OPENPCDET_SPLITS[s]: empty[s] for s in OPENPCDET_SPLITS},
+            "boxes": n_boxes,
+            "point_cloud_range": openpcdet_point_cloud_range(frame, s_h),
+            "files": {"yaml": EXPORT_YAML, "create_infos": EXPORT_SCRIPT, "markdown": EXPORT_MARKDOWN},
+            "commands": commands,
+            "notes": notes,
+            "removed_from_earlier_export": removed,
+        }
+        atomic_write_text(dst / EXPORT_MARKDOWN, export_markdown(manifest))
+        atomic_write_json(dst / EXPORT_MANIFEST, manifest)  # last: marks a finished export
     return manifest
 
 

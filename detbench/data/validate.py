@@ -151,17 +151,19 @@ def frame_error(dataset: Height3Dataset, frame_id: str) -> Exception | None:
     return None
 
 
-def check_frames(dataset: Height3Dataset, frame_ids: Sequence[str] | None = None) -> None:
-    """Read every frame of `dataset` (or `frame_ids`) once; DatasetError naming the first bad file and the count.
+def check_frames(dataset: Height3Dataset, frame_ids: Sequence[str] | None = None, fix: str = "") -> None:
+    """Read every frame of `dataset` (or `frame_ids`) once; DatasetError naming the first bad file and the count,
+    then `fix` (what the user can do) when given.
 
-    For a command about to spend long on them (training evaluates them after each epoch).
+    For a command about to spend long on them (training reads the training frames in every epoch and
+    evaluates the test frames after each).
     """
     ids = dataset.frame_ids if frame_ids is None else list(frame_ids)
     bad = [e for e in (frame_error(dataset, f) for f in ids) if e is not None]
     if bad:
         more = f" (and {len(bad) - 1} more frame(s); list them all with python -m detbench.data.validate " \
                f"{dataset.root})" if len(bad) > 1 else ""
-        raise DatasetError(f"{bad[0]}{more}")
+        raise DatasetError(f"{bad[0]}{more}{'; ' + fix if fix else ''}")
 
 
 def main(argv=None) -> int:

@@ -9,6 +9,9 @@ length, heights, seed, split) and reused afterwards. Generation goes to a tempor
 `.tmp-sim-...-<pid>` that is renamed into place when complete, so an interrupted run never
 leaves a half dataset that later runs would trust; a failed generation (a full disk) removes
 its folder, and one whose process was killed is removed by the next `default_dataset` call.
+`write_simulation` (every simulated dataset, tools/simulate.py's included) builds beside its
+`root` and swaps the finished dataset in whole (`detbench.utils.io.staged_folder`), so a kill
+during `--overwrite` leaves the old dataset as it was.
 """
 from __future__ import annotations
 
@@ -24,9 +27,11 @@ from tqdm import tqdm
 
 from detbench.config import shipped_defaults
 from detbench.data.frame import height_key
+from detbench.data.layout import check_replaceable
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
+from detbench.utils.io import pid_alive, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
@@ -62,20 +67,33 @@ def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default
 
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
                      frames_per_scene: int | None = None, test_fraction: float = 1 / 3, overwrite: bool = False,
-                     progress: bool = True, on_step: Callable[[list], None] | None = None) -> Path:
+                     progress: bool = True, on_step: Callable[[list], None] | None = None,
+                     finish: Callable[[Path], None] | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
 
-    `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics).
+    The dataset is built in a sibling folder `.tmp-new-<name>-<pid>` and swapped in whole when
+    complete (`detbench.utils.io.staged_folder`): an interrupted or failed run leaves `root` as it
+    was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
+    `root` must be new or empty, or hold only a dataset's files and `overwrite` be set
+    (`check_replaceable`; FileExistsError otherwise, before anything is simulated).
+    `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
+    `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
     """
+    root = Path(root)
     heights = [float(lid.height) for lid in lidars]
-    with DatasetWriter(root, heights, source, test_fraction, overwrite=overwrite) as writer:
-        stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
-        for step in tqdm(stream, total=int(frames), desc="simulate", unit="frame", disable=not progress,
-                         dynamic_ncols=True):
-            writer.add(list(step))
-            if on_step is not None:
-                on_step(step)
-    return Path(root)
+    recover_staged(root)
+    check_replaceable(root, overwrite)
+    with staged_folder(root) as staged:
+        with DatasetWriter(staged, heights, source, test_fraction) as writer:
+            stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
+            for step in tqdm(stream, total=int(frames), desc="simulate", unit="frame", disable=not progress,
+                             dynamic_ncols=True):
+                writer.add(list(step))
+                if on_step is not None:
+                    on_step(step)
+        if finish is not None:
+            finish(staged)
+    return root
 
 
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
@@ -108,20 +126,11 @@ def dataset_digest(data_cfg: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # someone else's process
-        return True
-    return True
-
-
 def remove_abandoned_builds(cache: Path) -> list[Path]:
-    """Delete the `.tmp-sim-*-<pid>` folders in `cache` whose generating process no longer runs."""
-    doomed = [d for d in cache.glob(".tmp-sim-*-*") if d.is_dir() and d.name.rsplit("-", 1)[-1].isdigit()
-              and not _process_alive(int(d.name.rsplit("-", 1)[-1]))]
+    """Delete the `.tmp-*-<pid>` folders in the cache folder `cache` whose process no longer runs: a build
+    of the default dataset (`.tmp-sim-...-<pid>`) and the staging folder inside it (`.tmp-new-...-<pid>`)."""
+    doomed = [d for d in cache.glob(".tmp-*-*") if d.is_dir() and d.name.rsplit("-", 1)[-1].isdigit()
+              and not pid_alive(int(d.name.rsplit("-", 1)[-1]))]
     for d in doomed:
         shutil.rmtree(d, ignore_errors=True)
     return doomed

@@ -11,11 +11,12 @@ its traceback (exit status 1).
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 from typing import Callable, Sequence
 
 from detbench.utils.io import DiskFullError
 
-__all__ = ["EXIT_USER_ERROR", "UserError", "run_main"]
+__all__ = ["EXIT_USER_ERROR", "UserError", "check_out_dir", "require", "run_main", "torch_device"]
 
 EXIT_USER_ERROR = 2
 
@@ -35,3 +36,35 @@ def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | 
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR
+
+
+def require(ok: bool, message: str) -> None:
+    """`UserError(message)` unless `ok`: a one-line check of an argument's value."""
+    if not ok:
+        raise UserError(message)
+
+
+def check_out_dir(path, flag: str = "--out") -> Path:
+    """An output folder that can be created or written into: UserError when it is a file, or under one."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise UserError(f"{flag} {path}: {p} is a file, not a folder; choose another {flag}")
+            break
+    return path
+
+
+def torch_device(name: str, flag: str = "--device"):
+    """`torch.device(name)`, usable here: UserError for a malformed name or a CUDA device torch cannot see."""
+    import torch
+
+    try:
+        device = torch.device(name)
+    except (RuntimeError, ValueError) as e:
+        raise UserError(f"{flag} {name!r}: not a torch device ({e}); e.g. cpu, cuda or cuda:0") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"{flag} {name}: torch sees no CUDA device (CPU-only build or no GPU); use {flag} cpu")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise UserError(f"{flag} {name}: only {torch.cuda.device_count()} CUDA device(s) are visible")
+    return device

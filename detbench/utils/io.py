@@ -14,6 +14,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -32,7 +33,12 @@ _LOW_SPACE = 1 << 20  # bytes: a write that fails with less free than this faile
 
 
 class DiskFullError(OSError):
-    """A write failed because the disk, the quota or the file-size limit is full; names the file."""
+    """A write failed because the disk, the quota or the file-size limit is full; names the file.
+
+    Attributes `path` (the file) and `reason` (e.g. "No space left on device") when raised by `atomic_path`."""
+
+    path: Path | None = None
+    reason: str = ""
 
 
 def _full_reason(exc: BaseException, tmp: Path) -> str | None:
@@ -67,6 +73,7 @@ def _disk_full(exc: BaseException, path: Path, tmp: Path) -> DiskFullError | Non
                         f"some space (or raise the limit) and run the same command again; any previous version "
                         f"of the file is unchanged")
     err.errno = errno.ENOSPC
+    err.path, err.reason = path, reason  # for a caller that words its own message
     return err
 
 
@@ -167,3 +174,128 @@ def read_json(path: str | os.PathLike) -> Any:
     except UnicodeDecodeError as e:
         raise ValueError(f"{path}: not UTF-8 text (byte {e.start} cannot be decoded), so not JSON; re-create it "
                          f"or fix the file") from None
+
+
+# --------------------------------------------------------------------------- folders replaced whole
+
+STAGED_NEW = ".tmp-new-"  # `.tmp-new-<name>-<pid>`: the folder being built (or, after an exchange, the old one)
+STAGED_OLD = ".tmp-old-"  # `.tmp-old-<name>-<pid>`: the old folder moved aside by a two-rename swap
+
+
+def pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # someone else's process
+        return True
+    return True
+
+
+def _staged_leftovers(dest: Path, prefix: str) -> list[Path]:
+    """`<prefix><dest.name>-<pid>` folders beside `dest` whose process no longer runs."""
+    head = f"{prefix}{dest.name}-"
+    out = []
+    for p in dest.parent.glob(f"{prefix}*"):
+        tail = p.name[len(head):] if p.name.startswith(head) else ""
+        if tail.isdigit() and p.is_dir() and not p.is_symlink() and not pid_alive(int(tail)):
+            out.append(p)
+    return sorted(out)
+
+
+def recover_staged(dest: str | os.PathLike) -> list[str]:
+    """Finish what a killed `staged_folder` left beside `dest`; returns one note per thing done.
+
+    A half-built or not-swapped new folder is removed; an old folder moved aside is put back
+    when `dest` is missing (the kill fell between the two renames of a swap), else removed
+    (the swap had finished). Only folders of processes that no longer run are touched.
+    """
+    dest = Path(dest)
+    if not dest.parent.is_dir():
+        return []
+    notes = []
+    for old in _staged_leftovers(dest, STAGED_OLD):
+        if not dest.exists() and not dest.is_symlink():
+            os.rename(old, dest)
+            notes.append(f"{dest}: put back from {old.name} (a replacement of this folder was interrupted)")
+        else:
+            shutil.rmtree(old)
+            notes.append(f"{old}: removed (the old folder of an interrupted replacement of {dest.name})")
+    for new in _staged_leftovers(dest, STAGED_NEW):
+        shutil.rmtree(new)
+        notes.append(f"{new}: removed (left by an interrupted write of {dest.name}; {dest.name} is unchanged)")
+    return notes
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); False when not available here."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP, errno.ENOTSUP):  # file system or kernel without it
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def swap_in(staged: Path, dest: Path) -> None:
+    """Put the complete folder `staged` at `dest`, removing what was there: one atomic exchange where the
+    system has it, else two renames (`recover_staged` repairs a kill between them)."""
+    if dest.is_dir() and not any(dest.iterdir()):
+        dest.rmdir()
+    if not dest.exists():
+        os.rename(staged, dest)
+        return
+    if _exchange(staged, dest):
+        shutil.rmtree(staged)  # it now holds the old folder
+        return
+    old = dest.parent / f"{STAGED_OLD}{dest.name}-{os.getpid()}"
+    os.rename(dest, old)
+    try:
+        os.rename(staged, dest)
+    except BaseException:
+        os.rename(old, dest)
+        raise
+    shutil.rmtree(old)
+
+
+@contextmanager
+def staged_folder(dest: str | os.PathLike) -> Iterator[Path]:
+    """Build a folder that replaces `dest` whole, so that an interruption at any moment leaves either the
+    complete old folder or the complete new one.
+
+    Yields an empty sibling `.tmp-new-<name>-<pid>`; when the block ends normally it is swapped in
+    (`swap_in`), when it raises it is removed and `dest` is untouched. Leftovers of killed
+    processes are repaired first (`recover_staged`). The caller decides beforehand whether `dest`
+    may be replaced. A symbolic link `dest` is followed (the folder it points to is replaced).
+    """
+    dest = Path(dest)
+    if dest.is_symlink():
+        dest = dest.resolve()
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    recover_staged(dest)
+    staged = dest.parent / f"{STAGED_NEW}{dest.name}-{os.getpid()}"
+    if staged.exists():
+        shutil.rmtree(staged)
+    staged.mkdir()
+    try:
+        yield staged
+    except BaseException:
+        shutil.rmtree(staged, ignore_errors=True)
+        raise
+    try:
+        swap_in(staged, dest)
+    except BaseException:
+        if staged.exists() and not (dest.exists() and dest.samefile(staged)):
+            shutil.rmtree(staged, ignore_errors=True)
+        raise

@@ -111,3 +111,38 @@ def test_big_seeds_give_their_own_data_and_are_recorded(seed, tmp_path):
     assert json.loads((root / "dataset.json").read_text())["source"]["seed"] == seed
     with pytest.raises(ValueError, match="seed must be an integer >= 0"):
         HighwaySimulator(cfg, seed=-1)
+
+
+@pytest.mark.parametrize("damage", ["empty", "nan", "label"])
+def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, load_tool, capsys, tmp_path):
+    """Without ground-truth sampling (whose database reads every training frame), a bad training frame was
+    found only when the data loader reached it mid-epoch. Here the anchor-size sampling reads only the first
+    training frame, as it reads at most 400 of a larger dataset, so only the pre-check can find the last one."""
+    from faultkit import train_argv
+    from detbench.utils.cli import run_main
+
+    train_ids = (data_copy / "ImageSets" / "train.txt").read_text().split()
+    pts = data_copy / "points" / "1.8" / f"{train_ids[-1]}.npy"
+    label = data_copy / "labels" / f"{train_ids[-1]}.txt"
+    if damage == "empty":
+        pts.write_bytes(b"")
+        named = f"{pts}: the file is empty (0 bytes)"
+    elif damage == "nan":
+        arr = np.load(pts)
+        arr[3, 0] = np.nan
+        np.save(pts, arr)
+        named = f"{pts}: 1 point(s) have NaN"
+    else:
+        label.write_text(label.read_text() + "1 2 3\n")
+        named = f"{label}:{len(label.read_text().splitlines())}: 3 columns, expected 8"
+    before = snapshot(data_copy)
+    train = load_tool("train")
+    real = train.collect_train_boxes
+    train.collect_train_boxes = lambda ts, limit=400: real(ts, limit=1)
+    out = tmp_path / "run"
+    capsys.readouterr()
+    code = run_main(train.main, train_argv(data_copy, out, "--set", "augment.gt_sampling.enabled=false"))
+    err = capsys.readouterr().err
+    assert code == 2 and named in err, err[-3000:]
+    assert f"remove its id from {data_copy / 'ImageSets' / 'train.txt'}" in err and "Traceback" not in err
+    assert not out.exists() and snapshot(data_copy) == before

@@ -46,3 +46,55 @@ def test_benchmark_refuses_an_unknown_model_and_a_missing_study(tool, tmp_path):
     assert code == 2 and "--models: unknown model 'secnd'; did you mean 'second'?" in err
     code, err = tool("benchmark", "--models", "second", "--study", tmp_path / "nope")
     assert code == 2 and "no such folder; give the --out folder of a tools/study.py run" in err
+
+
+@pytest.mark.parametrize("name, argv, named", [
+    ("bench_eval", ["--frames", "0"], "--frames 0: must be an integer >= 1"),
+    ("bench_eval", ["--out", "{file}"], "is a file, not a folder; choose another --out"),
+    ("bench_sim", ["--frames", "0"], "--frames 0: must be an integer >= 1"),
+    ("bench_sim", ["--set", "traffic.densty=3"], "unknown config key 'traffic.densty'"),
+    ("bench_sim", ["--out", "{file}/sub"], "is a file, not a folder; choose another --out"),
+    ("bench_sparse", ["--voxel-size", "0", "0.1", "0.1"], "--voxel-size / --range: voxel_size must be positive"),
+    ("bench_sparse", ["--device", "gpu7"], "--device 'gpu7': not a torch device"),
+    ("bench_points", ["--samples", "9", "--points", "8"], "--samples 9: more than the 8 points per scan"),
+    ("bench_points", ["--rois", "-1"], "--rois -1: must be an integer >= 0"),
+])
+def test_bench_tools_end_a_bad_argument_with_one_line(name, argv, named, tool, tmp_path):
+    """The benchmarks stopped with argparse's usage text (bench_points, bench_sparse), exit status 1 and no
+    'error:' (bench_sim) or a traceback (a file as --out, an unknown device)."""
+    file = tmp_path / "a_file"
+    file.write_text("not a folder")
+    out = tmp_path / "out"
+    argv = [a.replace("{file}", str(file)) for a in argv]
+    if "--out" not in argv:
+        argv += ["--out", str(out)]
+    code, err = tool(name, *argv)
+    assert code == 2 and err.startswith("error: ") and named in err, err[-2000:]
+    assert err.count("\n") == 1 and "Traceback" not in err and "usage:" not in err
+    assert not out.exists() and file.read_text() == "not a folder"
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["--frames-per-scene", "0"], "--frames-per-scene 0: must be an integer >= 1"),
+    (["--lane-width", "-1"], "--lane-width -1.0: must be a positive number of metres"),
+    (["--pitch", "1.8=abc"], "--pitch 1.8=abc: 'abc' is not a pitch in degrees"),
+    (["--src", "1.8={missing}"], "{missing}: expected an OpenPCDet custom folder"),
+])
+def test_convert_ends_a_bad_argument_with_one_line(argv, named, fault_data, tool, tmp_path, capsys):
+    """`python -m detbench.data.convert` (= tools/import_openpcdet.py): --frames-per-scene 0 was a
+    ZeroDivisionError, a negative one or a negative lane width were accepted, a bad pitch did not name --pitch."""
+    from detbench.data.convert import main
+    from detbench.utils.cli import run_main
+
+    src = tmp_path / "opc"
+    assert tool("export_openpcdet", fault_data, "--height", "1.8", "--out", src, "--no-progress")[0] == 0
+    missing = tmp_path / "nope"
+    argv = [a.replace("{missing}", str(missing)) for a in argv]
+    if "--src" not in argv:
+        argv = ["--src", f"1.8={src}", *argv]
+    out = tmp_path / "imported"
+    capsys.readouterr()
+    code = run_main(main, [*argv, "--out", str(out), "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and f"error: {named.replace('{missing}', str(missing))}" in err, err[-2000:]
+    assert not out.exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp-")]
