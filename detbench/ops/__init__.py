@@ -32,6 +32,7 @@ from detbench.ops.points import (
     BallQuery,
     RoIPoints,
     ball_query,
+    cylinder_query,
     farthest_point_sample,
     from_canonical,
     group_neighbours,

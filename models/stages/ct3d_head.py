@@ -24,6 +24,8 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from detbench.ops.points import cylinder_query
+
 from .two_stage import rotate_z
 
 # the 8 corners of a unit box (front/rear x left/right x bottom/top) and its centre
@@ -43,27 +45,8 @@ def cylinder_radius(rois: torch.Tensor, radius_scale: float) -> torch.Tensor:
     return radius_scale * 0.5 * torch.sqrt(rois[..., 3] ** 2 + rois[..., 4] ** 2)
 
 
-def _sample_slots(inside: torch.Tensor, k: int, keys: torch.Tensor) -> torch.Tensor:
-    """(R, k) indices of points: the k inside points of smallest key per row, cyclically repeated.
-
-    inside (R, N) bool, keys (R, N) or (N,) in [0, 1). Rows with no inside point get index 0
-    (the caller masks them).
-    """
-    r, n = inside.shape
-    masked = torch.where(inside, keys.expand(r, n), torch.full_like(inside, 2.0, dtype=keys.dtype))
-    kk = min(k, n)
-    vals, idx = masked.topk(kk, dim=1, largest=False)  # ascending: inside points first
-    if kk < k:
-        idx = torch.cat([idx, idx.new_zeros(r, k - kk)], dim=1)
-    count = inside.sum(dim=1)  # (R,)
-    slot = torch.arange(k, device=inside.device)[None, :].expand(r, k)
-    src = torch.remainder(slot, count.clamp(min=1)[:, None])
-    return torch.gather(idx, 1, src)
-
-
 def gather_cylinder_points(points: torch.Tensor, rois: torch.Tensor, num_points: int, radius_scale: float = 1.2,
-                           random: bool = False, generator: torch.Generator | None = None,
-                           max_pairs: int = 1 << 24) -> CylinderPoints:
+                           random: bool = False, generator: torch.Generator | None = None) -> CylinderPoints:
     """The points around each proposal, a fixed count per proposal.
 
     Args:
@@ -95,15 +78,11 @@ def gather_cylinder_points(points: torch.Tensor, rois: torch.Tensor, num_points:
             keys = torch.rand(n, generator=generator).to(pts.device)
         else:
             keys = torch.remainder(torch.arange(n, device=pts.device, dtype=torch.float64) * _GOLDEN, 1.0).float()
-        rad2 = cylinder_radius(rois[i], radius_scale) ** 2  # (R,)
-        step = max(1, max_pairs // max(n, 1))
-        for s in range(0, r, step):  # chunks bound the (R, N) memory; one chunk in practice
-            d2 = (rois[i, s:s + step, None, :2] - pts[None, :, :2]).pow(2).sum(-1)  # (r, N)
-            inside = d2 <= rad2[s:s + step, None]
-            idx = _sample_slots(inside, num_points, keys)
-            cnt = inside.sum(dim=1)
-            out[i, s:s + step] = pts[idx] * (cnt > 0)[:, None, None].to(pts.dtype)
-            count[i, s:s + step] = cnt
+        idx, cnt = cylinder_query(pts[:, :2].detach(), keys, rois[i, :, :2].detach(),
+                                  cylinder_radius(rois[i].detach(), radius_scale), num_points)
+        idx, cnt = idx.to(pts.device), cnt.to(pts.device)
+        out[i] = pts[idx] * (cnt > 0)[:, None, None].to(pts.dtype)
+        count[i] = cnt
     return CylinderPoints(out, count, count == 0)
 
 

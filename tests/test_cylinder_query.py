@@ -1,0 +1,74 @@
+"""detbench.ops.cylinder_query (CT3D's points around a proposal): numba and torch give the same indices,
+which are those of a brute-force reference, on random clouds and at the extremes."""
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from detbench.ops import cylinder_query
+
+GOLDEN = 0.6180339887498949
+
+
+def _golden(n):
+    return torch.remainder(torch.arange(n, dtype=torch.float64) * GOLDEN, 1.0).float()
+
+
+def _reference(xy, keys, centres, radius, k):
+    xy, keys, c, r = (np.asarray(t, dtype=np.float32) for t in (xy, keys, centres, radius))
+    index, count = np.zeros((len(c), k), np.int64), np.zeros(len(c), np.int64)
+    for j in range(len(c)):
+        d = c[j, :2] - xy[:, :2]
+        inside = np.flatnonzero((d * d).sum(1, dtype=np.float32) <= r[j] * r[j])
+        count[j] = len(inside)
+        if len(inside):
+            ordered = inside[np.lexsort((inside, keys[inside]))]
+            index[j] = ordered[np.arange(k) % min(k, len(inside))]
+    return index, count
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_matches_the_reference_on_random_clouds(seed):
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.rand(5000, 3, generator=g) * torch.tensor([80.0, 30.0, 3.0]) - torch.tensor([0.0, 15.0, 0.0])
+    centres = torch.rand(40, 2, generator=g) * torch.tensor([80.0, 30.0]) - torch.tensor([0.0, 15.0])
+    radius = torch.rand(40, generator=g) * 6.0 + 0.5
+    centres[-1], radius[-1] = torch.tensor([200.0, 200.0]), 3.0  # an empty cylinder
+    keys = torch.rand(5000, generator=g) if seed else _golden(5000)
+    ref = _reference(xy, keys, centres, radius, 32)
+    for backend in ("numba", "torch"):
+        idx, cnt = cylinder_query(xy, keys, centres, radius, 32, backend=backend)
+        assert np.array_equal(cnt.numpy(), ref[1]), backend
+        assert np.array_equal(idx.numpy(), ref[0]), backend
+    assert (ref[1] > 32).any() and (ref[1] < 32).any() and (ref[1] == 0).any()  # every case was exercised
+
+
+def test_extremes():
+    keys = _golden(4)
+    xy = torch.tensor([[0.0, 0.0], [3.0, 4.0], [0.0, 0.0], [100.0, 0.0]])
+    centres = torch.tensor([[0.0, 0.0], [50.0, 50.0], [1000.0, 0.0]])  # a far padding centre too
+    radius = torch.tensor([5.0, 1.0, 1.0])  # (3, 4) lies exactly on the first radius: inside
+    for backend in ("numba", "torch"):
+        idx, cnt = cylinder_query(xy, keys, centres, radius, 5, backend=backend)
+        assert cnt.tolist() == [3, 0, 0]
+        order = sorted([0, 1, 2], key=lambda i: float(keys[i]))
+        assert idx[0].tolist() == [order[s % 3] for s in range(5)]  # cyclic repetition
+        assert idx[1].tolist() == [0] * 5 and idx[2].tolist() == [0] * 5
+        # one point, none, no centre
+        i1, c1 = cylinder_query(xy[:1], keys[:1], centres[:1], radius[:1], 3, backend=backend)
+        assert c1.tolist() == [1] and i1.tolist() == [[0, 0, 0]]
+        i0, c0 = cylinder_query(xy[:0], keys[:0], centres, radius, 3, backend=backend)
+        assert c0.tolist() == [0, 0, 0] and i0.shape == (3, 3)
+        ie, ce = cylinder_query(xy, keys, centres[:0], radius[:0], 3, backend=backend)
+        assert ie.shape == (0, 3) and ce.shape == (0,)
+
+
+def test_bad_input_is_named():
+    xy, keys = torch.zeros(3, 2), _golden(3)
+    with pytest.raises(ValueError, match="num_samples must be >= 1"):
+        cylinder_query(xy, keys, torch.zeros(1, 2), torch.ones(1), 0)
+    with pytest.raises(ValueError, match="centres and radius must be finite"):
+        cylinder_query(xy, keys, torch.tensor([[math.nan, 0.0]]), torch.ones(1), 2)
+    with pytest.raises(ValueError, match="keys must be"):
+        cylinder_query(xy, keys[:2], torch.zeros(1, 2), torch.ones(1), 2)
