@@ -160,14 +160,22 @@ def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str =
     print(f"=== {what}: done in {seconds:.0f} s", flush=True)
 
 
+def study_models(preset: str, requested: list[str] | None, overrides: list[str]) -> tuple[list[str], list[str]]:
+    """(the models to study, the registered ones the preset leaves out): --models when given, else the
+    preset's `study.models`, else every registered model. Unknown names raise ValueError."""
+    cfg = load_run_config(sorted(models.REGISTRY)[0], preset, overrides=overrides)
+    names = list(requested or [str(m) for m in (cfg["study"].get("models") or [])] or sorted(models.REGISTRY))
+    for n in names:
+        models.get_model_class(n)
+    return names, ([] if requested else sorted(set(models.REGISTRY) - set(names)))
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     py = sys.executable
     out = Path(args.out or f"runs/study_{args.preset}").resolve()
-    names = args.models or sorted(models.REGISTRY)
     try:
-        for n in names:
-            models.get_model_class(n)
+        names, left_out = study_models(args.preset, args.models, args.overrides)
         base_cfg = load_run_config(names[0], args.preset, overrides=args.overrides)
     except (ConfigError, ValueError, KeyError) as e:
         raise UserError(str(e).strip("'\"")) from None
@@ -188,6 +196,11 @@ def main(argv=None) -> int:
     study_cfg = dict(base_cfg.get("study") or {})
     ability_frames = 0 if args.data else int(study_cfg.get("ability_frames", 0) or 0)
     eval_device = "cpu" if args.device == "auto" else args.device
+
+    if left_out:
+        print(f"note: the {args.preset} preset's study leaves out {', '.join(left_out)} (study.models in "
+              f"configs/presets/{args.preset}.yaml); add it with --models {' '.join(sorted(set(names) | set(left_out)))}",
+              flush=True)
 
     # The plan, for the progress line and its time left.
     stages: list[tuple[str, str | None]] = [("data", None), ("ability", None)]
@@ -308,7 +321,7 @@ def main(argv=None) -> int:
     train_words = ("Training time (the runs' own, summed over heights; resumed invocations included): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
-    study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names,
+    study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,
              "ability_frames": ability_frames or None, "test_frames": test_frames, "test_scenes": test_scenes,
              "seconds_this_invocation": round(seconds, 1),
              "train_seconds": {m: round(t, 1) for m, t in train_s.items()},
@@ -355,6 +368,9 @@ def main(argv=None) -> int:
              "lead paired over the same scenes.", "", source_detect, "",
              *detector_summary_lines(report_dicts), "",
              *unlearned_lines(report_dicts),
+             *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
+                f"configs/presets/{args.preset}.yaml, says why); add it with `--models "
+                f"{' '.join(sorted(set(names) | set(left_out)))}`.*", ""] if left_out else []),
              PRESET_CAVEATS.get(args.preset, ""), "",
              "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
              "`python tools/study.py --preset paper --device cuda`.", "",
