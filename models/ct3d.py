@@ -84,7 +84,7 @@ class CT3D(SECOND):
     def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
         w = self.loss_weights
         rpn_total, rpn_parts = super().loss(out.rpn, batch)
-        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w, self.target_cfg)
+        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w)
         return w["rpn"] * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
 
     def predict(self, out: TwoStageOutput, batch: Batch) -> list[Detections]:

@@ -117,7 +117,7 @@ class PointRCNN(nn.Module):
     def loss(self, out: PointRCNNOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
         t = point_targets(out.xyz, out.valid, batch.gt_boxes, batch.gt_mask, self.point_head.extra_width)
         point_total, point_parts = self.point_head.loss(out.point, t, out.xyz)
-        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, self.loss_weights, self.target_cfg)
+        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, self.loss_weights)
         return point_total + rcnn_total, {**point_parts, **rcnn_parts}
 
     @torch.no_grad()

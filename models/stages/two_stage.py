@@ -30,7 +30,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from detbench.data.batch import Detections
-from detbench.ops import ResidualBoxCoder, boxes_iou3d, boxes_iou3d_aligned, nms_bev, normalize_heading
+from detbench.ops import ResidualBoxCoder, boxes_iou3d, nms_bev, normalize_heading
 from detbench.ops.points import from_canonical, to_canonical  # noqa: F401  (re-exported: the RoI frame)
 
 from .losses import corner_loss, weighted_smooth_l1
@@ -159,46 +159,16 @@ def confidence_targets(iou: torch.Tensor, cfg: dict) -> tuple[torch.Tensor, torc
 
     roi_iou (CT3D, the IoU-guided score): 1 at IoU >= cls_fg_thresh, 0 at IoU <= cls_bg_thresh,
     linear in between; every RoI counts. binary (PointRCNN): 1 from cls_fg_thresh, 0 below
-    cls_bg_thresh, RoIs in between are ignored. refined_iou: the same ramp as roi_iou, but
-    `refine_loss` replaces the RoI's IoU by its refined box's (`refined_confidence_targets`);
-    here it gives the RoI's ramp as a placeholder.
+    cls_bg_thresh, RoIs in between are ignored.
     """
     fg, bg = float(cfg["cls_fg_thresh"]), float(cfg["cls_bg_thresh"])
-    if cfg["cls_score_type"] in ("roi_iou", "refined_iou"):
+    if cfg["cls_score_type"] == "roi_iou":
         target = ((iou - bg) / max(fg - bg, 1e-6)).clamp(0.0, 1.0)
         return target, torch.ones_like(iou, dtype=torch.bool)
     if cfg["cls_score_type"] == "binary":
         target = (iou >= fg).float()
         return target, (iou >= fg) | (iou < bg)
-    raise ValueError(f"cls_score_type must be 'roi_iou', 'refined_iou' or 'binary', got {cfg['cls_score_type']!r}")
-
-
-@torch.no_grad()
-def refined_confidence_targets(deltas: torch.Tensor, targets: "RoiTargets", coder: ResidualBoxCoder,
-                               cfg: dict) -> torch.Tensor:
-    """Confidence targets (B, S) from the 3D IoU of each RoI's *refined* box with its matched box.
-
-    The ramp of `confidence_targets` (0 at cls_bg_thresh, 1 at cls_fg_thresh). The box that is
-    output and ranked is the refined one, so its own overlap is what the confidence should
-    predict: with the RoI's IoU as the target, two RoIs of one vehicle refined to boxes of
-    IoU 0.8 and 0.6 can be ranked the wrong way round, and the final NMS keeps the worse.
-    RoIs without a matched box (zero-size ground truth) get IoU 0.
-    """
-    boxes = decode_refined(deltas.detach().float(), targets.rois.float(), coder)
-    gt = targets.gt_of_rois.float()
-    matched = targets.valid & (gt[..., 3:6] > 0).all(dim=-1)
-    iou = torch.zeros(matched.shape, dtype=torch.float32, device=deltas.device)
-    if matched.any():
-        b = boxes[matched]
-        b[:, 3:6] = b[:, 3:6].clamp(min=1e-3)
-        b[:, 6] = normalize_heading(b[:, 6])
-        ok = torch.isfinite(b).all(dim=1)
-        vals = torch.zeros(b.shape[0], dtype=torch.float32, device=deltas.device)
-        if ok.any():
-            vals[ok] = boxes_iou3d_aligned(b[ok], gt[matched][ok]).float().to(deltas.device)
-        iou[matched] = vals
-    fg, bg = float(cfg["cls_fg_thresh"]), float(cfg["cls_bg_thresh"])
-    return ((iou - bg) / max(fg - bg, 1e-6)).clamp(0.0, 1.0)
+    raise ValueError(f"cls_score_type must be 'roi_iou' or 'binary', got {cfg['cls_score_type']!r}")
 
 
 @torch.no_grad()
@@ -336,23 +306,17 @@ def decode_refined(deltas: torch.Tensor, rois: torch.Tensor, coder: ResidualBoxC
 # --------------------------------------------------------------------------------------
 # the second stage's loss (the loss functions themselves live in losses.py)
 # --------------------------------------------------------------------------------------
-def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None = None,
-                target_cfg: dict | None = None) -> tuple[torch.Tensor, dict]:
+def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None = None) -> tuple[torch.Tensor, dict]:
     """Loss of the second stage: confidence BCE + residual smooth-L1 + corner loss.
 
     The confidence loss averages over RoIs with a confidence target; the regression terms
-    average over foreground RoIs. Frames with no RoI (or no foreground) contribute 0. With
-    `target_cfg` of cls_score_type refined_iou, the confidence target is the refined box's
-    IoU ramp (`refined_confidence_targets`) instead of the RoI's.
+    average over foreground RoIs. Frames with no RoI (or no foreground) contribute 0.
     """
     t = out.targets
     w = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **(weights or {})}  # unit weights unless given
     logits = out.cls_logits.float()
     cm = t.cls_mask.float()
-    cls_target = t.cls_target
-    if target_cfg is not None and target_cfg.get("cls_score_type") == "refined_iou":
-        cls_target = refined_confidence_targets(out.box_deltas, t, coder, target_cfg)
-    bce = F.binary_cross_entropy_with_logits(logits, cls_target, reduction="none")
+    bce = F.binary_cross_entropy_with_logits(logits, t.cls_target, reduction="none")
     loss_cls = (bce * cm).sum() / cm.sum().clamp(min=1.0)
     fg = t.reg_mask
     n_fg = fg.sum().clamp(min=1).float()
