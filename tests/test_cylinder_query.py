@@ -72,3 +72,15 @@ def test_bad_input_is_named():
         cylinder_query(xy, keys, torch.tensor([[math.nan, 0.0]]), torch.ones(1), 2)
     with pytest.raises(ValueError, match="keys must be"):
         cylinder_query(xy, keys[:2], torch.zeros(1, 2), torch.ones(1), 2)
+
+
+def test_equal_keys_keep_index_order_on_the_numba_path():
+    """Many equal keys (the k-th smallest key shared by many points): lowest indices first, as the reference."""
+    g = torch.Generator().manual_seed(5)
+    xy = torch.rand(3000, 2, generator=g) * 20.0
+    keys = torch.floor(torch.rand(3000, generator=g) * 4.0) / 4.0  # four distinct values
+    centres, radius = torch.rand(25, 2, generator=g) * 20.0, torch.rand(25, generator=g) * 5.0 + 1.0
+    idx, cnt = cylinder_query(xy, keys, centres, radius, 48, backend="numba")
+    ref = _reference(xy, keys, centres, radius, 48)
+    assert np.array_equal(cnt.numpy(), ref[1]) and np.array_equal(idx.numpy(), ref[0])
+    assert (ref[1] > 48 * 4).any()  # the k-th key is shared by many points in some cylinder

@@ -1072,6 +1072,8 @@ def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pra
             fill[cid[i]] += 1
     buf_idx = np.empty(n, np.int64)
     buf_key = np.empty(n, keys.dtype)
+    sel = np.empty(n, np.int64)
+    ties = np.empty(n, np.int64)
     for j in range(r):
         rr = math.sqrt(r2[j])
         ix0, ix1 = max(0, int((cx[j] - rr - x0) / cell)), min(nx - 1, int((cx[j] + rr - x0) / cell))
@@ -1089,11 +1091,32 @@ def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pra
         out_cnt[j] = m
         if m == 0:
             continue
-        cand = np.sort(buf_idx[:m])  # ascending index, so equal keys keep index order
         for t in range(m):
+            buf_key[t] = keys[buf_idx[t]]
+        take = m
+        if m > k:  # keep the k smallest keys (ties at the k-th key: lowest index first), O(m)
+            thr = np.partition(buf_key[:m], k - 1)[k - 1]
+            take = 0
+            for t in range(m):
+                if buf_key[t] < thr:
+                    sel[take] = buf_idx[t]
+                    take += 1
+            nt = 0
+            for t in range(m):
+                if buf_key[t] == thr:
+                    ties[nt] = buf_idx[t]
+                    nt += 1
+            ties_sorted = np.sort(ties[:nt])
+            for t in range(k - take):
+                sel[take + t] = ties_sorted[t]
+            take = k
+        else:
+            for t in range(m):
+                sel[t] = buf_idx[t]
+        cand = np.sort(sel[:take])  # ascending index, so equal keys keep index order
+        for t in range(take):
             buf_key[t] = keys[cand[t]]
-        o = np.argsort(buf_key[:m], kind="mergesort")
-        take = min(m, k)
+        o = np.argsort(buf_key[:take], kind="mergesort")
         for s in range(k):
             out_idx[j, s] = cand[o[s % take]]
 
