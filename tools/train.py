@@ -176,13 +176,14 @@ def main(argv=None) -> int:
                                                  progress=info.is_main and not args.no_progress)
         if train_set.sampler is None:  # with ground-truth sampling on, building its database read every frame
             check_training_frames(train_set.frames)
+        requested_model_cfg = cfg["model"]  # before `auto` values are resolved from the training data
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
         model = models.build_model(model_name, model_cfg)
         init = None
         resuming = args.resume and any((out / "checkpoints").glob("*.pt"))
         if args.init_from and not resuming:
-            init = init_from_checkpoint(model, args.init_from, model_cfg)
+            init = init_from_checkpoint(model, args.init_from, requested_model_cfg)
         ecfg = EvalConfig.from_dict(cfg["eval"])
         eval_fn = None if args.no_eval else make_eval_fn(eval_frames(root, args.height, ecfg), ecfg,
                                                          model_cfg["point_cloud_range"], info.device,

@@ -220,10 +220,11 @@ def load_model_weights(model: nn.Module, ckpt: Mapping, path: str | os.PathLike 
 
 
 def _common_model_config_diff(src: Mapping, dst: Mapping) -> list[str]:
-    """Model-config keys present in both (flattened, `name` excepted) whose values differ."""
+    """Model-config keys present in both (flattened, `name` excepted) whose values differ; keys `dst`
+    leaves `auto` (resolved from this run's training data, e.g. anchor sizes) may differ."""
     a, b = _flatten(src), _flatten(dst)
     return [f"{k}: {a[k]!r} (checkpoint) vs {b[k]!r} (now)" for k in sorted(set(a) & set(b))
-            if k != "name" and a[k] != b[k]]
+            if k != "name" and b[k] != "auto" and a[k] != b[k]]
 
 
 def init_from_checkpoint(model: nn.Module, path: str | os.PathLike, model_config: Mapping) -> dict:
@@ -234,7 +235,9 @@ def init_from_checkpoint(model: nn.Module, path: str | os.PathLike, model_config
     the refinement head starts from scratch. Refused with a CheckpointError naming the file
     and the fix when no weight fits, when a shared weight has another shape, when the
     weights are not finite, or when a model-config key both configs hold differs (a voxel
-    size or anchor size changes the meaning of every weight without changing its shape).
+    size changes the meaning of every weight without changing its shape). `model_config` is
+    the run's config before `auto` values are resolved from its data: those may differ
+    (anchor sizes of another height's vehicles, when fine-tuning there).
 
     Returns a record for the run's summary: path, source model, loaded / new / unused counts.
     """
