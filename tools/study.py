@@ -8,7 +8,7 @@ split; (4) each evaluated on the same height's test split (Table VII); (5) one c
 report with the paper's Fig. 8-10.
 
 Examples:
-  python tools/study.py --preset quick                 # the quick start: real figures in ~50 min on 2 CPU cores
+  python tools/study.py --preset quick                 # the quick start: real figures in ~30 min on 2 CPU cores
   python tools/study.py --preset smoke                 # the pipeline end to end in a minute (tests, CI)
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
@@ -67,7 +67,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--preset", default="quick", choices=preset_names(),
-                    help="quick (real figures: the whole study in about 50 min on 2 CPU cores, 15 for SECOND and PillarNet), "
+                    help="quick (real figures for SECOND, PillarNet and CT3D: the whole study in about 30 min on 2 CPU "
+                         "cores), "
                          "smoke (a minute; proves the pipeline, learns nothing: tests and CI), cpu (~10 min per model "
                          "and height on 2 cores), paper (the paper's scale; a GPU). Default quick")
     ap.add_argument("--models", nargs="+", default=None, help=f"detectors (default all: "
