@@ -44,6 +44,17 @@ PAPER_TABLE_IV = {  # Height3 paper, Table IV (8000 frames): total, then (detect
     "moderate": (39455, {"0.5": (26407, 0.67), "1.0": (26216, 0.66), "1.8": (32074, 0.81)}),
     "large": (54097, {"0.5": (34296, 0.63), "1.0": (34339, 0.63), "1.8": (42185, 0.78)}),
 }
+PAPER_TABLE_V = {  # Table V, "Top3" vehicles (nearest in the ego, left and right lanes), same layout
+    "small": (9949, {"0.5": (9725, 0.98), "1.0": (9730, 0.98), "1.8": (9862, 0.99)}),
+    "moderate": (13364, {"0.5": (12900, 0.97), "1.0": (12899, 0.97), "1.8": (13135, 0.98)}),
+    "large": (14522, {"0.5": (13927, 0.96), "1.0": (13925, 0.96), "1.8": (14212, 0.98)}),
+}
+PAPER_TABLE_VI = {  # Table VI, "Top6" vehicles (two nearest in each of those lanes), same layout
+    "small": (13661, {"0.5": (11923, 0.87), "1.0": (11732, 0.86), "1.8": (12838, 0.94)}),
+    "moderate": (20407, {"0.5": (17444, 0.85), "1.0": (17147, 0.84), "1.8": (18824, 0.92)}),
+    "large": (23303, {"0.5": (19543, 0.84), "1.0": (19267, 0.83), "1.8": (21135, 0.91)}),
+}
+PAPER_TABLES = {"all": PAPER_TABLE_IV, "top3": PAPER_TABLE_V, "top6": PAPER_TABLE_VI}  # by level
 DEFAULT_BOOTSTRAP = 1000  # bootstrap replicates of the scene resampling
 CELLS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)  # 9 (range, level)
 _LARGE_ALL = CELLS.index(("large", "all"))
@@ -575,4 +586,5 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
 
 __all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "stacked_masks", "frame_lanes",
            "ldr", "scene_bootstrap_weights", "bootstrap_ratios", "percentile_interval",
-           "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
+           "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV", "PAPER_TABLE_V", "PAPER_TABLE_VI",
+           "PAPER_TABLES"]
