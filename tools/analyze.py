@@ -108,6 +108,7 @@ def stream_simulator(args, study: AbilityStudy) -> dict:
     lift); `--points` simulates full clouds and counts with points_in_boxes instead.
     """
     from detbench.sim import HighwaySimulator, load_sim_config
+    from detbench.sim.dataset import sim_calibration
 
     heights = args.heights or [0.5, 1.0, 1.8]
     cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
@@ -124,7 +125,8 @@ def stream_simulator(args, study: AbilityStudy) -> dict:
             study.add(frames)
         else:
             study.add(frames, counts=[f.hit_counts for f in frames])
-    return {"kind": "simulator", "preset": args.preset, "seed": args.seed, "frames": args.simulate,
+    return {"kind": "simulator", "preset": args.preset, "calibration": sim_calibration(cfg), "seed": args.seed,
+            "frames": args.simulate,
             "overrides": list(args.overrides), "frames_per_scene": fps,
             "counting": "points_in_boxes on full clouds" if args.points else "simulator hit counts (no points)",
             "heights": [height_key(h) for h in heights], "lidars": [lid.sensor.to_dict() for lid in lidars],
