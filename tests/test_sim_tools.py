@@ -58,3 +58,24 @@ def test_bench_sim_small_run(tmp_path, load_tool):
     assert len(rep["runs"]) == 2 and rep["runs"][0]["frames_per_s"] > 0
     assert "cast" in rep["runs"][1]["stages_ms_per_frame"]
     assert (tmp_path / "bench_sim.md").read_text().startswith("# Simulator benchmark")
+
+
+def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path, load_tool):
+    from detbench.data import read_info
+    from detbench.sim import load_sim_config
+    from detbench.sim.dataset import PREVIOUS_CALIBRATION, sim_calibration, simulate_dataset
+
+    current = load_sim_config("paper")["calibration"]
+    assert current != PREVIOUS_CALIBRATION and current.startswith("v2")
+    root = simulate_dataset(tmp_path / "ds", frames=4, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
+    info = read_info(root)
+    assert info.source["calibration"] == current and sim_calibration(info.source) == current
+    # a dataset.json written before the id existed (no `calibration`, a config without it) reads as v1
+    old = json.loads((root / "dataset.json").read_text())
+    del old["source"]["calibration"], old["source"]["config"]["calibration"]
+    assert sim_calibration(old["source"]) == "v1" and sim_calibration({}) == "v1" and sim_calibration(None) == "v1"
+    (root / "dataset.json").write_text(json.dumps(old))
+    out = tmp_path / "ab"
+    assert load_tool("analyze").main(["--data", str(root), "--split", "all", "--no-figures", "--no-progress",
+                                      "--bootstrap", "0", "--out", str(out)]) == 0
+    assert json.loads((out / "ability.json").read_text())["extras"]["source"]["calibration"] == "v1"

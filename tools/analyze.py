@@ -176,6 +176,10 @@ def stream_dataset(args, study: AbilityStudy) -> dict:
         study.add(frames)
     src = {"kind": "dataset", "root": str(args.data), "split": args.split, "heights": keys,
            "dataset_source": info.source}
+    if isinstance(info.source, dict) and info.source.get("kind") == "simulator":
+        from detbench.sim.dataset import sim_calibration
+
+        src["calibration"] = sim_calibration(info.source)  # "v1" for datasets written before the id existed
     if skipped:
         src["skipped"] = skipped
         print(f"warning: skipped {len(skipped)} frame(s) with malformed files (listed in the JSON)", file=sys.stderr)
