@@ -170,9 +170,8 @@ def test_sweep_tool_tiny_run_structure_and_physics(tmp_path, load_tool):
                 assert 0.0 <= lo <= v <= hi <= 1.0
             assert cell["evidence_all"]["value"] <= cell["evidence"]["value"]
             assert 0 < cell["smig"]["value"] and 0 < cell["smig"]["fraction"] <= 1
-    # the tall LiDAR sees over the vehicle ahead: in dense traffic it hits clearly more vehicles than at 0.5 m
-    # (calibration v2's traffic, mostly low cars at TM's gaps: +0.05 in these 3 tiny scenes; v1's held +0.1)
-    assert ab["2.2"]["large"]["all"]["ldr"] > ab["0.5"]["large"]["all"]["ldr"] + 0.03
+    # the tall LiDAR sees over the vehicle ahead: in dense traffic it hits far more vehicles than at 0.5 m
+    assert ab["2.2"]["large"]["all"]["ldr"] > ab["0.5"]["large"]["all"]["ldr"] + 0.1
     md = (out / "sweep.md").read_text()
     assert "the paper's Table IV, heights as rows" in md and "| 2.2 |" in md and "S-MIG" not in md.split("##")[0]
     # a height's counts do not depend on which other heights were swept with it

@@ -14,10 +14,7 @@ def tiny_dataset(tmp_path_factory):
     from detbench.sim.dataset import simulate_dataset
 
     root = tmp_path_factory.mktemp("data") / "sim"
-    # dense traffic: the one test scene must hold LiDAR-detected vehicles in the small range at both heights (the
-    # cross-height AP is undefined otherwise); under calibration v2's paper preset seed 3's test scene has none
-    return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=3, frames_per_scene=3, progress=False,
-                            preset="dense")
+    return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=3, frames_per_scene=3, progress=False)
 
 
 def run(args, cwd=ROOT):
