@@ -286,3 +286,40 @@ def test_an_overfull_lane_ring_drops_vehicles_instead_of_overlapping():
             gaps = np.diff(x) - 0.5 * (L[1:] + L[:-1])
             closure = x[0] + ring - x[-1] - 0.5 * (L[0] + L[-1])
             assert gaps.min() >= tr.idm.min_gap_hard - 1e-9 and closure >= tr.idm.min_gap_hard - 1e-9
+
+
+def test_ego_spawned_in_a_queue_starts_at_its_own_headway():
+    # ego_in_platoon: the ego follows the vehicle ahead like any vehicle; at follow_fraction 0.95 it nearly always
+    # does, at its own headway gap (min_gap + v T, not a platoon gap), and the ring still closes (one free gap)
+    from detbench.sim.traffic import Traffic, _leader
+    from detbench.sim.vehicles import VehicleCatalog
+
+    cfg = load_sim_config("paper", ["traffic.platoon.ego_in_platoon=true", "traffic.platoon.follow_fraction=0.95",
+                                    "traffic.ego_time_headway_s=[0.6,0.6]", "traffic.density_per_km_lane=10.0"])
+    t = cfg["traffic"]
+    layout = HighwaySimulator(cfg, 0).layout
+    ring = float(t["window_behind_m"]) + float(t["window_ahead_m"])
+    close = 0
+    for seed in range(10):
+        tr = Traffic(t, layout, VehicleCatalog(cfg["vehicles"]), np.random.default_rng(seed))
+        own = tr.own
+        j, d = _leader(0, own.lane[0], own.x, own.lane, own.lane_from, 1, tr.ring)
+        gap = d - 0.5 * (own._len[0] + own._len[j])
+        want = tr.idm.min_gap + own.v0[0] * tr.lane_factor[own.lane[0]] * 0.6
+        assert gap >= want - 1e-6
+        close += gap < want + 1.0
+        idx = np.flatnonzero(own.lane == own.lane[0])  # the ego's lane ring holds its share and no overlap
+        order = idx[np.argsort(own.x[idx])]
+        x, L = own.x[order], own._len[order]
+        assert (np.diff(x) - 0.5 * (L[1:] + L[:-1])).min() >= tr.idm.min_gap_hard
+        assert x[0] + ring - x[-1] - 0.5 * (L[0] + L[-1]) >= tr.idm.min_gap_hard
+    assert close >= 8  # it followed (at exactly its headway gap) in nearly every scene
+    # without it the ego heads a queue: the vehicle ahead is at a free gap (far more than the headway)
+    cfg = load_sim_config("paper", ["traffic.platoon.ego_in_platoon=false", "traffic.platoon.follow_fraction=0.95"])
+    far = 0
+    for seed in range(10):
+        tr = Traffic(cfg["traffic"], layout, VehicleCatalog(cfg["vehicles"]), np.random.default_rng(seed))
+        own = tr.own
+        j, d = _leader(0, own.lane[0], own.x, own.lane, own.lane_from, 1, tr.ring)
+        far += d > 40.0
+    assert far >= 8

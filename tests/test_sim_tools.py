@@ -58,3 +58,29 @@ def test_bench_sim_small_run(tmp_path, load_tool):
     assert len(rep["runs"]) == 2 and rep["runs"][0]["frames_per_s"] > 0
     assert "cast" in rep["runs"][1]["stages_ms_per_frame"]
     assert (tmp_path / "bench_sim.md").read_text().startswith("# Simulator benchmark")
+
+
+def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path, load_tool):
+    from detbench.data import read_info
+    from detbench.sim import load_sim_config
+    from detbench.sim.dataset import PREVIOUS_CALIBRATION, sim_calibration, simulate_dataset
+
+    assert load_sim_config("paper")["calibration"] == PREVIOUS_CALIBRATION == "v1"  # the default is v1
+    v2 = load_sim_config("carla-tm")["calibration"]
+    assert v2 == "v2 (issue 16)"
+    root = simulate_dataset(tmp_path / "ds", frames=4, heights=[1.0], seed=0, frames_per_scene=2, progress=False,
+                            preset="carla-tm")
+    info = read_info(root)
+    assert info.source["calibration"] == v2 and sim_calibration(info.source) == v2
+    assert info.source["config"]["traffic"]["platoon"]["ego_in_platoon"] is True
+    default = simulate_dataset(tmp_path / "ds1", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
+    assert read_info(default).source["calibration"] == "v1"
+    # a dataset.json written before the id existed (no `calibration`, a config without it) reads as v1
+    old = json.loads((root / "dataset.json").read_text())
+    del old["source"]["calibration"], old["source"]["config"]["calibration"]
+    assert sim_calibration(old["source"]) == "v1" and sim_calibration({}) == "v1" and sim_calibration(None) == "v1"
+    (root / "dataset.json").write_text(json.dumps(old))
+    out = tmp_path / "ab"
+    assert load_tool("analyze").main(["--data", str(root), "--split", "all", "--no-figures", "--no-progress",
+                                      "--bootstrap", "0", "--out", str(out)]) == 0
+    assert json.loads((out / "ability.json").read_text())["extras"]["source"]["calibration"] == "v1"

@@ -108,6 +108,7 @@ def stream_simulator(args, study: AbilityStudy) -> dict:
     lift); `--points` simulates full clouds and counts with points_in_boxes instead.
     """
     from detbench.sim import HighwaySimulator, load_sim_config
+    from detbench.sim.dataset import sim_calibration
 
     heights = args.heights or [0.5, 1.0, 1.8]
     cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
@@ -124,7 +125,8 @@ def stream_simulator(args, study: AbilityStudy) -> dict:
             study.add(frames)
         else:
             study.add(frames, counts=[f.hit_counts for f in frames])
-    return {"kind": "simulator", "preset": args.preset, "seed": args.seed, "frames": args.simulate,
+    return {"kind": "simulator", "preset": args.preset, "calibration": sim_calibration(cfg), "seed": args.seed,
+            "frames": args.simulate,
             "overrides": list(args.overrides), "frames_per_scene": fps,
             "counting": "points_in_boxes on full clouds" if args.points else "simulator hit counts (no points)",
             "heights": [height_key(h) for h in heights], "lidars": [lid.sensor.to_dict() for lid in lidars],
@@ -174,6 +176,10 @@ def stream_dataset(args, study: AbilityStudy) -> dict:
         study.add(frames)
     src = {"kind": "dataset", "root": str(args.data), "split": args.split, "heights": keys,
            "dataset_source": info.source}
+    if isinstance(info.source, dict) and info.source.get("kind") == "simulator":
+        from detbench.sim.dataset import sim_calibration
+
+        src["calibration"] = sim_calibration(info.source)  # "v1" for datasets written before the id existed
     if skipped:
         src["skipped"] = skipped
         print(f"warning: skipped {len(skipped)} frame(s) with malformed files (listed in the JSON)", file=sys.stderr)

@@ -99,7 +99,10 @@ def main(argv=None) -> int:
         raise UserError(str(e)) from None
 
     out = Path(args.out)
-    source = {"kind": "simulator", "preset": args.preset, "seed": args.seed, "overrides": list(args.overrides),
+    from detbench.sim.dataset import sim_calibration
+
+    source = {"kind": "simulator", "preset": args.preset, "calibration": sim_calibration(cfg), "seed": args.seed,
+              "overrides": list(args.overrides),
               "frames": frames, "frames_per_scene": fps, "lidars": [lid.to_dict() for lid in lidars], "config": cfg}
     t0 = time.perf_counter()
     n_points = np.zeros(len(lidars))

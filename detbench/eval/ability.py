@@ -44,6 +44,17 @@ PAPER_TABLE_IV = {  # Height3 paper, Table IV (8000 frames): total, then (detect
     "moderate": (39455, {"0.5": (26407, 0.67), "1.0": (26216, 0.66), "1.8": (32074, 0.81)}),
     "large": (54097, {"0.5": (34296, 0.63), "1.0": (34339, 0.63), "1.8": (42185, 0.78)}),
 }
+PAPER_TABLE_V = {  # Table V, "Top3" vehicles (nearest in the ego, left and right lanes), same layout
+    "small": (9949, {"0.5": (9725, 0.98), "1.0": (9730, 0.98), "1.8": (9862, 0.99)}),
+    "moderate": (13364, {"0.5": (12900, 0.97), "1.0": (12899, 0.97), "1.8": (13135, 0.98)}),
+    "large": (14522, {"0.5": (13927, 0.96), "1.0": (13925, 0.96), "1.8": (14212, 0.98)}),
+}
+PAPER_TABLE_VI = {  # Table VI, "Top6" vehicles (two nearest in each of those lanes), same layout
+    "small": (13661, {"0.5": (11923, 0.87), "1.0": (11732, 0.86), "1.8": (12838, 0.94)}),
+    "moderate": (20407, {"0.5": (17444, 0.85), "1.0": (17147, 0.84), "1.8": (18824, 0.92)}),
+    "large": (23303, {"0.5": (19543, 0.84), "1.0": (19267, 0.83), "1.8": (21135, 0.91)}),
+}
+PAPER_TABLES = {"all": PAPER_TABLE_IV, "top3": PAPER_TABLE_V, "top6": PAPER_TABLE_VI}  # by level
 DEFAULT_BOOTSTRAP = 1000  # bootstrap replicates of the scene resampling
 CELLS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)  # 9 (range, level)
 _LARGE_ALL = CELLS.index(("large", "all"))
@@ -366,6 +377,7 @@ class AbilityStudy:
             "paper_table_iv": {r: {"total": tot, "heights": {h: {"detected": d, "ldr": l} for h, (d, l) in hs.items()}}
                                for r, (tot, hs) in PAPER_TABLE_IV.items()},
         }
+        extras["decomposition"] = decomposition(self._table(0))
         extras["uncertainty"] = self.uncertainty()
         if source is not None:
             extras["source"] = source
@@ -440,6 +452,35 @@ class AbilityStudy:
                                     "ci95": interval(boot[:, b, k] - boot[:, a, k]) if ok else None}
             out["differences"][key] = cells
         return out
+
+
+# ---------------------------------------------------------------------------- decomposition
+DECOMPOSITION_PARTS = {"second": ("top6", "top3"), "beyond": ("all", "top6")}  # part: (level minus level)
+
+
+def decomposition(table: dict) -> dict:
+    """The per-lane split the paper's tables imply, from a `heights` table ({height: {range: {level:
+    {"total", "detected", "ldr"}}}}): second-in-lane = Top6 minus Top3 (the second-nearest vehicle of
+    the ego, left and right lanes), beyond-Top6 = All minus Top6 (every other vehicle of the range).
+    Returns {part: {height: {range: {"total", "detected", "ldr"}}}} (ldr NaN when the total is 0)."""
+    out = {}
+    for part, (a, b) in DECOMPOSITION_PARTS.items():
+        out[part] = {}
+        for hk, ranges in table.items():
+            out[part][hk] = {}
+            for r, cells in ranges.items():
+                tot = int(cells[a]["total"]) - int(cells[b]["total"])
+                det = int(cells[a]["detected"]) - int(cells[b]["detected"])
+                out[part][hk][r] = {"total": tot, "detected": det, "ldr": ldr(det, tot)}
+    return out
+
+
+def paper_decomposition() -> dict:
+    """`decomposition` of the paper's Tables IV-VI (8000 frames), same layout."""
+    table = {h: {r: {lv: {"total": PAPER_TABLES[lv][r][0], "detected": PAPER_TABLES[lv][r][1][h][0],
+                          "ldr": PAPER_TABLES[lv][r][1][h][1]} for lv in LEVELS} for r in RANGE_NAMES}
+             for h in ("0.5", "1.0", "1.8")}
+    return decomposition(table)
 
 
 # ---------------------------------------------------------------------------- Markdown
@@ -558,6 +599,31 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
                 vals.append("-" if dd["diff"] is None else f"{dd['diff']:+.3f} {ci(dd['ci95'])}")
             out.append(f"| {r.capitalize()} | " + " | ".join(vals) + " |")
         out.append("")
+    dec = ex.get("decomposition")
+    if dec:
+        paper_dec = paper_decomposition() if set(heights) >= {"0.5", "1.0", "1.8"} else None
+        out += ["## Per-lane decomposition (extra; from the Top3 / Top6 / All counts)", "",
+                "Second-in-lane = Top6 minus Top3: the second-nearest vehicle of each of the ego, left and right "
+                "lanes; beyond-Top6 = All minus Top6: every other vehicle of the range."
+                + (" Paper: the same differences of its Tables IV-VI." if paper_dec else ""), "",
+                "| Part | Range | Total per frame" + (" (paper)" if paper_dec else "") + " | "
+                + " | ".join(f"{h} m LDR" + (" (paper)" if paper_dec and h in ("0.5", "1.0", "1.8") else "")
+                             for h in heights) + " |",
+                "|" + "---|" * (3 + len(heights))]
+        names = {"second": "Second-in-lane", "beyond": "Beyond-Top6"}
+        n_frames = max(int(report.get("num_frames", 0)), 1)
+        for part in DECOMPOSITION_PARTS:
+            for r in RANGE_NAMES:
+                tot = dec[part][heights[0]][r]["total"] / n_frames
+                tot_txt = f"{tot:.2f}" + (f" ({paper_dec[part]['0.5'][r]['total'] / 8000:.2f})" if paper_dec else "")
+                vals = []
+                for h in heights:
+                    v = _fmt_ldr(dec[part][h][r]["ldr"])
+                    if paper_dec and h in paper_dec[part]:
+                        v += f" ({paper_dec[part][h][r]['ldr']:.2f})"
+                    vals.append(v)
+                out.append(f"| {names[part]} | {r.capitalize()} | {tot_txt} | " + " | ".join(vals) + " |")
+        out.append("")
     paper = ex.get("paper_table_iv")
     if paper and set(heights) >= {"0.5", "1.0", "1.8"}:
         out += ["## Against the paper's Table IV (8000 CARLA frames)", "",
@@ -573,6 +639,7 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
     return "\n".join(out)
 
 
-__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "stacked_masks", "frame_lanes",
+__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "decomposition", "paper_decomposition", "stacked_masks", "frame_lanes",
            "ldr", "scene_bootstrap_weights", "bootstrap_ratios", "percentile_interval",
-           "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV"]
+           "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV", "PAPER_TABLE_V", "PAPER_TABLE_VI",
+           "PAPER_TABLES"]

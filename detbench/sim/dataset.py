@@ -96,6 +96,23 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     return root
 
 
+PREVIOUS_CALIBRATION = "v1"  # the simulator's calibration before issue 16 (sim.yaml had no `calibration` key)
+
+
+def sim_calibration(info: dict) -> str:
+    """The simulator calibration a config or a dataset.json `source` was made with: its
+    `calibration` (or its config's), and "v1" (the previous one) when neither says, so datasets
+    written before the id existed read as what they are."""
+    if not isinstance(info, dict):
+        return PREVIOUS_CALIBRATION
+    if info.get("calibration"):
+        return str(info["calibration"])
+    cfg = info.get("config")
+    if isinstance(cfg, dict) and cfg.get("calibration"):
+        return str(cfg["calibration"])
+    return PREVIOUS_CALIBRATION
+
+
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
                      preset: str = "paper", overrides: Sequence[str] = (), frames_per_scene: int | None = None,
                      test_fraction: float = 1 / 3, overwrite: bool = False, progress: bool = True) -> Path:
@@ -108,7 +125,8 @@ def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[
         raise ValueError(f"frames must be >= 1, got {frames}")
     cfg = load_sim_config(preset, list(overrides))
     lidars = [lidar_preset(float(h)) for h in heights]
-    source = {"kind": "simulator", "preset": preset, "overrides": list(overrides), "seed": int(seed),
+    source = {"kind": "simulator", "preset": preset, "calibration": sim_calibration(cfg),
+              "overrides": list(overrides), "seed": int(seed),
               "frames": int(frames), "frames_per_scene": frames_per_scene, "config": cfg}
     return write_simulation(root, HighwaySimulator(cfg, seed=int(seed)), lidars, frames, source=source,
                             frames_per_scene=frames_per_scene, test_fraction=test_fraction, overwrite=overwrite,

@@ -345,6 +345,7 @@ class Traffic:
         self.free_gap_spread = float(pl["free_gap_spread"])
         self.platoon_gap = tuple(float(u) for u in pl["gap_m"])
         self.platoon_boost = float(pl["follower_speed_boost"])
+        self.ego_in_platoon = bool(pl.get("ego_in_platoon", False))
         self.ego_speed_factor = float(t["ego_speed_factor"])
         self.ego_headway = tuple(float(u) for u in t["ego_time_headway_s"])
         every = t["ego_lane_change_every_s"]
@@ -407,8 +408,8 @@ class Traffic:
             return
         p = self.follow_fraction
         items = []  # (type_name or None for the ego, shape, following)
-        if ego_shape is not None:
-            items.append((None, ego_shape, False))
+        if ego_shape is not None:  # with ego_in_platoon the ego follows the vehicle ahead like any other vehicle
+            items.append((None, ego_shape, self.ego_in_platoon and rng.random() < p))
         while len(items) < n:
             name = self._draw_type(lane)
             if name is None:
@@ -420,7 +421,13 @@ class Traffic:
         n = len(items)
         lengths = np.array([it[1].length for it in items])
         follow = np.array([it[2] for it in items])
+        if follow.all() and n > 1:  # a ring needs one free gap to close it: the ego followed, so free another one
+            follow[int(rng.integers(1, n))] = False
         gaps = np.where(follow, rng.uniform(*self.platoon_gap, size=n), 0.0)
+        if ego_shape is not None and follow[0]:
+            # the ego is spawned already following at its own headway (not stopped behind a platoon gap)
+            v_ego = cw.v0[0] * self.lane_factor[lane]
+            gaps[0] = max(gaps[0], self.idm.min_gap + v_ego * cw.T[0])
         weights = np.where(follow, 0.0, rng.uniform(1.0 - self.free_gap_spread, 1.0 + self.free_gap_spread, size=n))
         free_min = self.idm.min_gap + 0.5
         room = self.ring - lengths.sum() - gaps.sum() - free_min * (~follow).sum()
