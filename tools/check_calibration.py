@@ -90,11 +90,8 @@ def _cell_tables(pooled: dict, judged: dict | None, intervals: dict, worst_seed:
                + " | worst seed dev 0.5 / 1.0 / 1.8 | seeds within 0.5 / 1.0 / 1.8 | veh/frame here [95 %] / paper |",
                "| --- | --- | --- | --- | --- | --- | --- |"]
         for i, r in enumerate(RANGE_NAMES):
-            cells = []
-            for j in range(3):
-                ci = intervals["ldr"][i][k][j] if intervals.get("ldr") else None
-                cells.append(f"{_f(pooled['ldr'][i, k, j])} {'' if ci is None else f'[{ci[0]:.3f}, {ci[1]:.3f}]'}"
-                             f" / {paper[i, k, j]:.2f}")
+            cells = [_ldr_cell(pooled["ldr"][i, k, j], intervals["ldr"][i][k][j] if intervals.get("ldr") else None,
+                               paper[i, k, j]) for j in range(3)]
             ws = "-" if worst_seed is None else " / ".join(f"{worst_seed[i, k, j]:.3f}" for j in range(3))
             sw = "-" if judged is None else " / ".join(str(int(judged["seeds_within"][i, k, j])) for j in range(3))
             ci = intervals["vehicles_per_frame"][i][k] if intervals.get("vehicles_per_frame") else None
@@ -105,17 +102,20 @@ def _cell_tables(pooled: dict, judged: dict | None, intervals: dict, worst_seed:
     return md
 
 
+def _ldr_cell(value, ci, paper_value) -> str:
+    """'0.812 [0.790, 0.830] / 0.87': an LDR here, its 95 % interval (when given) and the paper's."""
+    return f"{_f(value)} {'' if ci is None else f'[{ci[0]:.3f}, {ci[1]:.3f}]'} / {paper_value:.2f}"
+
+
 def _decomposition_table(res: dict, intervals: dict) -> list[str]:
     paper, paper_pf = cc.paper_decomposition()
     md = ["| part | range | " + " | ".join(f"{h} m here [95 %] / paper" for h in cc.HEIGHTS)
           + " | veh/frame here / paper |", "| --- | --- | --- | --- | --- | --- |"]
     for p, part in enumerate(cc.PARTS):
         for i, r in enumerate(RANGE_NAMES):
-            cells = []
-            for j in range(3):
-                ci = intervals["decomposition_ldr"][i][p][j] if intervals.get("decomposition_ldr") else None
-                cells.append(f"{_f(res['decomposition_ldr'][i, p, j])} "
-                             f"{'' if ci is None else f'[{ci[0]:.3f}, {ci[1]:.3f}]'} / {paper[i, p, j]:.2f}")
+            cells = [_ldr_cell(res["decomposition_ldr"][i, p, j],
+                               intervals["decomposition_ldr"][i][p][j] if intervals.get("decomposition_ldr") else None,
+                               paper[i, p, j]) for j in range(3)]
             md.append(f"| {cc.PART_NAMES[part]} | {r} | " + " | ".join(cells)
                       + f" | {res['decomposition_per_frame'][i, p]:.2f} / {paper_pf[i, p]:.2f} |")
     return md + [""]
