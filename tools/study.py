@@ -198,10 +198,10 @@ def main(argv=None) -> int:
     ability_frames = 0 if args.data else int(study_cfg.get("ability_frames", 0) or 0)
     eval_device = "cpu" if args.device == "auto" else args.device
 
+    add_left_out = f"--models {' '.join(sorted(set(names) | set(left_out)))}"  # the study with them
     if left_out:
         print(f"note: the {args.preset} preset's study leaves out {', '.join(left_out)} (study.models in "
-              f"configs/presets/{args.preset}.yaml); add it with --models {' '.join(sorted(set(names) | set(left_out)))}",
-              flush=True)
+              f"configs/presets/{args.preset}.yaml); add it with {add_left_out}", flush=True)
 
     # The plan, for the progress line and its time left.
     stages: list[tuple[str, str | None]] = [("data", None), ("ability", None)]
@@ -370,8 +370,7 @@ def main(argv=None) -> int:
              *detector_summary_lines(report_dicts), "",
              *unlearned_lines(report_dicts),
              *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
-                f"configs/presets/{args.preset}.yaml, says why); add it with `--models "
-                f"{' '.join(sorted(set(names) | set(left_out)))}`.*", ""] if left_out else []),
+                f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""] if left_out else []),
              PRESET_CAVEATS.get(args.preset, ""), "",
              "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
              "`python tools/study.py --preset paper --device cuda`.", "",
