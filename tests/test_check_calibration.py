@@ -157,23 +157,23 @@ def test_tiny_run_writes_json_and_markdown(tmp_path, tool):
                 v = runs["all"]["ldr"][lv][r][h]
                 assert v is None or 0.0 <= v <= 1.0
     assert set(runs["all"]["decomposition_ldr"]) == {"second", "beyond"}
-    assert rep["preset"] == "paper" and rep["calibration"] == "v1"  # the default preset is calibration v1
+    assert rep["preset"] == "paper" and rep["calibration"] == "v2 (issue 16)"  # the default preset is calibration v2
     md = (out / "calibration.md").read_text()
     assert "| 0 | all (40) |" in md and "### Top6 (Table VI)" in md and "second-in-lane (Top6 - Top3)" in md
-    assert "(paper preset, calibration v1)" in md
+    assert "(paper preset, calibration v2 (issue 16))" in md
 
 
 def test_judges_the_preset_it_is_given(tmp_path, tool):
-    # --preset carla-tm judges calibration v2's world: its id in the report, and other traffic than the default's
+    # --preset v1 judges calibration v1's world: its id in the report, and other traffic than the default's
     runs = {}
-    for preset in ("paper", "carla-tm"):
+    for preset in ("paper", "v1"):
         out = tmp_path / preset
         assert tool.main(["--seeds", "0", "--frames", "20", "--frames-per-scene", "20", "--preset", preset,
                           "--out", str(out), "--no-progress"]) == 0
         runs[preset] = json.loads((out / "calibration.json").read_text())
-    assert runs["carla-tm"]["preset"] == "carla-tm" and runs["carla-tm"]["calibration"] == "v2 (issue 16)"
-    assert "(carla-tm preset, calibration v2 (issue 16))" in (tmp_path / "carla-tm" / "calibration.md").read_text()
-    vpf = [runs[p]["seeds"]["0"]["runs"]["all"]["vehicles_per_frame"] for p in ("paper", "carla-tm")]
+    assert runs["v1"]["preset"] == "v1" and runs["v1"]["calibration"] == "v1"
+    assert "(v1 preset, calibration v1)" in (tmp_path / "v1" / "calibration.md").read_text()
+    vpf = [runs[p]["seeds"]["0"]["runs"]["all"]["vehicles_per_frame"] for p in ("paper", "v1")]
     assert vpf[0] != vpf[1]
 
 

@@ -65,16 +65,17 @@ def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path, load_to
     from detbench.sim import load_sim_config
     from detbench.sim.dataset import PREVIOUS_CALIBRATION, sim_calibration, simulate_dataset
 
-    assert load_sim_config("paper")["calibration"] == PREVIOUS_CALIBRATION == "v1"  # the default is v1
-    v2 = load_sim_config("carla-tm")["calibration"]
-    assert v2 == "v2 (issue 16)"
-    root = simulate_dataset(tmp_path / "ds", frames=4, heights=[1.0], seed=0, frames_per_scene=2, progress=False,
-                            preset="carla-tm")
+    v2 = load_sim_config("paper")["calibration"]  # the default is v2; v1 is a preset
+    assert v2 == "v2 (issue 16)" and load_sim_config("carla-tm") == load_sim_config("paper")
+    assert load_sim_config("v1")["calibration"] == PREVIOUS_CALIBRATION == "v1"
+    root = simulate_dataset(tmp_path / "ds", frames=4, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
     info = read_info(root)
     assert info.source["calibration"] == v2 and sim_calibration(info.source) == v2
     assert info.source["config"]["traffic"]["platoon"]["ego_in_platoon"] is True
-    default = simulate_dataset(tmp_path / "ds1", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
-    assert read_info(default).source["calibration"] == "v1"
+    v1 = simulate_dataset(tmp_path / "ds1", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False,
+                          preset="v1")
+    assert read_info(v1).source["calibration"] == "v1"
+    assert read_info(v1).source["config"]["traffic"]["platoon"]["ego_in_platoon"] is False
     # a dataset.json written before the id existed (no `calibration`, a config without it) reads as v1
     old = json.loads((root / "dataset.json").read_text())
     del old["source"]["calibration"], old["source"]["config"]["calibration"]

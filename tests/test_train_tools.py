@@ -14,7 +14,9 @@ def tiny_dataset(tmp_path_factory):
     from detbench.sim.dataset import simulate_dataset
 
     root = tmp_path_factory.mktemp("data") / "sim"
-    return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=3, frames_per_scene=3, progress=False)
+    # seed 7: the test scene holds LiDAR-detected vehicles in the small range at both heights (seed 3 did on
+    # calibration v1; on v2 its test scene has none there, and the cross-height matrix has no AP@R40 to show)
+    return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=7, frames_per_scene=3, progress=False)
 
 
 def run(args, cwd=ROOT):
