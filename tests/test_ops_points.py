@@ -21,7 +21,7 @@ from detbench.ops import (
     three_nn_interpolate,
     to_canonical,
 )
-from detbench.ops import points as P
+from detbench.ops import grouping as P
 
 BACKENDS = ["numba", "torch"]
 

@@ -5,13 +5,12 @@ import numpy as np
 import pytest
 import torch
 
-from detbench.ops import ResidualBoxCoder, boxes_iou3d
+from detbench.ops import ResidualBoxCoder, boxes_iou3d, from_canonical, to_canonical
 from detbench.train.run_config import load_run_config
 from models.stages.losses import corner_loss
 from models.stages.two_stage import (
     PAD_ROI, Proposals, RefineOutput, confidence_targets, decode_refined,
-    encode_refine_targets, fold_heading, from_canonical, refine_loss, sample_proposal_targets, select_proposals,
-    to_canonical,
+    encode_refine_targets, fold_heading, refine_loss, sample_proposal_targets, select_proposals,
 )
 
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]

@@ -32,8 +32,8 @@ import numba  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from detbench.ops.points import (ball_query, farthest_point_sample, group_neighbours,  # noqa: E402
-                                 roi_point_pool, three_nn_interpolate)
+from detbench.ops import (ball_query, farthest_point_sample, group_neighbours,  # noqa: E402
+                          roi_point_pool, three_nn_interpolate)
 from detbench.sim.scans import load_scans  # noqa: E402
 from detbench.utils.bench import timed  # noqa: E402
 from detbench.utils.cli import check_out_dir, require, run_main, torch_device  # noqa: E402

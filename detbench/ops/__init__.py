@@ -28,7 +28,7 @@ from detbench.ops.iou import (
     overlap_bev_pair_nb,
 )
 from detbench.ops.nms import nms_bev
-from detbench.ops.points import (
+from detbench.ops.grouping import (
     BallQuery,
     RoIPoints,
     ball_query,

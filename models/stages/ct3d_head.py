@@ -24,7 +24,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from detbench.ops.points import cylinder_query
+from detbench.ops import cylinder_query
 
 from .two_stage import rotate_z
 

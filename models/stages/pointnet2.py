@@ -19,7 +19,7 @@ from typing import NamedTuple, Sequence
 import torch
 import torch.nn as nn
 
-from detbench.ops.points import ball_query, farthest_point_sample, group_neighbours, three_nn_interpolate
+from detbench.ops import ball_query, farthest_point_sample, group_neighbours, three_nn_interpolate
 
 from detbench.sparse import SafeBatchNorm1d
 

@@ -20,7 +20,7 @@ from typing import Sequence
 import torch
 import torch.nn as nn
 
-from detbench.ops.points import roi_point_pool
+from detbench.ops import roi_point_pool
 
 from .pointnet2 import PointLevel, SetAbstraction, SharedMLP
 

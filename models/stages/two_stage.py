@@ -31,7 +31,6 @@ import torch.nn.functional as F
 
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou3d, nms_bev, normalize_heading
-from detbench.ops.points import from_canonical, to_canonical  # noqa: F401  (re-exported: the RoI frame)
 
 from .losses import corner_loss, weighted_smooth_l1
 from .postprocess import select_detections
