@@ -1,5 +1,5 @@
 """PointRCNN (Shi, Wang and Li, "PointRCNN: 3D Object Proposal Generation and Detection from
-Point Cloud", CVPR 2019): the point-based two-stage detector, in plain torch on detbench.ops.points.
+Point Cloud", CVPR 2019): the point-based two-stage detector, in plain torch on detbench.ops' point ops.
 
 The model is the composition of shared stages, read top to bottom:
 

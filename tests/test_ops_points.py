@@ -1,4 +1,5 @@
-"""detbench.ops.points against brute-force numpy references; numba vs torch path parity."""
+"""The point operations of detbench.ops (sampling, grouping, interpolate, roi_pool) against brute-force numpy
+references; numba vs torch path parity."""
 from __future__ import annotations
 
 import math
@@ -14,14 +15,17 @@ from detbench.ops import (
     from_canonical,
     group_neighbours,
     group_points,
+    grouping,
+    interpolate,
     points_in_boxes,
     roi_point_pool,
+    roi_pool,
+    sampling,
     three_interpolate,
     three_nn,
     three_nn_interpolate,
     to_canonical,
 )
-from detbench.ops import grouping as P
 
 BACKENDS = ["numba", "torch"]
 
@@ -392,9 +396,9 @@ def test_parallel_kernels_equal_serial(monkeypatch):
     serial = [farthest_point_sample(xyz, [400, 300], cnt), ball_query(xyz, xyz[::7], 1.0, 16, cnt, [429, 357]),
               three_nn(xyz, xyz[::5], cnt, [600, 500]),
               roi_point_pool(xyz, torch.tensor([[0.0, 0, 0, 4, 4, 4, 0.3]] * 6), 32, 1.0, None, cnt, [4, 2])]
-    for name in ("PARALLEL_MIN_FPS_WORK", "PARALLEL_MIN_BALL_CANDIDATES", "PARALLEL_MIN_NN_TARGETS",
-                 "PARALLEL_MIN_ROI_TESTS"):
-        monkeypatch.setattr(P, name, 0)
+    for module, name in ((sampling, "PARALLEL_MIN_FPS_WORK"), (grouping, "PARALLEL_MIN_BALL_CANDIDATES"),
+                         (interpolate, "PARALLEL_MIN_NN_TARGETS"), (roi_pool, "PARALLEL_MIN_ROI_TESTS")):
+        monkeypatch.setattr(module, name, 0)
     parallel = [farthest_point_sample(xyz, [400, 300], cnt), ball_query(xyz, xyz[::7], 1.0, 16, cnt, [429, 357]),
                 three_nn(xyz, xyz[::5], cnt, [600, 500]),
                 roi_point_pool(xyz, torch.tensor([[0.0, 0, 0, 4, 4, 4, 0.3]] * 6), 32, 1.0, None, cnt, [4, 2])]
@@ -410,7 +414,8 @@ def test_torch_chunking_gives_same_result(monkeypatch):
             three_nn(xyz, xyz[::5], cnt, qc, backend="torch"),
             roi_point_pool(xyz, torch.tensor([[0.0, 0, 0, 2, 2, 2, 0.3]] * 5), 16, 0.5, None, cnt, [3, 2],
                            backend="torch")]
-    monkeypatch.setattr(P, "_TORCH_CHUNK_ELEMS", 64)
+    for module in (grouping, interpolate, roi_pool):
+        monkeypatch.setattr(module, "TORCH_CHUNK_ELEMS", 64)
     small = [ball_query(xyz, xyz[::5], 1.0, 8, cnt, qc, backend="torch"),
              three_nn(xyz, xyz[::5], cnt, qc, backend="torch"),
              roi_point_pool(xyz, torch.tensor([[0.0, 0, 0, 2, 2, 2, 0.3]] * 5), 16, 0.5, None, cnt, [3, 2],

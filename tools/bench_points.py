@@ -1,4 +1,4 @@
-"""Benchmark detbench.ops.points (PointNet++ / PointRCNN point operations) on 1.8 m LiDAR scans.
+"""Benchmark the PointNet++ / PointRCNN point operations of detbench.ops on 1.8 m LiDAR scans.
 
 Each scan is sampled to --points points (16384, PointRCNN's input), in scan order. Timed, in
 milliseconds (median and best of --repeats runs after one warm-up call, so numba compilation

@@ -1,9 +1,28 @@
-"""Box geometry on CPU (numba) and GPU (torch): points in boxes, rotated IoU, NMS, box coding;
-voxelization; PointNet++ / PointRCNN point operations (detbench.ops.points).
+"""Geometry on CPU (numba) and GPU (torch): boxes, voxels and the point operations of the
+point-based detectors. Import the public names from here (`from detbench.ops import ball_query`).
+
+Modules
+- box_coder: box corners, heading wrap, `ResidualBoxCoder`, `PointBinCoder`.
+- points_in_boxes: which points lie in which boxes (`points_in_boxes`, `points_in_boxes_mask`).
+- iou: exact rotated IoU in BEV and 3D; nms: rotated BEV NMS (`nms_bev`).
+- voxelize: hard and dynamic voxelization, scatter reductions.
+- Point operations (batches, indices, arithmetic and backends: point_batch):
+  - sampling: `farthest_point_sample`.
+  - grouping: `ball_query` -> `BallQuery`, `group_points`, `group_neighbours`.
+  - interpolate: `three_nn`, `three_interpolate`, `three_nn_interpolate`.
+  - roi_pool: `roi_point_pool` -> `RoIPoints`, `to_canonical`, `from_canonical`.
+  - cylinder: `cylinder_query` (CT3D).
 
 Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (docs/architecture.md, Conventions).
 numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device (the point
 operations take tensors or arrays and always return tensors).
+
+Empty slots. An op that returns a fixed number of index slots per query fills a slot that holds
+no point with `EMPTY_INDEX` (-1): `ball_query` (an empty ball), `three_nn` (a frame with fewer
+than three sources) and `roi_point_pool` (an empty RoI).
+Every real index is >= 0, so `index >= 0` marks the filled slots; `group_points` and
+`three_interpolate` gather zeros from empty slots. (`farthest_point_sample` has no empty slots:
+a small frame repeats its samples. `points_in_boxes` marks a point in no box with -1 too.)
 """
 from detbench.ops.box_coder import (
     BinTargets,
@@ -28,21 +47,12 @@ from detbench.ops.iou import (
     overlap_bev_pair_nb,
 )
 from detbench.ops.nms import nms_bev
-from detbench.ops.grouping import (
-    BallQuery,
-    RoIPoints,
-    ball_query,
-    cylinder_query,
-    farthest_point_sample,
-    from_canonical,
-    group_neighbours,
-    group_points,
-    roi_point_pool,
-    three_interpolate,
-    three_nn,
-    three_nn_interpolate,
-    to_canonical,
-)
+from detbench.ops.cylinder import cylinder_query
+from detbench.ops.grouping import BallQuery, ball_query, group_neighbours, group_points
+from detbench.ops.interpolate import three_interpolate, three_nn, three_nn_interpolate
+from detbench.ops.point_batch import EMPTY_INDEX
+from detbench.ops.roi_pool import RoIPoints, from_canonical, roi_point_pool, to_canonical
+from detbench.ops.sampling import farthest_point_sample
 from detbench.ops.voxelize import (
     HardVoxels,
     dynamic_voxelize,

@@ -1,4 +1,4 @@
-"""PointNet++ stages (Qi et al. 2017) on detbench.ops.points: sampling, set abstraction, propagation.
+"""PointNet++ stages (Qi et al. 2017) on detbench.ops' point ops: sampling, set abstraction, propagation.
 
 Point sets are batched as the ops batch them: the points of F "frames" concatenated, with a
 per-frame count. A frame is a LiDAR frame in the backbone and one RoI in PointRCNN's second

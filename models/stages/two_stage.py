@@ -11,7 +11,7 @@ functions and small modules with explicit tensors in and out:
       residual smooth-L1 and the corner loss on foreground RoIs
   decode_refined: residuals -> boxes in the ego frame
 
-Box residuals live in the RoI's canonical frame (`detbench.ops.points.to_canonical`): the ground truth is moved
+Box residuals live in the RoI's canonical frame (`detbench.ops.to_canonical`): the ground truth is moved
 so the RoI's centre is the origin and its heading is +x, then coded with the residual coder
 against a box of the RoI's size at the origin. The heading target is folded into
 [-pi/2, pi/2] (a box regressed backwards is as good as forwards for 3D IoU), and the corner
