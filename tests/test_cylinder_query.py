@@ -1,12 +1,13 @@
 """detbench.ops.cylinder_query (CT3D's points around a proposal): numba and torch give the same indices,
-which are those of a brute-force reference, on random clouds and at the extremes."""
+which are those of a brute-force reference, on random clouds and at the extremes; an empty cylinder's
+slots are EMPTY_INDEX."""
 import math
 
 import numpy as np
 import pytest
 import torch
 
-from detbench.ops import cylinder_query
+from detbench.ops import EMPTY_INDEX, cylinder_query
 
 GOLDEN = 0.6180339887498949
 
@@ -17,7 +18,7 @@ def _golden(n):
 
 def _reference(xy, keys, centres, radius, k):
     xy, keys, c, r = (np.asarray(t, dtype=np.float32) for t in (xy, keys, centres, radius))
-    index, count = np.zeros((len(c), k), np.int64), np.zeros(len(c), np.int64)
+    index, count = np.full((len(c), k), EMPTY_INDEX, np.int64), np.zeros(len(c), np.int64)
     for j in range(len(c)):
         d = c[j, :2] - xy[:, :2]
         inside = np.flatnonzero((d * d).sum(1, dtype=np.float32) <= r[j] * r[j])
@@ -54,12 +55,12 @@ def test_extremes():
         assert cnt.tolist() == [3, 0, 0]
         order = sorted([0, 1, 2], key=lambda i: float(keys[i]))
         assert idx[0].tolist() == [order[s % 3] for s in range(5)]  # cyclic repetition
-        assert idx[1].tolist() == [0] * 5 and idx[2].tolist() == [0] * 5
+        assert idx[1].tolist() == [EMPTY_INDEX] * 5 and idx[2].tolist() == [EMPTY_INDEX] * 5
         # one point, none, no centre
         i1, c1 = cylinder_query(xy[:1], keys[:1], centres[:1], radius[:1], 3, backend=backend)
         assert c1.tolist() == [1] and i1.tolist() == [[0, 0, 0]]
         i0, c0 = cylinder_query(xy[:0], keys[:0], centres, radius, 3, backend=backend)
-        assert c0.tolist() == [0, 0, 0] and i0.shape == (3, 3)
+        assert c0.tolist() == [0, 0, 0] and i0.tolist() == [[EMPTY_INDEX] * 3] * 3
         ie, ce = cylinder_query(xy, keys, centres[:0], radius[:0], 3, backend=backend)
         assert ie.shape == (0, 3) and ce.shape == (0,)
 

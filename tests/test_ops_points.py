@@ -1,5 +1,5 @@
 """The point operations of detbench.ops (sampling, grouping, interpolate, roi_pool) against brute-force numpy
-references; numba vs torch path parity."""
+references; numba vs torch path parity; the empty-slot rule of every op that has empty slots."""
 from __future__ import annotations
 
 import math
@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from detbench.ops import (
+    EMPTY_INDEX,
     ball_query,
+    cylinder_query,
     farthest_point_sample,
     from_canonical,
     group_neighbours,
@@ -422,6 +424,34 @@ def test_torch_chunking_gives_same_result(monkeypatch):
                             backend="torch")]
     for a, b in zip(full, small):
         assert all(torch.equal(x, y) for x, y in zip(a, b))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_every_empty_slot_is_EMPTY_INDEX(backend):
+    """One rule for every op with empty slots: an empty ball, a missing neighbour, an empty RoI and an
+    empty cylinder all read EMPTY_INDEX (-1), with and without any points at all."""
+    assert EMPTY_INDEX == -1
+    xyz = torch.tensor([[0.0, 0, 0], [1, 0, 0]])
+    far = torch.tensor([[50.0, 50, 0]])
+    cases = {
+        "ball_query": ball_query(xyz, far, 1.0, 4, backend=backend).index,
+        "ball_query, no points": ball_query(xyz[:0], far, 1.0, 4, backend=backend).index,
+        "three_nn": three_nn(far, xyz, backend=backend)[1][:, 2:],  # two sources: the third is missing
+        "three_nn, no sources": three_nn(far, xyz[:0], backend=backend)[1],
+        "roi_point_pool": roi_point_pool(xyz, torch.tensor([[50.0, 50, 0, 1, 1, 1, 0]]), 4, 0.5,
+                                         backend=backend).index,
+        "roi_point_pool, no points": roi_point_pool(xyz[:0], torch.tensor([[50.0, 50, 0, 1, 1, 1, 0]]), 4, 0.5,
+                                                    backend=backend).index,
+        "cylinder_query": cylinder_query(xyz, torch.tensor([0.1, 0.2]), far[:, :2], torch.ones(1), 4,
+                                         backend=backend)[0],
+        "cylinder_query, no points": cylinder_query(xyz[:0], torch.zeros(0), far[:, :2], torch.ones(1), 4,
+                                                    backend=backend)[0],
+    }
+    for what, index in cases.items():
+        assert index.dtype == torch.int64 and index.numel() and (index == EMPTY_INDEX).all(), what
+    # the consumers' side of the rule: gathering from empty slots gives zeros
+    assert not group_points(torch.ones(2, 3), cases["ball_query"]).any()
+    assert not three_interpolate(torch.ones(2, 3), cases["three_nn, no sources"], torch.ones(1, 3)).any()
 
 
 def test_numpy_inputs_and_input_errors():

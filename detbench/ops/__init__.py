@@ -19,7 +19,7 @@ operations take tensors or arrays and always return tensors).
 
 Empty slots. An op that returns a fixed number of index slots per query fills a slot that holds
 no point with `EMPTY_INDEX` (-1): `ball_query` (an empty ball), `three_nn` (a frame with fewer
-than three sources) and `roi_point_pool` (an empty RoI).
+than three sources), `roi_point_pool` (an empty RoI) and `cylinder_query` (an empty cylinder).
 Every real index is >= 0, so `index >= 0` marks the filled slots; `group_points` and
 `three_interpolate` gather zeros from empty slots. (`farthest_point_sample` has no empty slots:
 a small frame repeats its samples. `points_in_boxes` marks a point in no box with -1 too.)

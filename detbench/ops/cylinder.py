@@ -5,8 +5,8 @@ Contents
 - `cylinder_query`: per centre, a fixed number of the points of one frame within a radius in
   BEV (any z), ordered by a key per point.
 
-Backends and argument checks follow detbench.ops.point_batch; the query takes one frame per
-call and compares squared distances in the points' float type.
+Indices, backends and argument checks follow detbench.ops.point_batch; the query takes one
+frame per call and compares squared distances in the points' float type.
 """
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from detbench.ops.point_batch import pick_backend, to_tensor
+from detbench.ops.point_batch import EMPTY_INDEX, pick_backend, to_tensor
 
 __all__ = ["cylinder_query"]
 
@@ -69,6 +69,8 @@ def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pra
                         m += 1
         out_cnt[j] = m
         if m == 0:
+            for s in range(k):
+                out_idx[j, s] = EMPTY_INDEX
             continue
         for t in range(m):
             buf_key[t] = keys[buf_idx[t]]
@@ -119,7 +121,7 @@ def _cylinder_torch(xy: torch.Tensor, keys: torch.Tensor, centres: torch.Tensor,
         slot = torch.arange(k, device=xy.device)[None, :].expand(rows, k)
         index[s:s + step] = torch.gather(idx, 1, torch.remainder(slot, cnt.clamp(min=1)[:, None]))
         count[s:s + step] = cnt
-    return index * (count > 0)[:, None], count
+    return torch.where(count[:, None] > 0, index, EMPTY_INDEX), count
 
 
 def cylinder_query(xy, keys, centres, radius, num_samples: int, backend: str = "auto"
@@ -139,7 +141,8 @@ def cylinder_query(xy, keys, centres, radius, num_samples: int, backend: str = "
         backend: "auto" (numba on CPU: a BEV grid, memory linear in N + R * K; torch elsewhere:
             (R, N) distances in chunks), "numba" or "torch"; both give the same indices.
     Returns:
-        (index (R, K) int64 rows of `xy`, 0 for an empty cylinder; count (R,) int64 points inside).
+        (index (R, K) int64 rows of `xy`, EMPTY_INDEX in every slot of an empty cylinder; count (R,)
+        int64 points inside).
     """
     func = "cylinder_query"
     p, c = to_tensor(xy, func, "xy"), to_tensor(centres, func, "centres")
@@ -158,13 +161,13 @@ def cylinder_query(xy, keys, centres, radius, num_samples: int, backend: str = "
     xy2, cen = p[:, :2].to(dt), c[:, :2].to(dt)
     r2 = rad.to(dt).pow(2)
     if c.shape[0] == 0 or p.shape[0] == 0:
-        return (torch.zeros(c.shape[0], k, dtype=torch.int64, device=p.device),
+        return (torch.full((c.shape[0], k), EMPTY_INDEX, dtype=torch.int64, device=p.device),
                 torch.zeros(c.shape[0], dtype=torch.int64, device=p.device))
     if pick_backend(backend, p.device, func) == "torch":
         return _cylinder_torch(xy2, kt.to(p.device), cen, r2, k)
     a = xy2.detach().contiguous().numpy()
     b = cen.detach().contiguous().numpy()
-    index = np.zeros((c.shape[0], k), np.int64)
+    index = np.full((c.shape[0], k), EMPTY_INDEX, np.int64)
     count = np.zeros(c.shape[0], np.int64)
     _cylinder_numba(np.ascontiguousarray(a[:, 0]), np.ascontiguousarray(a[:, 1]),
                     np.ascontiguousarray(kt.detach().cpu().numpy()), np.ascontiguousarray(b[:, 0]),

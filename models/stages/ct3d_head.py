@@ -81,7 +81,8 @@ def gather_cylinder_points(points: torch.Tensor, rois: torch.Tensor, num_points:
         idx, cnt = cylinder_query(pts[:, :2].detach(), keys, rois[i, :, :2].detach(),
                                   cylinder_radius(rois[i].detach(), radius_scale), num_points)
         idx, cnt = idx.to(pts.device), cnt.to(pts.device)
-        out[i] = pts[idx] * (cnt > 0)[:, None, None].to(pts.dtype)
+        # an empty cylinder's slots are all EMPTY_INDEX: gather row 0 there, then the mask zeroes it
+        out[i] = pts[idx.clamp_min(0)] * (cnt > 0)[:, None, None].to(pts.dtype)
         count[i] = cnt
     return CylinderPoints(out, count, count == 0)
 
