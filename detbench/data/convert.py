@@ -41,8 +41,8 @@ import numpy as np
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.data.layout import (
-    FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule, assign_splits,
-    check_frame_id, check_replaceable, imageset_path, label_path, points_path,
+    DATASET_FOLDER, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
+    assign_splits, check_frame_id, imageset_path, label_path, points_path,
 )
 from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
     DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame,
@@ -50,7 +50,7 @@ from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exporte
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
-from detbench.utils.io import atomic_write_json, atomic_write_text, recover_staged, staged_folder
+from detbench.utils.io import atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder
 
 POINTS_FRAME_CHOICES = ("auto", "sensor", "ground")
 LABELS_FRAME_CHOICES = ("points", "sensor", "ground")
@@ -216,7 +216,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         if out.exists() and src.exists() and (out.resolve() == src.resolve() or out.resolve() in src.resolve().parents):
             raise ValueError(f"--out {out} holds the source folder {src} (--src {k}=...); choose another --out")
     recover_staged(out)
-    check_replaceable(out, overwrite)
+    check_replaceable(out, overwrite, DATASET_FOLDER)
     unknown = sorted(set(pitch_deg) - set(srcs))
     if unknown:
         raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")

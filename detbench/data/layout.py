@@ -24,7 +24,7 @@ from pathlib import Path
 
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
-from detbench.utils.io import read_json
+from detbench.utils.io import FolderKind, read_json
 
 FORMAT_NAME = "detbench-height3"
 FORMAT_VERSION = 1
@@ -374,27 +374,7 @@ DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "
                    "simulate_run.md", "convert_report.json", "convert_report.md")
 
 
-def check_replaceable(root: str | os.PathLike, overwrite: bool, flag: str = "--overwrite") -> None:
-    """Refuse (FileExistsError) to write a dataset over `root` unless it is new or empty, or `overwrite`
-    is set and it holds only a dataset's files (a replacement removes the whole folder)."""
-    root = Path(root)
-    if not root.exists():
-        return
-    if not root.is_dir():
-        raise FileExistsError(f"{root}: exists and is not a folder; choose another output folder")
-    entries = sorted(p.name for p in root.iterdir() if not p.name.startswith(".tmp-"))
-    if not entries:
-        return
-    if not overwrite:
-        if INFO_FILE in entries:
-            raise FileExistsError(f"{root / INFO_FILE}: a dataset already exists here; choose another output "
-                                  f"folder or pass {flag} to replace it")
-        raise FileExistsError(f"{root}: the folder is not empty and holds no dataset.json ({', '.join(entries[:5])}"
-                              f"{', ...' if len(entries) > 5 else ''}); choose an empty or new output folder, or "
-                              f"pass {flag} to replace it (an unfinished dataset)")
-    foreign = [e for e in entries if e not in DATASET_ENTRIES]
-    if foreign:
-        raise FileExistsError(f"{root}: holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, "
-                              f"which {'is' if len(foreign) == 1 else 'are'} not part of a dataset; {flag} replaces "
-                              f"the whole folder, so move {'it' if len(foreign) == 1 else 'them'} elsewhere first "
-                              f"or choose another output folder")
+# a dataset folder as a writer replaces it (`detbench.utils.io.check_replaceable`): whole, with the user's
+# own files refused, and an unfinished one (no dataset.json) replaceable too
+DATASET_FOLDER = FolderKind(name="a dataset", marker=INFO_FILE, entries=DATASET_ENTRIES, foreign="part of a dataset",
+                            unfinished="an unfinished dataset")

@@ -27,11 +27,11 @@ from tqdm import tqdm
 
 from detbench.config import shipped_defaults
 from detbench.data.frame import height_key
-from detbench.data.layout import check_replaceable
+from detbench.data.layout import DATASET_FOLDER
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
-from detbench.utils.io import pid_alive, recover_staged, staged_folder
+from detbench.utils.io import check_replaceable, pid_alive, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
@@ -75,14 +75,14 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     complete (`detbench.utils.io.staged_folder`): an interrupted or failed run leaves `root` as it
     was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
     `root` must be new or empty, or hold only a dataset's files and `overwrite` be set
-    (`check_replaceable`; FileExistsError otherwise, before anything is simulated).
+    (`detbench.utils.io.check_replaceable`; FileExistsError otherwise, before anything is simulated).
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
     """
     root = Path(root)
     heights = [float(lid.height) for lid in lidars]
     recover_staged(root)
-    check_replaceable(root, overwrite)
+    check_replaceable(root, overwrite, DATASET_FOLDER)
     with staged_folder(root) as staged:
         with DatasetWriter(staged, heights, source, test_fraction) as writer:
             stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
