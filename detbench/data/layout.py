@@ -22,6 +22,7 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.utils.io import FolderKind, read_json
@@ -96,13 +97,14 @@ class SceneRule:
     """How frame ids map to scenes when no meta file names the scene.
 
     kind "prefix": the scene is the frame id up to the last `sep` ("0003_017" -> "0003");
-    kind "block": frame ids sorted, every `frames_per_scene` consecutive ids are one scene;
+    kind "block": frame ids sorted, every `frames_per_scene` consecutive ids are one scene
+        (default: configs/default.yaml `data.frames_per_scene`);
     kind "frame": every frame is its own scene (only for data with no time structure).
     """
 
     kind: str = "prefix"
     sep: str = "_"
-    frames_per_scene: int = 200
+    frames_per_scene: int = field(default_factory=lambda: shipped_default("data.frames_per_scene"))
 
     def to_dict(self) -> dict:
         if self.kind == "prefix":
@@ -309,7 +311,7 @@ def read_info(root: str | os.PathLike) -> DatasetInfo:
 
 # --------------------------------------------------------------------------- split by scene
 
-def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[list[str], list[str]]:
+def split_scenes(scene_ids: list[str], test_fraction: float | None = None) -> tuple[list[str], list[str]]:
     """Deterministic split of scenes into (train, test), never cutting a scene.
 
     Scenes are taken in sorted order; n_test = round(S * test_fraction) (at least 1 when the
@@ -317,8 +319,10 @@ def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[li
     positions floor((i + 1) * S / n_test) - 1 for i < n_test (with 1/3 that is every third
     scene). The rule needs no seed, so adding frames to a scene never moves it across splits.
     A single scene cannot be split this way: it is returned as train only (see
-    `assign_splits` for the time-block rule used then).
+    `assign_splits` for the time-block rule used then). `test_fraction` None: configs/default.yaml
+    `data.test_fraction`.
     """
+    test_fraction = shipped_default("data.test_fraction", test_fraction)
     if not 0.0 <= test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
     scenes = sorted(set(scene_ids))
@@ -332,7 +336,7 @@ def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[li
     return train, test
 
 
-def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction: float = 1 / 3
+def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction: float | None = None
                   ) -> tuple[list[str], list[str], dict]:
     """Split frames by scene: returns (train_ids, test_ids, rule_description).
 
@@ -340,8 +344,9 @@ def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction:
     single scene and test_fraction > 0 a UserWarning is issued and the scene is cut in time
     instead: its last ceil(n * test_fraction) frames (in id order) go to test, the rest to
     train, so the two splits only touch at one boundary. The returned rule says which
-    case applied.
+    case applied. `test_fraction` None: configs/default.yaml `data.test_fraction`.
     """
+    test_fraction = shipped_default("data.test_fraction", test_fraction)
     scenes = [scene_of[f] for f in frame_ids]
     train_sc, test_sc = split_scenes(scenes, test_fraction)
     if len(train_sc) == 1 and not test_sc and test_fraction > 0 and len(frame_ids) >= 2:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from detbench.config import shipped_default
 from detbench.data.errors import DatasetError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Frame, Sensor, height_key
 from detbench.data.layout import (
@@ -57,8 +58,8 @@ class DatasetWriter:
             per height.
         source: provenance stored in dataset.json, e.g. {"kind": "simulator", "preset": "paper",
             "config": {...}, "seed": 0} or {"kind": "external", ...}.
-        test_fraction: share of scenes in the test split, in [0, 1) (default 1/3); see
-            `detbench.data.layout.split_scenes`.
+        test_fraction: share of scenes in the test split, in [0, 1) (default: configs/default.yaml
+            `data.test_fraction`); see `detbench.data.layout.split_scenes`.
         overwrite: replace a dataset already in `root` (or an unfinished one): the new one is
             built beside it and swapped in whole by `close` (`detbench.utils.io.check_replaceable`
             says which folders may be replaced).
@@ -69,9 +70,10 @@ class DatasetWriter:
     """
 
     def __init__(self, root: str | os.PathLike, heights: list[float], source: dict,
-                 test_fraction: float = 1 / 3, *, overwrite: bool = False, classes: list[str] | None = None,
+                 test_fraction: float | None = None, *, overwrite: bool = False, classes: list[str] | None = None,
                  points_ext: str = ".npy", lane_width: float | None = None):
         self.root = Path(root)
+        test_fraction = shipped_default("data.test_fraction", test_fraction)
         if not heights:
             raise ValueError("heights is empty; give at least one mounting height in metres")
         self.height_keys = [height_key(h) for h in heights]

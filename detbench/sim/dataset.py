@@ -66,7 +66,7 @@ def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default
 
 
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
-                     frames_per_scene: int | None = None, test_fraction: float = 1 / 3, overwrite: bool = False,
+                     frames_per_scene: int | None = None, test_fraction: float | None = None, overwrite: bool = False,
                      progress: bool = True, on_step: Callable[[list], None] | None = None,
                      finish: Callable[[Path], None] | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
@@ -78,6 +78,7 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     (`detbench.utils.io.check_replaceable`; FileExistsError otherwise, before anything is simulated).
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
+    `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter).
     """
     root = Path(root)
     heights = [float(lid.height) for lid in lidars]
@@ -115,7 +116,7 @@ def sim_calibration(info: dict) -> str:
 
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
                      preset: str = "paper", overrides: Sequence[str] = (), frames_per_scene: int | None = None,
-                     test_fraction: float = 1 / 3, overwrite: bool = False, progress: bool = True) -> Path:
+                     test_fraction: float | None = None, overwrite: bool = False, progress: bool = True) -> Path:
     """Simulate `frames` time steps at every height in `heights` (Table II sensors) under `root`.
 
     Returns `root`. The simulator config is `load_sim_config(preset, overrides)`; the
