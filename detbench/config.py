@@ -16,7 +16,9 @@ list, a path or null).
 The YAML files users read are the one home of the defaults: `shipped_defaults(section)` is
 a section of configs/default.yaml (data, train, augment, eval), from which the library's
 typed configs (TrainConfig, AugmentConfig, GTSamplingConfig) and the simulated dataset take
-every missing key. `CONFIG_DIR` is configs/ installed with the package (the data package
+every missing key; `shipped_default("eval.iou_threshold")` is one key, which functions that
+take None for a default (IoU and score thresholds, test_fraction, frames_per_scene) and the
+tools' argparse defaults read. `CONFIG_DIR` is configs/ installed with the package (the data package
 `detbench.configs`, see pyproject.toml) or, in a checkout, the top-level configs/.
 """
 from __future__ import annotations
@@ -114,6 +116,19 @@ def shipped_defaults(section: str) -> dict:
     """A copy of `section` (data | train | augment | eval) of configs/default.yaml: the defaults
     every run starts from, and the values a typed config takes for keys it is not given."""
     return copy.deepcopy(_shipped_defaults()[section])
+
+
+def shipped_default(dotted: str, value: Any = None) -> Any:
+    """`value` when it is given (not None), else the key `dotted` of configs/default.yaml, e.g.
+    `shipped_default("eval.iou_threshold")`: how a signature that takes None for "the default" finds it."""
+    if value is not None:
+        return value
+    node: Any = _shipped_defaults()
+    for k in dotted.split("."):
+        if not isinstance(node, Mapping) or k not in node:
+            raise KeyError(f"{dotted!r} is not a key of {CONFIG_DIR / DEFAULTS_FILE}")
+        node = node[k]
+    return copy.deepcopy(node)
 
 
 def parse_override(item: str) -> tuple[list[str], Any]:

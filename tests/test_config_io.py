@@ -153,6 +153,68 @@ def test_typed_configs_read_their_defaults_from_default_yaml():
     none = AugmentConfig.none()
     assert not (none.flip or none.rotation or none.scaling or none.gt_sampling.enabled)
 
+    # keys read one at a time: signatures take None for them and resolve here, argparse defaults too
+    from detbench.data.layout import SceneRule
+    from detbench.eval.evaluate import EVAL_DEFAULTS, evaluate
+
+    assert EVAL_DEFAULTS == shipped["eval"]
+    for dotted in RESOLVED_DEFAULTS.values():
+        section, key = dotted.split(".")
+        assert C.shipped_default(dotted) == shipped[section][key] and C.shipped_default(dotted, 0.25) == 0.25
+    assert SceneRule("block").frames_per_scene == shipped["data"]["frames_per_scene"]
+    rep = evaluate([])
+    assert (rep["iou_threshold"], rep["score_threshold"]) == \
+        (shipped["eval"]["iou_threshold"], shipped["eval"]["score_threshold"])
+    with pytest.raises(KeyError, match="eval.iou_treshold"):
+        C.shipped_default("eval.iou_treshold")
+
+
+# parameter name -> its key in configs/default.yaml; `(option, key)` of the tools' argparse defaults follow
+RESOLVED_DEFAULTS = {"iou_threshold": "eval.iou_threshold", "score_threshold": "eval.score_threshold",
+                     "test_fraction": "data.test_fraction", "frames_per_scene": "data.frames_per_scene"}
+
+
+def _literal(node) -> bool:
+    """A number written in the source: 0.7, -1, 1 / 3."""
+    import ast
+
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, (int, float)) and not isinstance(node.value, bool)
+    if isinstance(node, ast.UnaryOp):
+        return _literal(node.operand)
+    return isinstance(node, ast.BinOp) and _literal(node.left) and _literal(node.right)
+
+
+def test_no_literal_defaults_for_the_keys_of_default_yaml():
+    """The evaluator's thresholds, test_fraction and frames_per_scene have their defaults only in
+    configs/default.yaml: no function signature, dataclass field or argparse option of detbench/ or tools/
+    writes one as a number (models/ is left out: its post-processing thresholds are the detectors' own
+    model.post keys, whose home is the model YAMLs)."""
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    options = {"--" + name.replace("_", "-") for name in RESOLVED_DEFAULTS}
+    bad = []
+    for path in sorted([*(root / "detbench").rglob("*.py"), *(root / "tools").rglob("*.py")]):
+        rel = path.relative_to(root).as_posix()
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+                a = node.args
+                pairs = list(zip(a.posonlyargs + a.args, [None] * (len(a.posonlyargs + a.args) - len(a.defaults))
+                                 + a.defaults)) + list(zip(a.kwonlyargs, a.kw_defaults))
+                bad += [f"{rel}:{node.lineno}: {arg.arg}={ast.unparse(d)}" for arg, d in pairs
+                        if arg.arg in RESOLVED_DEFAULTS and d is not None and _literal(d)]
+            elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) \
+                    and node.target.id in RESOLVED_DEFAULTS and node.value is not None and _literal(node.value):
+                bad.append(f"{rel}:{node.lineno}: {node.target.id} = {ast.unparse(node.value)}")
+            elif isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "add_argument" and node.args \
+                    and isinstance(node.args[0], ast.Constant) and node.args[0].value in options:
+                bad += [f"{rel}:{node.lineno}: {node.args[0].value} default={ast.unparse(k.value)}"
+                        for k in node.keywords if k.arg == "default" and _literal(k.value)]
+    assert not bad, "literal defaults of keys whose home is configs/default.yaml (take None and use " \
+                    "detbench.config.shipped_default):\n" + "\n".join(bad)
+
 
 def test_pyproject_lists_every_package_and_ships_the_configs():
     """pyproject.toml lists its packages by hand (configs/ is mapped to detbench.configs): none may be missed."""

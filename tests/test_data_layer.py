@@ -395,6 +395,33 @@ def test_writer_refuses_overwrite_and_bad_frames(tmp_path):
         Height3Dataset(tmp_path / "x", 1.0)
 
 
+def test_writer_overwrite_replaces_the_dataset_whole(tmp_path):
+    """An overwrite leaves no file of the old dataset behind; one that stops half-way leaves the old one as it
+    was; a folder holding the user's own files is refused."""
+    root = tmp_path / "ds"
+    write_dataset(root, scenes=3, per_scene=2, seed=0)
+    old_ids = set(split_ids(root, "all"))
+    assert "0002_001" in old_ids and (root / "points" / "1.8" / "0002_001.npy").is_file()
+    (root / "simulate_run.md").write_text("a report of the old dataset")
+    with pytest.raises(RuntimeError, match="stops"), DatasetWriter(root, [1.8], {}, overwrite=True) as w:
+        w.add(make_frames(7, 0, np.random.default_rng(1), heights=(1.8,)))
+        raise RuntimeError("stops")
+    assert set(split_ids(root, "all")) == old_ids and (root / "points" / "0.5").is_dir()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ds"]  # nothing left beside it
+
+    with DatasetWriter(root, [1.8], {"kind": "new"}, overwrite=True) as w:
+        w.add(make_frames(7, 0, np.random.default_rng(1), heights=(1.8,)))
+    files = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
+    assert files == ["ImageSets/test.txt", "ImageSets/train.txt", "dataset.json", "labels/0007_000.txt",
+                     "meta/0007_000.json", "points/1.8/0007_000.npy"]
+    assert read_info(root).source == {"kind": "new"} and sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
+
+    (root / "notes.txt").write_text("mine")
+    with pytest.raises(FileExistsError, match=r"ds: holds notes\.txt, which is not part of a dataset"):
+        DatasetWriter(root, [1.8], {}, overwrite=True).open()
+    assert (root / "notes.txt").is_file() and (root / "dataset.json").is_file()
+
+
 # ----------------------------------------------------------------------------- conversion
 
 def test_convert_openpcdet_custom_sensor_frame(tmp_path, capsys):

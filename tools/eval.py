@@ -28,6 +28,7 @@ from pathlib import Path
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from detbench.config import shipped_default  # noqa: E402
 from detbench.eval.evaluate import (  # noqa: E402
     evaluate_predictions,
     format_prediction_lines,
@@ -97,11 +98,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="model name stored in the report (needed later by --combine); default: the "
                           "checkpoint's model when known, else none")
     p.add_argument("--out", type=Path, required=False, help="output folder for JSON, Markdown, CSV (and figures)")
-    p.add_argument("--iou-threshold", type=float, default=0.7,
+    p.add_argument("--iou-threshold", type=float, default=shipped_default("eval.iou_threshold"),
                    help="IoU (fraction) a prediction needs with a vehicle to count as a TP")
     p.add_argument("--iou-kind", default="3d", choices=("3d", "bev"),
                    help="main IoU: rotated 3D boxes or bird's-eye view")
-    p.add_argument("--score-threshold", type=float, default=0.1,
+    p.add_argument("--score-threshold", type=float, default=shipped_default("eval.score_threshold"),
                    help="predictions with a score below this are dropped before matching")
     p.add_argument("--bootstrap", type=int, default=1000, metavar="B",
                    help="replicates of the bootstrap over test scenes behind the 95 %% intervals of recall and "

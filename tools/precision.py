@@ -29,6 +29,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
+from detbench.config import shipped_default  # noqa: E402
 from detbench.train.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
@@ -47,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "float16 and bfloat16 on cuda)")
     ap.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     ap.add_argument("--batch-size", type=int, default=4, help="frames per forward pass (default 4)")
-    ap.add_argument("--score-threshold", type=float, default=0.1, help="detections below are dropped (default 0.1)")
+    ap.add_argument("--score-threshold", type=float, default=shipped_default("eval.score_threshold"),
+                    help="detections below are dropped (default %(default)s)")
     ap.add_argument("--match-iou", type=float, default=0.5,
                     help="BEV IoU that makes two runs' detections the same vehicle (default 0.5)")
     ap.add_argument("--out", type=Path, default=None, help="output folder")

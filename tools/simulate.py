@@ -27,7 +27,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 
 import numpy as np  # noqa: E402
 
-from detbench.config import ConfigError  # noqa: E402
+from detbench.config import ConfigError, shipped_default  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text, recover_staged  # noqa: E402
@@ -64,8 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="standard deviation of the range noise in metres for every LiDAR (default: preset's, 0)")
     ap.add_argument("--dropout", type=float, default=None, metavar="P",
                     help="probability in [0, 1] that a return is dropped, for every LiDAR (default 0)")
-    ap.add_argument("--test-fraction", type=float, default=1 / 3,
-                    help="share of scenes in the test split (default 1/3)")
+    ap.add_argument("--test-fraction", type=float, default=shipped_default("data.test_fraction"),
+                    help="share of scenes in the test split (default %(default).4g)")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace a dataset already in --out (the new one is built beside it and swapped in when "
                          "complete, so an interrupted run leaves the old one; --out must hold only a dataset's files)")

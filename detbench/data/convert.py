@@ -38,11 +38,12 @@ from pathlib import Path
 
 import numpy as np
 
+from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.data.layout import (
-    FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule, assign_splits,
-    check_frame_id, check_replaceable, imageset_path, label_path, points_path,
+    DATASET_FOLDER, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
+    assign_splits, check_frame_id, imageset_path, label_path, points_path,
 )
 from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
     DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame,
@@ -50,7 +51,7 @@ from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exporte
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
-from detbench.utils.io import atomic_write_json, atomic_write_text, recover_staged, staged_folder
+from detbench.utils.io import atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder
 
 POINTS_FRAME_CHOICES = ("auto", "sensor", "ground")
 LABELS_FRAME_CHOICES = ("points", "sensor", "ground")
@@ -178,20 +179,24 @@ def _check_label_bottoms(k: str, src: Path, sample: list[str], labels_frame: str
 def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | os.PathLike, *,
                              pitch_deg: dict[str, float] | None = None, points_frame: str = "auto",
                              labels_frame: str = "points", class_map: ClassMap | str | list | None = None,
-                             frames_per_scene: int = 200, test_fraction: float = 1 / 3, keep_split: bool = True,
-                             lane_width: float | None = None, label_tolerance: float = 0.05,
+                             frames_per_scene: int | None = None, test_fraction: float | None = None,
+                             keep_split: bool = True, lane_width: float | None = None, label_tolerance: float = 0.05,
                              frame_checks: bool = True, link: bool = False, overwrite: bool = False,
                              progress: bool = True) -> DatasetInfo:
     """Build a detbench dataset at `out` from per-height OpenPCDet custom folders.
 
-    sources: height key ("0.5") -> folder; pitch_deg: height key -> pitch in degrees
-    (positive = down; default 0); points_frame: "auto" (from the road), "sensor" or "ground";
-    labels_frame: "points" (the frame of the points), "sensor" or "ground"; class_map: see
-    `detbench.data.openpcdet.parse_class_map` (default: drop non-vehicle classes); keep_split:
-    keep the source's ImageSets (else split by scene). `frame_checks` False turns the road and
-    box-bottom refusals off. Returns the DatasetInfo written to out/dataset.json; its `source`
-    records what was found and done (frames, class counts, split, notes). See the module doc.
+    sources: height key ("0.5") -> folder; pitch_deg: height key -> pitch in degrees (positive =
+    down; default 0); points_frame: "auto" (from the road), "sensor" or "ground"; labels_frame:
+    "points" (the frame of the points), "sensor" or "ground"; class_map: see
+    `detbench.data.openpcdet.parse_class_map` (default: drop non-vehicle classes); keep_split: keep
+    the source's ImageSets (else split by scene: `test_fraction` of the scenes to test, a scene
+    being `frames_per_scene` consecutive ids; None takes configs/default.yaml `data:`).
+    `frame_checks` False turns the road and box-bottom refusals off. Returns the DatasetInfo written
+    to out/dataset.json; its `source` records what was found and done (frames, class counts, split,
+    notes). See the module doc.
     """
+    frames_per_scene = shipped_default("data.frames_per_scene", frames_per_scene)
+    test_fraction = shipped_default("data.test_fraction", test_fraction)
     if not sources:
         raise ValueError("no sources given; pass --src HEIGHT=FOLDER for each height")
     if points_frame not in POINTS_FRAME_CHOICES:
@@ -216,7 +221,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         if out.exists() and src.exists() and (out.resolve() == src.resolve() or out.resolve() in src.resolve().parents):
             raise ValueError(f"--out {out} holds the source folder {src} (--src {k}=...); choose another --out")
     recover_staged(out)
-    check_replaceable(out, overwrite)
+    check_replaceable(out, overwrite, DATASET_FOLDER)
     unknown = sorted(set(pitch_deg) - set(srcs))
     if unknown:
         raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")
@@ -402,14 +407,16 @@ def build_parser() -> argparse.ArgumentParser:
                          "drop Pedestrian, Cyclist, Person_sitting, DontCare; keep the rest), keep, vehicle (all -> "
                          "Vehicle). Repeat to combine: --class-map vehicles-only --class-map Vehicle=car. The lines "
                          "kept and dropped per class are printed")
-    ap.add_argument("--frames-per-scene", type=int, default=200,
-                    help="consecutive frame ids forming one scene (Height3: 200 frames = 100 s at 2 Hz)")
+    ap.add_argument("--frames-per-scene", type=int, default=shipped_default("data.frames_per_scene"),
+                    help="consecutive frame ids forming one scene (default %(default)s; Height3: 200 frames = 100 s "
+                         "at 2 Hz)")
     ap.add_argument("--resplit", action="store_true",
                     help="split by scene (--test-fraction) instead of keeping the source's ImageSets/train.txt and "
                          "val.txt (or test.txt), which is the default")
     ap.add_argument("--keep-split", action="store_true",
                     help="keep the source's split (the default; kept for older commands)")
-    ap.add_argument("--test-fraction", type=float, default=1 / 3, help="with --resplit: share of scenes in test")
+    ap.add_argument("--test-fraction", type=float, default=shipped_default("data.test_fraction"),
+                    help="with --resplit: share of scenes in test (default %(default).4g)")
     ap.add_argument("--lane-width", type=float, default=None,
                     help="lane width in metres used to derive lanes from y on load (default 3.5)")
     ap.add_argument("--label-tolerance", type=float, default=0.05,

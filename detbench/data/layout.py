@@ -22,9 +22,10 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
-from detbench.utils.io import read_json
+from detbench.utils.io import FolderKind, read_json
 
 FORMAT_NAME = "detbench-height3"
 FORMAT_VERSION = 1
@@ -96,13 +97,14 @@ class SceneRule:
     """How frame ids map to scenes when no meta file names the scene.
 
     kind "prefix": the scene is the frame id up to the last `sep` ("0003_017" -> "0003");
-    kind "block": frame ids sorted, every `frames_per_scene` consecutive ids are one scene;
+    kind "block": frame ids sorted, every `frames_per_scene` consecutive ids are one scene
+        (default: configs/default.yaml `data.frames_per_scene`);
     kind "frame": every frame is its own scene (only for data with no time structure).
     """
 
     kind: str = "prefix"
     sep: str = "_"
-    frames_per_scene: int = 200
+    frames_per_scene: int = field(default_factory=lambda: shipped_default("data.frames_per_scene"))
 
     def to_dict(self) -> dict:
         if self.kind == "prefix":
@@ -309,7 +311,7 @@ def read_info(root: str | os.PathLike) -> DatasetInfo:
 
 # --------------------------------------------------------------------------- split by scene
 
-def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[list[str], list[str]]:
+def split_scenes(scene_ids: list[str], test_fraction: float | None = None) -> tuple[list[str], list[str]]:
     """Deterministic split of scenes into (train, test), never cutting a scene.
 
     Scenes are taken in sorted order; n_test = round(S * test_fraction) (at least 1 when the
@@ -317,8 +319,10 @@ def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[li
     positions floor((i + 1) * S / n_test) - 1 for i < n_test (with 1/3 that is every third
     scene). The rule needs no seed, so adding frames to a scene never moves it across splits.
     A single scene cannot be split this way: it is returned as train only (see
-    `assign_splits` for the time-block rule used then).
+    `assign_splits` for the time-block rule used then). `test_fraction` None: configs/default.yaml
+    `data.test_fraction`.
     """
+    test_fraction = shipped_default("data.test_fraction", test_fraction)
     if not 0.0 <= test_fraction < 1.0:
         raise ValueError(f"test_fraction must be in [0, 1), got {test_fraction}")
     scenes = sorted(set(scene_ids))
@@ -332,7 +336,7 @@ def split_scenes(scene_ids: list[str], test_fraction: float = 1 / 3) -> tuple[li
     return train, test
 
 
-def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction: float = 1 / 3
+def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction: float | None = None
                   ) -> tuple[list[str], list[str], dict]:
     """Split frames by scene: returns (train_ids, test_ids, rule_description).
 
@@ -340,8 +344,9 @@ def assign_splits(frame_ids: list[str], scene_of: dict[str, str], test_fraction:
     single scene and test_fraction > 0 a UserWarning is issued and the scene is cut in time
     instead: its last ceil(n * test_fraction) frames (in id order) go to test, the rest to
     train, so the two splits only touch at one boundary. The returned rule says which
-    case applied.
+    case applied. `test_fraction` None: configs/default.yaml `data.test_fraction`.
     """
+    test_fraction = shipped_default("data.test_fraction", test_fraction)
     scenes = [scene_of[f] for f in frame_ids]
     train_sc, test_sc = split_scenes(scenes, test_fraction)
     if len(train_sc) == 1 and not test_sc and test_fraction > 0 and len(frame_ids) >= 2:
@@ -374,27 +379,7 @@ DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "
                    "simulate_run.md", "convert_report.json", "convert_report.md")
 
 
-def check_replaceable(root: str | os.PathLike, overwrite: bool, flag: str = "--overwrite") -> None:
-    """Refuse (FileExistsError) to write a dataset over `root` unless it is new or empty, or `overwrite`
-    is set and it holds only a dataset's files (a replacement removes the whole folder)."""
-    root = Path(root)
-    if not root.exists():
-        return
-    if not root.is_dir():
-        raise FileExistsError(f"{root}: exists and is not a folder; choose another output folder")
-    entries = sorted(p.name for p in root.iterdir() if not p.name.startswith(".tmp-"))
-    if not entries:
-        return
-    if not overwrite:
-        if INFO_FILE in entries:
-            raise FileExistsError(f"{root / INFO_FILE}: a dataset already exists here; choose another output "
-                                  f"folder or pass {flag} to replace it")
-        raise FileExistsError(f"{root}: the folder is not empty and holds no dataset.json ({', '.join(entries[:5])}"
-                              f"{', ...' if len(entries) > 5 else ''}); choose an empty or new output folder, or "
-                              f"pass {flag} to replace it (an unfinished dataset)")
-    foreign = [e for e in entries if e not in DATASET_ENTRIES]
-    if foreign:
-        raise FileExistsError(f"{root}: holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, "
-                              f"which {'is' if len(foreign) == 1 else 'are'} not part of a dataset; {flag} replaces "
-                              f"the whole folder, so move {'it' if len(foreign) == 1 else 'them'} elsewhere first "
-                              f"or choose another output folder")
+# a dataset folder as a writer replaces it (`detbench.utils.io.check_replaceable`): whole, with the user's
+# own files refused, and an unfinished one (no dataset.json) replaceable too
+DATASET_FOLDER = FolderKind(name="a dataset", marker=INFO_FILE, entries=DATASET_ENTRIES, foreign="part of a dataset",
+                            unfinished="an unfinished dataset")

@@ -40,11 +40,12 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-from detbench.data.errors import DatasetError
 from detbench.data.layout import IMAGESETS_DIR, LABELS_DIR, POINTS_DIR, POINTS_FRAMES
 from detbench.data.readers import format_labels
 from detbench.data.transforms import boxes_ground_to_sensor, ground_to_sensor, sensor_to_ground
-from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text, recover_staged, staged_folder
+from detbench.utils.io import (
+    FolderKind, atomic_save, atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder,
+)
 
 # OpenPCDet's split files: DATA_SPLIT {'train': train, 'test': val} in its custom_dataset.yaml
 OPENPCDET_SPLITS = {"train": "train", "test": "val"}  # detbench split -> OpenPCDet ImageSets name
@@ -235,37 +236,14 @@ def label_bottom_z(boxes: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- export
 
-def _check_export_dir(out: Path, overwrite: bool) -> list[str]:
-    """Refuse an `out` that an export may not replace (DatasetError); returns what a replacement removes.
-
-    `out` may be new, empty, or (with `overwrite`) an earlier export holding only the export's files
-    and what OpenPCDet's info generation adds; the export is built beside it and swapped in whole."""
-    if not out.exists():
-        return []
-    if not out.is_dir():
-        raise DatasetError("exists and is not a folder; choose another --out", path=out)
-    entries = sorted(p.name for p in out.iterdir() if not p.name.startswith(".tmp-"))
-    if not [e for e in entries if not e.startswith(".")]:
-        if entries:
-            raise DatasetError(f"holds only hidden entries ({', '.join(entries[:5])}); choose an empty or new --out",
-                               path=out)
-        return []
-    if not (out / EXPORT_MANIFEST).is_file():
-        raise DatasetError(f"the folder is not empty and holds no earlier export ({EXPORT_MANIFEST}); choose an "
-                           f"empty or new --out", path=out)
-    if not overwrite:
-        raise DatasetError("an earlier export is here; pass --overwrite to replace it (its OpenPCDet infos and "
-                           "gt_database are removed too, as they describe the old files) or choose another --out",
-                           path=out)
-    ours = (POINTS_DIR, LABELS_DIR, IMAGESETS_DIR, EXPORT_MANIFEST, EXPORT_MARKDOWN, EXPORT_YAML,
-            EXPORT_SCRIPT) + _OPENPCDET_GENERATED
-    foreign = [e for e in entries if e not in ours]
-    if foreign:
-        raise DatasetError(f"holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, not written by an "
-                           f"export or by OpenPCDet's info generation; --overwrite replaces the whole folder, so "
-                           f"move {'it' if len(foreign) == 1 else 'them'} elsewhere first or choose another --out",
-                           path=out)
-    return [str(out / e) for e in entries]
+# an export folder as `export_openpcdet` replaces it (`detbench.utils.io.check_replaceable`): only an earlier
+# export, holding the export's files and what OpenPCDet's info generation adds to it
+EXPORT_FOLDER = FolderKind(
+    name="an earlier export", marker=EXPORT_MANIFEST,
+    entries=(POINTS_DIR, LABELS_DIR, IMAGESETS_DIR, EXPORT_MANIFEST, EXPORT_MARKDOWN, EXPORT_YAML, EXPORT_SCRIPT)
+    + _OPENPCDET_GENERATED,
+    foreign="written by an export or by OpenPCDet's info generation",
+    removes="its OpenPCDet infos and gt_database are removed too, as they describe the old files")
 
 
 def _fmt_num(v: float) -> str:
@@ -428,7 +406,7 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     root, out = Path(root), Path(out)
     datasets = {s: Height3Dataset(root, height, s) for s in OPENPCDET_SPLITS}
     hk = datasets["train"].height_key
-    removed = _check_export_dir(out, overwrite)
+    removed = check_replaceable(out, overwrite, EXPORT_FOLDER, out="--out")
     recover_staged(out)
     # built beside `out` and swapped in whole when complete: a failed or killed export leaves `out` as it was
     with staged_folder(out) as dst:

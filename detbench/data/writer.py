@@ -8,24 +8,31 @@ with DatasetWriter(root, heights=[0.5, 1.0, 1.8], source={"simulator": cfg, "see
 ```
 
 Every file is written atomically (detbench.utils.io); dataset.json is written last, so a
-folder without it is an unfinished dataset and readers say so.
+folder without it is an unfinished dataset and readers say so. A new or empty folder is
+written in place; an existing dataset (replaced only with `overwrite=True`) is replaced
+whole: the new one is built beside it and swapped in when complete, so no file of the old
+dataset survives and a failed or interrupted write leaves the old one as it was.
 """
 from __future__ import annotations
 
 import os
 import warnings
+from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
+from detbench.config import shipped_default
 from detbench.data.errors import DatasetError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Frame, Sensor, height_key
 from detbench.data.layout import (
-    DEFAULT_CLASSES, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
-    assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path,
+    DATASET_FOLDER, DEFAULT_CLASSES, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo,
+    SceneRule, assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path,
 )
 from detbench.data.readers import format_labels, meta_dict
-from detbench.utils.io import atomic_save, atomic_write_json, atomic_write_text
+from detbench.utils.io import (
+    atomic_save, atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder,
+)
 
 
 def _save_npy(arr: np.ndarray):
@@ -51,11 +58,11 @@ class DatasetWriter:
             per height.
         source: provenance stored in dataset.json, e.g. {"kind": "simulator", "preset": "paper",
             "config": {...}, "seed": 0} or {"kind": "external", ...}.
-        test_fraction: share of scenes in the test split, in [0, 1) (default 1/3); see
-            `detbench.data.layout.split_scenes`.
-        overwrite: allow writing into a folder that already holds a dataset.json (it is
-            removed first; frame files of the old dataset that are not rewritten stay on disk
-            but are listed nowhere).
+        test_fraction: share of scenes in the test split, in [0, 1) (default: configs/default.yaml
+            `data.test_fraction`); see `detbench.data.layout.split_scenes`.
+        overwrite: replace a dataset already in `root` (or an unfinished one): the new one is
+            built beside it and swapped in whole by `close` (`detbench.utils.io.check_replaceable`
+            says which folders may be replaced).
         classes: allowed class names (default: car, suv, van, taxi, truck plus any new names
             seen, appended in order of appearance).
         points_ext: ".npy" (default) or ".bin" (KITTI-style raw float32).
@@ -63,9 +70,10 @@ class DatasetWriter:
     """
 
     def __init__(self, root: str | os.PathLike, heights: list[float], source: dict,
-                 test_fraction: float = 1 / 3, *, overwrite: bool = False, classes: list[str] | None = None,
+                 test_fraction: float | None = None, *, overwrite: bool = False, classes: list[str] | None = None,
                  points_ext: str = ".npy", lane_width: float | None = None):
         self.root = Path(root)
+        test_fraction = shipped_default("data.test_fraction", test_fraction)
         if not heights:
             raise ValueError("heights is empty; give at least one mounting height in metres")
         self.height_keys = [height_key(h) for h in heights]
@@ -89,6 +97,8 @@ class DatasetWriter:
         self._scene_of: dict[str, str] = {}
         self._open = False
         self._closed = False
+        self._dir = self.root  # where the files go: `root`, or the folder built beside it to replace it
+        self._stage: ExitStack | None = None  # holds the staged folder while one replaces `root`
 
     # ------------------------------------------------------------------ context manager
     def __enter__(self) -> "DatasetWriter":
@@ -98,22 +108,30 @@ class DatasetWriter:
     def __exit__(self, exc_type, exc, tb) -> None:
         if exc_type is None:
             self.close()
-        # on error nothing is finalised: without dataset.json readers report an unfinished dataset
+        else:
+            self._abandon(exc_type, exc, tb)
+
+    def _abandon(self, exc_type, exc, tb) -> None:
+        """Stop after an error: a replacement removes the folder built beside `root` (the old dataset
+        stays); a dataset written in place stays unfinished (no dataset.json, and readers say so)."""
+        if self._stage is not None:
+            stage, self._stage = self._stage, None
+            stage.__exit__(exc_type, exc, tb)
 
     def open(self) -> "DatasetWriter":
-        """Create the folders (called by `with`); refuses to overwrite unless asked."""
-        info = self.root / INFO_FILE
-        if info.exists():
-            if not self.overwrite:
-                raise FileExistsError(f"{info}: a dataset already exists here; choose another output folder "
-                                      f"or pass overwrite=True")
-            info.unlink()
-            for split in ("train", "test"):
-                imageset_path(self.root, split).unlink(missing_ok=True)
+        """Create the folders (called by `with`). A new or empty `root` is written in place; a dataset in
+        it is replaced only with `overwrite` (FileExistsError otherwise, naming the folder and the fix),
+        by a folder built beside it and swapped in by `close`."""
+        if self._open:
+            return self
+        recover_staged(self.root)
+        if check_replaceable(self.root, self.overwrite, DATASET_FOLDER, flag="overwrite=True"):
+            self._stage = ExitStack()
+            self._dir = self._stage.enter_context(staged_folder(self.root))
         for hk in self.height_keys:
-            (self.root / "points" / hk).mkdir(parents=True, exist_ok=True)
+            (self._dir / "points" / hk).mkdir(parents=True, exist_ok=True)
         for sub in ("labels", "meta", "ImageSets"):
-            (self.root / sub).mkdir(parents=True, exist_ok=True)
+            (self._dir / sub).mkdir(parents=True, exist_ok=True)
         self._open = True
         return self
 
@@ -181,10 +199,10 @@ class DatasetWriter:
         for hk in self.height_keys:
             pts = np.ascontiguousarray(by_key[hk].points, dtype=np.float32)
             saver = _save_npy(pts) if self.points_ext == ".npy" else _save_bin(pts)
-            atomic_save(points_path(self.root, hk, fid, self.points_ext), saver)
-        atomic_write_text(label_path(self.root, fid), format_labels(ref.boxes, ref.classes))
+            atomic_save(points_path(self._dir, hk, fid, self.points_ext), saver)
+        atomic_write_text(label_path(self._dir, fid), format_labels(ref.boxes, ref.classes))
         sensors = {hk: by_key[hk].sensor for hk in self.height_keys}
-        atomic_write_json(meta_path(self.root, fid), meta_dict(ref, sensors), indent=None)
+        atomic_write_json(meta_path(self._dir, fid), meta_dict(ref, sensors), indent=None)
         self._frame_ids.append(fid)
         self._scene_of[fid] = ref.scene_id
 
@@ -198,18 +216,26 @@ class DatasetWriter:
         if not self._frame_ids:
             warnings.warn(f"{self.root}: no frames were added; writing an empty dataset", UserWarning,
                           stacklevel=2)
-        train, test, rule = assign_splits(self._frame_ids, self._scene_of, self.test_fraction)
-        atomic_write_text(imageset_path(self.root, "train"), "".join(f + "\n" for f in train))
-        atomic_write_text(imageset_path(self.root, "test"), "".join(f + "\n" for f in test))
-        heights = {}
-        for hk in self.height_keys:
-            sensor = self.sensors.get(hk) or Sensor(height=float(hk))
-            heights[hk] = HeightInfo(key=hk, sensor=sensor, points_frame="ground", points_ext=self.points_ext)
-        rule = dict(rule, num_train=len(train), num_test=len(test))
-        info = DatasetInfo(heights=heights, source=self.source, classes=self.classes, split=rule, has_meta=True,
-                           lane_width=self.lane_width, scene_rule=SceneRule("prefix", "_"),
-                           num_frames=len(self._frame_ids), format=FORMAT_NAME, version=FORMAT_VERSION)
-        atomic_write_json(self.root / INFO_FILE, info.to_dict())
+        try:
+            train, test, rule = assign_splits(self._frame_ids, self._scene_of, self.test_fraction)
+            atomic_write_text(imageset_path(self._dir, "train"), "".join(f + "\n" for f in train))
+            atomic_write_text(imageset_path(self._dir, "test"), "".join(f + "\n" for f in test))
+            heights = {}
+            for hk in self.height_keys:
+                sensor = self.sensors.get(hk) or Sensor(height=float(hk))
+                heights[hk] = HeightInfo(key=hk, sensor=sensor, points_frame="ground", points_ext=self.points_ext)
+            rule = dict(rule, num_train=len(train), num_test=len(test))
+            info = DatasetInfo(heights=heights, source=self.source, classes=self.classes, split=rule, has_meta=True,
+                               lane_width=self.lane_width, scene_rule=SceneRule("prefix", "_"),
+                               num_frames=len(self._frame_ids), format=FORMAT_NAME, version=FORMAT_VERSION)
+            atomic_write_json(self._dir / INFO_FILE, info.to_dict())
+        except BaseException as e:
+            self._abandon(type(e), e, e.__traceback__)
+            raise
+        if self._stage is not None:  # the complete new dataset replaces the old one whole
+            stage, self._stage = self._stage, None
+            stage.close()  # the swap; a swap that fails removes the new folder itself
+            self._dir = self.root
         self._closed = True
         return info
 

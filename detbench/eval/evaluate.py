@@ -33,7 +33,7 @@ from typing import Any, Iterable, Mapping, NamedTuple, Sequence
 import numpy as np
 from numba import njit, prange
 
-from detbench.config import ConfigError, section_with_defaults, shipped_defaults
+from detbench.config import ConfigError, section_with_defaults, shipped_default, shipped_defaults
 from detbench.eval.ability import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.data.layout import SPLIT_CHOICES
 from detbench.data.regions import (
@@ -509,8 +509,8 @@ def extra_key(iou_kind: str, iou_threshold: float) -> str:
 
 def evaluate(
     frames: Iterable[EvalFrame],
-    iou_threshold: float = 0.7,
-    score_threshold: float = 0.1,
+    iou_threshold: float | None = None,
+    score_threshold: float | None = None,
     iou_kind: str = "3d",
     extras: bool | Sequence[tuple[str, float]] = False,
     progress: bool = False,
@@ -521,8 +521,10 @@ def evaluate(
     """Recall and AP@R40 per range and level, as in the paper's Section V.
 
     frames: EvalFrame objects (or dicts of their fields), one per frame.
-    iou_threshold: IoU (fraction) a prediction needs with a box to match it (>=, see IOU_EPS).
-    score_threshold: predictions with score < this are dropped before matching.
+    iou_threshold: IoU (fraction) a prediction needs with a box to match it (>=, see IOU_EPS);
+        None: configs/default.yaml `eval.iou_threshold` (the paper's 0.7).
+    score_threshold: predictions with score < this are dropped before matching; None:
+        `eval.score_threshold` (the paper's 0.1).
     iou_kind: "3d" (rotated 3D IoU) or "bev" (rotated bird's-eye-view IoU).
     extras: True adds report["extras"] with the variants of DEFAULT_EXTRAS other than the
         main one (3D/BEV at IoU 0.7 and 0.5); or a list of (iou_kind, iou_threshold) pairs.
@@ -542,8 +544,9 @@ def evaluate(
     "ap_r40"}}}} (+ "extras"). Counts are numbers of vehicles (tp, fp: predictions); ldr,
     recall and ap_r40 are fractions in [0, 1], None where their denominator is 0.
     """
-    iou_threshold = _check_threshold(iou_threshold, "iou_threshold", low_open=True)
-    score_threshold = float(score_threshold)
+    iou_threshold = _check_threshold(shipped_default("eval.iou_threshold", iou_threshold), "iou_threshold",
+                                     low_open=True)
+    score_threshold = float(shipped_default("eval.score_threshold", score_threshold))
     if not math.isfinite(score_threshold):
         raise ValueError(f"score_threshold must be a finite number, got {score_threshold!r}")
     if iou_kind not in IOU_KINDS:
@@ -623,8 +626,8 @@ def eval_frame_from_frame(frame, predictions: Predictions | tuple | None) -> Eva
 def evaluate_predictions(
     dataset,
     predictions_by_frame_id: Mapping[str, Predictions | tuple],
-    iou_threshold: float = 0.7,
-    score_threshold: float = 0.1,
+    iou_threshold: float | None = None,
+    score_threshold: float | None = None,
     iou_kind: str = "3d",
     extras: bool | Sequence[tuple[str, float]] = True,
     progress: bool = True,

@@ -42,6 +42,7 @@ from typing import Iterable, NamedTuple, Sequence
 
 import numpy as np
 
+from detbench.config import shipped_default
 from detbench.data.openpcdet import NON_VEHICLE_CLASSES
 from detbench.data.transforms import boxes_sensor_to_ground, ground_to_sensor, wrap_heading
 from detbench.eval.evaluate import PREDICTION_SUFFIX, Predictions
@@ -396,24 +397,26 @@ def load_predictions(path: str | Path, dataset, other_ids: Iterable[str] = (), *
 
 # --------------------------------------------------------------------------- frame-mismatch check
 
-def vertical_offset_check(dataset, predictions: dict, *, pred_frame: str = "ground", score_threshold: float = 0.1,
+def vertical_offset_check(dataset, predictions: dict, *, pred_frame: str = "ground",
+                          score_threshold: float | None = None,
                           max_distance: float = MATCH_DISTANCE_M, threshold: float = OFFSET_THRESHOLD_M,
                           min_matches: int = MIN_MATCHES) -> dict:
     """Height offset (m) between predictions and the vehicles they sit on in bird's-eye view.
 
     dataset: a `Height3Dataset` (`read_labels(fid)` gives each frame's boxes and sensor);
     predictions: {frame_id: (boxes (M, 7), scores (M,))} in the ground frame, as evaluated.
-    For every ground-truth box of a frame with predictions, the nearest prediction with
-    score >= `score_threshold` whose BEV centre lies within `max_distance` metres is its
-    match, and dz = prediction z - vehicle z. The same matches are also scored under the
-    other frame: as if the given numbers were in the other frame than `pred_frame` says (with
-    each frame's sensor height and pitch). A likely frame mismatch is reported when, over at
-    least `min_matches` matches, |median dz| > `threshold` (a constant offset), or the median
+    For every ground-truth box of a frame with predictions, the nearest prediction with score >=
+    `score_threshold` (None: the evaluator's, configs/default.yaml) whose BEV centre lies within
+    `max_distance` metres is its match, and dz = prediction z - vehicle z. The same matches are also
+    scored under the other frame: as if the given numbers were in the other frame than `pred_frame`
+    says (with each frame's sensor height and pitch). A likely frame mismatch is reported when, over
+    at least `min_matches` matches, |median dz| > `threshold` (a constant offset), or the median
     |dz| exceeds it while the other frame fits within it (a pitched sensor's offset grows with
-    distance). Returns a dict: matches, median_dz_m, dz_quartiles_m, median_abs_dz_m, the
-    other frame's median_abs residual, the parameters, likely_frame_mismatch and warning
-    (None, or the message with the flag that likely fixes it).
+    distance). Returns a dict: matches, median_dz_m, dz_quartiles_m, median_abs_dz_m, the other
+    frame's median_abs residual, the parameters, likely_frame_mismatch and warning (None, or the
+    message with the flag that likely fixes it).
     """
+    score_threshold = shipped_default("eval.score_threshold", score_threshold)
     other = "sensor" if pred_frame == "ground" else "ground"
     dz: list[float] = []
     alt: list[float] = []

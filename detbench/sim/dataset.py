@@ -27,11 +27,11 @@ from tqdm import tqdm
 
 from detbench.config import shipped_defaults
 from detbench.data.frame import height_key
-from detbench.data.layout import check_replaceable
+from detbench.data.layout import DATASET_FOLDER
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
-from detbench.utils.io import pid_alive, recover_staged, staged_folder
+from detbench.utils.io import check_replaceable, pid_alive, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
@@ -66,7 +66,7 @@ def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default
 
 
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
-                     frames_per_scene: int | None = None, test_fraction: float = 1 / 3, overwrite: bool = False,
+                     frames_per_scene: int | None = None, test_fraction: float | None = None, overwrite: bool = False,
                      progress: bool = True, on_step: Callable[[list], None] | None = None,
                      finish: Callable[[Path], None] | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
@@ -75,14 +75,15 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     complete (`detbench.utils.io.staged_folder`): an interrupted or failed run leaves `root` as it
     was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
     `root` must be new or empty, or hold only a dataset's files and `overwrite` be set
-    (`check_replaceable`; FileExistsError otherwise, before anything is simulated).
+    (`detbench.utils.io.check_replaceable`; FileExistsError otherwise, before anything is simulated).
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
+    `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter).
     """
     root = Path(root)
     heights = [float(lid.height) for lid in lidars]
     recover_staged(root)
-    check_replaceable(root, overwrite)
+    check_replaceable(root, overwrite, DATASET_FOLDER)
     with staged_folder(root) as staged:
         with DatasetWriter(staged, heights, source, test_fraction) as writer:
             stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
@@ -115,7 +116,7 @@ def sim_calibration(info: dict) -> str:
 
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
                      preset: str = "paper", overrides: Sequence[str] = (), frames_per_scene: int | None = None,
-                     test_fraction: float = 1 / 3, overwrite: bool = False, progress: bool = True) -> Path:
+                     test_fraction: float | None = None, overwrite: bool = False, progress: bool = True) -> Path:
     """Simulate `frames` time steps at every height in `heights` (Table II sensors) under `root`.
 
     Returns `root`. The simulator config is `load_sim_config(preset, overrides)`; the

@@ -16,6 +16,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from matplotlib.figure import Figure
 
+from detbench.config import shipped_default
 from detbench.ops import boxes_to_corners_bev
 from detbench.utils.io import atomic_write_json
 
@@ -23,7 +24,7 @@ __all__ = ["TrainLogger", "bev_figure", "format_epoch_summary"]
 
 
 def bev_figure(points: np.ndarray, gt_boxes: np.ndarray, pred_boxes: np.ndarray, pred_scores: np.ndarray,
-               point_cloud_range: Sequence[float], score_threshold: float = 0.1, title: str = "",
+               point_cloud_range: Sequence[float], score_threshold: float | None = None, title: str = "",
                max_points: int = 20000) -> Figure:
     """Bird's-eye view of one frame: points (grey), ground truth (green), predictions (red, with scores).
 
@@ -31,10 +32,11 @@ def bev_figure(points: np.ndarray, gt_boxes: np.ndarray, pred_boxes: np.ndarray,
         points: (N, >=2) x, y metres (at most `max_points` are drawn, evenly strided).
         gt_boxes: (M, 7); pred_boxes: (K, 7); pred_scores: (K,) in [0, 1].
         point_cloud_range: [x_min, y_min, z_min, x_max, y_max, z_max] metres; sets the axes.
-        score_threshold: predictions below it are not drawn.
+        score_threshold: predictions below it are not drawn (None: the evaluator's, configs/default.yaml).
     Returns:
         A matplotlib Figure (no pyplot state), x forward to the right, y left upwards, metres.
     """
+    score_threshold = shipped_default("eval.score_threshold", score_threshold)
     r = [float(v) for v in point_cloud_range]
     width = 12.0
     aspect = max(0.15, min(1.0, (r[4] - r[1]) / max(r[3] - r[0], 1e-6)))

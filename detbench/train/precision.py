@@ -39,6 +39,7 @@ from torch import nn
 
 from tqdm import tqdm
 
+from detbench.config import shipped_default
 from detbench.data.batch import collate
 from detbench.data.regions import RANGE_NAMES, detected_point_counts
 from detbench.eval.evaluate import EvalFrame, evaluate
@@ -131,8 +132,8 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 
 
 def box_differences(reference: dict[str, tuple[np.ndarray, np.ndarray]],
-                    other: dict[str, tuple[np.ndarray, np.ndarray]], score_threshold: float = 0.1,
-                    match_iou: float = 0.5) -> dict:
+                    other: dict[str, tuple[np.ndarray, np.ndarray]],
+                    score_threshold: float | None = None, match_iou: float = 0.5) -> dict:
     """How far `other`'s detections lie from `reference`'s, frame by frame (see the module doc for the matching).
 
     A matched pair whose headings differ by more than pi/2 is counted in "heading_flips" (the direction
@@ -142,8 +143,10 @@ def box_differences(reference: dict[str, tuple[np.ndarray, np.ndarray]],
     Returns {"matched", "unmatched_reference", "unmatched_other", "heading_flips", "max_corner_diff_m",
     "mean_corner_diff_m", "p99_corner_diff_m", "max_centre_diff_m", "max_size_diff_m", "max_heading_diff_rad"
     (after the flip, so <= pi/2), "max_score_diff", "worst_frame" (of the largest corner difference)}; the
-    figures are 0.0 when nothing matched.
+    figures are 0.0 when nothing matched. Detections below `score_threshold` (None: the evaluator's,
+    configs/default.yaml) are not compared.
     """
+    score_threshold = shipped_default("eval.score_threshold", score_threshold)
     corner, centre, size, heading, score = [], [], [], [], []
     unmatched_ref = unmatched_other = flips = 0
     worst, worst_frame = -1.0, None
@@ -212,7 +215,7 @@ def _diff(a, b):
 
 def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequence[float],
                       precisions: Sequence[str] | None = None, device: torch.device | str = "cpu",
-                      batch_size: int = 4, score_threshold: float = 0.1, iou_threshold: float = 0.7,
+                      batch_size: int = 4, score_threshold: float | None = None, iou_threshold: float | None = None,
                       match_iou: float = 0.5, progress: bool = False) -> dict:
     """Float32 against each reduced precision on the same model and frames (see the module doc).
 
@@ -222,8 +225,8 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
         point_cloud_range: the model's [x_min, y_min, z_min, x_max, y_max, z_max] (metres).
         precisions: names from PRECISIONS; default `available_precisions(device)`. float32 is always run
             first, as the reference.
-        score_threshold / iou_threshold: the evaluator's (the paper's 0.1 and 3D IoU 0.7); the score threshold
-            also selects the detections compared box by box.
+        score_threshold / iou_threshold: the evaluator's; None: configs/default.yaml `eval:` (the paper's
+            0.1 and 3D IoU 0.7); the score threshold also selects the detections compared box by box.
         match_iou: BEV IoU a reduced-precision detection needs with a float32 one to count as the same vehicle.
     Returns:
         {"reference": "float32", "device", "num_frames", "score_threshold", "iou_threshold", "match_iou",
@@ -231,6 +234,8 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
          "nonfinite_frames", "nonfinite_detections", "ap_r40": {range}, "recall": {range},
          ["ap_r40_diff": {range}, "recall_diff": {range}, "max_abs_ap_r40_diff", "boxes": box_differences]}}}
     """
+    score_threshold = shipped_default("eval.score_threshold", score_threshold)
+    iou_threshold = shipped_default("eval.iou_threshold", iou_threshold)
     device = torch.device(device)
     names = list(precisions) if precisions is not None else available_precisions(device)
     for p in names:

@@ -17,6 +17,7 @@ import shutil
 import sys
 import tempfile
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -177,6 +178,69 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 # --------------------------------------------------------------------------- folders replaced whole
+
+class FolderNotReplaceable(FileExistsError, ValueError):
+    """A writer may not replace this folder: it is a file, it holds files the writer does not own, or it
+    holds an earlier result and replacing it was not asked for. The message names the folder and the fix."""
+
+
+@dataclass(frozen=True)
+class FolderKind:
+    """What a folder holds that a writer replaces whole (`check_replaceable`).
+
+    name: one such folder, with its article ("a dataset"); marker: the file a finished one holds
+    ("dataset.json"); entries: every name it may hold (anything else belongs to the user, and a
+    replacement would delete it); foreign: how a refusal describes other names ("part of a dataset");
+    unfinished: what a folder of such entries without the marker is called ("an unfinished dataset")
+    when `overwrite` may replace it, or None when it may not; removes: said when asking for
+    `overwrite`, what a replacement removes besides the obvious.
+    """
+
+    name: str
+    marker: str
+    entries: tuple[str, ...]
+    foreign: str
+    unfinished: str | None = None
+    removes: str = ""
+
+
+def check_replaceable(dest: str | os.PathLike, overwrite: bool, kind: FolderKind, *, flag: str = "--overwrite",
+                      out: str = "output folder") -> list[str]:
+    """Refuse (`FolderNotReplaceable`) to write `kind` over `dest` unless `dest` is new or empty, or
+    `overwrite` is set and `dest` holds only `kind`'s entries (with its marker, unless `kind` allows
+    an unfinished one). Returns the entries a replacement removes (none for a new or empty folder).
+
+    The one rule for every writer that replaces a folder: the writer then builds the new folder
+    beside the old one and swaps it in whole (`staged_folder`), so nothing of the old one survives
+    and an interrupted replacement loses nothing. `flag` is how the caller's user asks to replace
+    (`--overwrite`, `overwrite=True`), `out` how the user names the folder (`--out`). Temporary
+    entries (`.tmp-*`) of interrupted writes are not counted.
+    """
+    dest = Path(dest)
+    if not dest.exists():
+        return []
+    if not dest.is_dir():
+        raise FolderNotReplaceable(f"{dest}: exists and is not a folder; choose another {out}")
+    entries = sorted(p.name for p in dest.iterdir() if not p.name.startswith(".tmp-"))
+    if not entries:
+        return []
+    listing = f"{', '.join(entries[:5])}{', ...' if len(entries) > 5 else ''}"
+    if not (dest / kind.marker).is_file() and (kind.unfinished is None or not overwrite):
+        fix = f", or pass {flag} to replace it ({kind.unfinished})" if kind.unfinished is not None else ""
+        raise FolderNotReplaceable(f"{dest}: the folder is not empty and holds no {kind.marker} ({listing}); choose "
+                                   f"an empty or new {out}{fix}")
+    if not overwrite:
+        removes = f" ({kind.removes})" if kind.removes else ""
+        raise FolderNotReplaceable(f"{dest / kind.marker}: {kind.name} already exists here; choose another {out} "
+                                   f"or pass {flag} to replace it{removes}")
+    foreign = [e for e in entries if e not in kind.entries]
+    if foreign:
+        one = len(foreign) == 1
+        raise FolderNotReplaceable(f"{dest}: holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, "
+                                   f"which {'is' if one else 'are'} not {kind.foreign}; {flag} replaces the whole "
+                                   f"folder, so move {'it' if one else 'them'} elsewhere first or choose another {out}")
+    return [str(dest / e) for e in entries]
+
 
 STAGED_NEW = ".tmp-new-"  # `.tmp-new-<name>-<pid>`: the folder being built (or, after an exchange, the old one)
 STAGED_OLD = ".tmp-old-"  # `.tmp-old-<name>-<pid>`: the old folder moved aside by a two-rename swap

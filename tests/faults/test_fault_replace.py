@@ -120,7 +120,7 @@ def test_failed_export_and_import_with_overwrite_keep_the_earlier_ones(data_copy
     # an export folder holding a foreign file, or an import over its own source, is refused
     (export / "my_notes.txt").write_text("keep me")
     code, err = _export(tool, data_copy, export, "--overwrite")
-    assert code == 2 and "holds my_notes.txt, not written by an export" in err
+    assert code == 2 and "holds my_notes.txt, which is not written by an export" in err
     code, err = tool("import_openpcdet", "--src", f"1.8={src}", "--out", src, "--overwrite", "--no-progress")
     assert code == 2 and "holds the source folder" in err
     assert (src / "points").is_dir() and (export / "my_notes.txt").is_file()
