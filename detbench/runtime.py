@@ -24,7 +24,7 @@ numba's omp layer resets OpenMP's thread count to numba's when its pool starts, 
 reads that count; so the pool is started here, at import (about 0.1 s), and the count put
 back (`_start_numba_pool`).
 
-Why, in figures: docs/architecture.md, "Thread runtimes on a shared CPU". Every default is
+Why, in figures: docs/benchmarks.md, "Thread runtimes on a shared CPU". Every default is
 set only where the variable is missing: a variable the user set (even to the same value)
 wins, and `describe` reports which values came from the user. DataLoader workers use one
 torch and one numba thread each (`worker_threads`).
@@ -82,8 +82,8 @@ def apply_defaults(environ=None) -> dict[str, str]:
         if first and "torch" in sys.modules and not {"GOMP_SPINCOUNT", "OMP_WAIT_POLICY"} & set(_user_set):
             warnings.warn(
                 "torch was imported before detbench, so torch's OpenMP runtime started without detbench's "
-                "settings: its waiting threads spin for milliseconds, which made torch ops up to 10-30x slower "
-                "when another process shared the CPU (docs/architecture.md). Import detbench before torch, or "
+                "settings: its waiting threads spin for milliseconds, which makes torch ops up to 10-30x slower "
+                "when another process shares the CPU (docs/benchmarks.md). Import detbench before torch, or "
                 "set GOMP_SPINCOUNT=3000 (or OMP_WAIT_POLICY) in the environment.", RuntimeWarning, stacklevel=4)
     return applied
 

@@ -1,4 +1,4 @@
-"""OpenPCDet's predictions into tools/eval.py (issue 20): result.pkl read safely, its text layouts, the
+"""OpenPCDet's predictions into tools/eval.py: result.pkl read safely, its text layouts, the
 prediction frame, class selection, and the frame-mismatch warning."""
 import json
 import math

@@ -1,4 +1,4 @@
-"""Datasets both ways between detbench and OpenPCDet's custom format (issue 20).
+"""Datasets both ways between detbench and OpenPCDet's custom format.
 
 The export is read here the way OpenPCDet reads a custom dataset, re-implemented from its
 documented format (docs/CUSTOM_DATASET_TUTORIAL.md) and the reading steps of
@@ -261,7 +261,8 @@ def ground_frames(n=6, seed=0, extra=()):
 
 
 def test_import_finds_ground_frame_points_and_keeps_ldr(tmp_path, capsys):
-    """Ground-frame points used to convert 'successfully' as sensor-frame ones: LDR fell from 1.0 to 0.33."""
+    """Ground-frame points are recognised as such, not converted as sensor-frame ones (which drops LDR from 1.0
+    to 0.33)."""
     frames = ground_frames()
     src = tmp_path / "src"
     write_opc_folder(src, frames, {"train": ["000000", "000001", "000003", "000004"], "val": ["000002", "000005"]})

@@ -1,4 +1,4 @@
-"""Box geometry at the extremes (issue 19.2), float32 and float64, on every path of each op.
+"""Box geometry at the extremes, float32 and float64, on every path of each op.
 
 Extremes: coordinates up to 1e4 m, 1 cm boxes, 100 m trucks, headings at and across +-pi,
 boxes touching at a corner or a face, identical boxes, zero-size boxes. Ops: rotated 3D and
@@ -17,7 +17,7 @@ The bounds each test asserts (measured values in brackets, 2 cores, this commit)
 - IoU, vectorised torch float32: <= 1e-6 [2e-7]; float64: as numba;
 - NMS keeps exactly the boxes it keeps near the origin at scale 1, at 1e4 m, for 1 cm and 100 m boxes
   and for headings written as +pi or -pi;
-- box coder encode -> decode, float32: centre <= 1e-5 m at 150 m [3e-6] (issue bar: 1 mm), <= 1 float32
+- box coder encode -> decode, float32: centre <= 1e-5 m at 150 m [3e-6] (required: 1 mm), <= 1 float32
   step of the coordinate at 1e4 m (0.98 mm) [3e-6]; size <= 2e-7 relative [1.5e-5 m on 100 m];
   heading <= 1e-6 rad [2.4e-7]; a zero size comes back as the coder's min_size (1e-5 m);
 - points in boxes: every point further than 4 float32 steps of its box-frame coordinates from a face
@@ -240,7 +240,7 @@ def test_box_coder_round_trip_at_the_extremes(sincos, dtype):
         bound = max(1e-5 if dtype == torch.float32 else 1e-12, step)
         assert err_centre <= bound, (name, err_centre, bound)
         if name == "150m" and dtype == torch.float32:
-            assert err_centre < 1e-3  # the issue's bar: below 1 mm at the far end of the range
+            assert err_centre < 1e-3  # the required bound: below 1 mm at the far end of the range
         size_err = (back[:, 3:6].double() - ref[:, 3:6]).abs()
         if name == "zero_size":
             torch.testing.assert_close(back[:, 3:6].double(), torch.full_like(size_err, coder.min_size))

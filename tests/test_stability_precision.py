@@ -1,11 +1,11 @@
-"""Inference at reduced precision against float32 (issue 19.2): detbench.train.precision and tools/precision.py.
+"""Inference at reduced precision against float32: detbench.train.precision and tools/precision.py.
 
 - `box_differences` on hand-made detections: a known shift, a heading flip, a lost detection;
 - `compare_precision` with a detector that behaves differently under autocast (boxes moved by a
   known amount, NaN in one frame's outputs): the report must show exactly that (the metric can fail);
 - a real detector (SECOND, smoke sizes, seeded random initialisation) in bfloat16 autocast on the
   CPU against float32: finite, no NaN/inf, and the bfloat16 run really computes in bfloat16;
-- sparse convolution under autocast (the fix this issue needed), forward and backward;
+- sparse convolution under autocast (features cast once, products in the autocast dtype), forward and backward;
 - float16 / bfloat16 on CUDA where it exists;
 - the tool on a checkpoint: JSON + Markdown with units.
 """

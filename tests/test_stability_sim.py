@@ -1,4 +1,4 @@
-"""The simulator at the extremes of mounting (issue 19.2): heights 0.2-3.0 m, pitches -10..+10 degrees.
+"""The simulator at the extremes of mounting: heights 0.2-3.0 m, pitches -10..+10 degrees.
 
 Every frame must be valid: no point below the road (z >= 0 exactly without range noise; with
 range noise sigma a ground return moves along its ray, so it may lie below the road by at most

@@ -1,4 +1,4 @@
-"""Numerical stability of training (issue 19.2).
+"""Numerical stability of training.
 
 1. Every registered model (smoke preset sizes, seeded random initialisation) gives a finite
    loss and finite gradients on the extreme frames: a batch of only empty frames, a frame with

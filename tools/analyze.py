@@ -179,7 +179,7 @@ def stream_dataset(args, study: AbilityStudy) -> dict:
     if isinstance(info.source, dict) and info.source.get("kind") == "simulator":
         from detbench.sim.dataset import sim_calibration
 
-        src["calibration"] = sim_calibration(info.source)  # "v1" for datasets written before the id existed
+        src["calibration"] = sim_calibration(info.source)  # "v1" for a dataset.json without the id
     if skipped:
         src["skipped"] = skipped
         print(f"warning: skipped {len(skipped)} frame(s) with malformed files (listed in the JSON)", file=sys.stderr)

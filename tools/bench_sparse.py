@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="random seed of the scan and the weights")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per case after one warm-up (default %(default)s)")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/architecture.md)")
+                    help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/benchmarks.md)")
     ap.add_argument("--load", type=int, default=0, metavar="N",
                     help="also measure every case beside N busy-loop processes started for it (and stopped "
                          "after), reported next to the idle figures with the ratio (default %(default)s: idle only)")

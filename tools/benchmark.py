@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
     ap.add_argument("--threads", type=int, default=None,
-                    help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/architecture.md)")
+                    help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/benchmarks.md)")
     ap.add_argument("--train-steps", type=int, default=0, metavar="N",
                     help="also time N training steps after one untimed step (default 0: none)")
     ap.add_argument("--train-batch", type=int, default=2, metavar="B",

@@ -3,7 +3,7 @@
 
 For each seed, streams `--frames` frames of the simulator (hit counts only, as
 `tools/analyze.py --simulate` does) at the paper's three heights and checks, on each whole
-run and each block of `--block-frames` consecutive frames, the criteria of issue 16:
+run and each block of `--block-frames` consecutive frames, these criteria:
   1. each of the 27 (range x level x height) LDRs within +-`--tolerance` of the paper;
   2. vehicles per frame of every range and level within +-`--total-tolerance` (relative);
   3. the second-in-lane LDR (Top6 minus Top3: the second-nearest vehicle of the ego, left and
@@ -11,7 +11,7 @@ run and each block of `--block-frames` consecutive frames, the criteria of issue
   4. 1.8 m above both lower heights in every cell;
   5. 0.5 m and 1.0 m within `--pair-tolerance` of each other in every cell.
 The beyond-Top6 LDRs (All minus Top6) are reported beside the paper's, not judged.
-Over the seeds, the issue's bar (`verdict`): every cell within the tolerance for all seeds
+Over the seeds, the calibration bar (`verdict`): every cell within the tolerance for all seeds
 but `--allowed-misses`, the pooled LDRs within +-`--pooled-tolerance`, and criteria 2-5 on
 the pooled counts. The pooled LDRs, decomposition and per-frame totals carry 95 % intervals
 from a bootstrap over scenes.
@@ -23,8 +23,8 @@ The statistics live in detbench/eval/calibration.py; this tool runs the simulato
 the arguments and writes the report.
 
 Examples:
-  python tools/check_calibration.py --seeds 0 1 2 3 4 5   # the issue's check: six seeds, 8000 frames each
-  python tools/check_calibration.py --preset v1            # the previous calibration (the default is v2)
+  python tools/check_calibration.py --seeds 0 1 2 3 4 5   # the full check: six seeds, 8000 frames each
+  python tools/check_calibration.py --preset v1            # calibration v1 (the default is v2)
   python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 0
   python tools/check_calibration.py --set traffic.density_per_km_lane=10 --strict
 
@@ -127,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
                                              "decomposition, per seed, per block of frames and pooled.",
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4, 5],
-                    help="simulator seeds (default 0 1 2 3 4 5, the issue's six)")
+                    help="simulator seeds (default 0 1 2 3 4 5: six seeds of 8000 frames judge a calibration)")
     ap.add_argument("--frames", type=int, default=8000, help="frames per seed (default 8000, the paper's)")
     ap.add_argument("--block-frames", type=int, default=0,
                     help="also check each block of this many consecutive frames (default 0 = no blocks); "
@@ -145,7 +145,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--pair-tolerance", type=float, default=0.03,
                     help="allowed |LDR(0.5 m) - LDR(1.0 m)| in each cell (default 0.03)")
     ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default paper, calibration v2; "
-                         "v1 is the previous calibration); the report names the preset's calibration")
+                         "v1 is calibration v1); the report names the preset's calibration")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable")
     ap.add_argument("--out", default="runs/check_calibration", help="output folder for the JSON and Markdown")

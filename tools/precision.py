@@ -7,7 +7,7 @@ per precision: AP@R40 and recall per range (3D IoU 0.7, level All) and their dif
 float32, the largest difference between the boxes the two runs give for the same vehicle
 (corner displacement, centre, size, heading, score), detections found by only one run, the
 NaN / inf values in the raw outputs, and seconds per frame. The computation is
-`detbench.train.precision.compare_precision` (docs/architecture.md, "Numerical stability").
+`detbench.train.precision.compare_precision` (docs/results.md, "Numerical stability and inference at reduced precision").
 
 Examples:
   python tools/precision.py --ckpt runs/second_h1.8/checkpoints/epoch_020.pt

@@ -26,7 +26,7 @@ The criteria on one study (`check_counts`):
   4. 1.8 m above both lower heights in every (range, level);
   5. 0.5 m and 1.0 m within pair_tolerance of each other in every (range, level).
 The beyond-Top6 LDRs and per-frame counts are reported beside the paper's but not judged.
-Across seeds (`judge_seeds`), the issue's bar: every cell within +-tolerance for all seeds
+Across seeds (`judge_seeds`), the calibration bar: every cell within +-tolerance for all seeds
 but `allowed_misses`, the pooled LDRs within +-pooled_tolerance, and criteria 2-5 on the
 pooled counts. `precision` and `block_pass_rate` tell how precise a study of n scenes is.
 LDR = detected / total (a fraction).
@@ -213,7 +213,7 @@ def bootstrap_intervals(scenes: np.ndarray, frames_per_scene: float, replicates:
 # ---------------------------------------------------------------------------- across seeds
 def judge_seeds(seed_results: dict, pooled: dict, tolerance: float = 0.05, pooled_tolerance: float = 0.03,
                 allowed_misses: int = 1) -> dict:
-    """The issue's bar over several seeds' whole runs (`check_counts` results) and their pooled counts.
+    """The calibration bar over several seeds' whole runs (`check_counts` results) and their pooled counts.
 
     cells: each of the 27 cells within +-tolerance for all but `allowed_misses` seeds
     (`seeds_within`: how many were, per cell) and pooled within +-pooled_tolerance;

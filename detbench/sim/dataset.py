@@ -97,20 +97,27 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     return root
 
 
-PREVIOUS_CALIBRATION = "v1"  # the simulator's calibration before issue 16 (sim.yaml had no `calibration` key)
+PREVIOUS_CALIBRATION = "v1"  # what a config or dataset.json without a `calibration` key was made with
+
+
+def calibration_id(label: str) -> str:
+    """The calibration id of a label: its first word ("v2"). Some datasets carry the id followed by a note in
+    parentheses ("v2 (...)"); they read as the bare id, so every dataset of one calibration compares equal."""
+    text = str(label).strip()
+    return text.split(" (", 1)[0].strip() or text
 
 
 def sim_calibration(info: dict) -> str:
     """The simulator calibration a config or a dataset.json `source` was made with: its
-    `calibration` (or its config's), and "v1" (the previous one) when neither says, so datasets
-    written before the id existed read as what they are."""
+    `calibration` (or its config's) as a bare id (`calibration_id`), and "v1" when neither says,
+    since a simulator config without the key is calibration v1's."""
     if not isinstance(info, dict):
         return PREVIOUS_CALIBRATION
     if info.get("calibration"):
-        return str(info["calibration"])
+        return calibration_id(info["calibration"])
     cfg = info.get("config")
     if isinstance(cfg, dict) and cfg.get("calibration"):
-        return str(cfg["calibration"])
+        return calibration_id(cfg["calibration"])
     return PREVIOUS_CALIBRATION
 
 

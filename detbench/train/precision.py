@@ -1,4 +1,4 @@
-"""Inference at reduced precision against float32 on the same checkpoint (issue 19.2).
+"""Inference at reduced precision against float32 on the same checkpoint.
 
 `compare_precision(model, frames, point_cloud_range)` runs a detector over frames once in
 float32 and once per reduced precision (bfloat16 autocast on the CPU; float16 and bfloat16

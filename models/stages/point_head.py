@@ -4,7 +4,7 @@
   box enlarged by `extra_width` (0.2 m per side, the published value) but outside the box are
   ignored by the segmentation loss (their label is unsure: a box edge, a mirror); the rest is
   background. A foreground point's box target is the box it lies in.
-- Box coding, chosen by `box_coding` (docs/architecture.md says which the presets use and why):
+- Box coding, chosen by `box_coding` (the presets use bins; docs/results.md, "PointRCNN", has the runs behind that):
   - `residual`: against a box of the mean vehicle size centred on the point (OpenPCDet's
     PointResidualCoder with mean sizes): centre offsets divided by the mean BEV diagonal (z by
     the mean height), log size ratios, heading as (cos, sin); smooth-L1 on all 8 values.

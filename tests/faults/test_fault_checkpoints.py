@@ -14,7 +14,7 @@ def eval_argv(ckpt, out):
 
 
 def test_nan_weights_are_refused_naming_the_tensor(trained_run, tool, tmp_path):
-    """Issue 17.5: NaN weights evaluated to recall 0 with exit 0, like an untrained model."""
+    """NaN weights are a user error naming the tensor, not an evaluation with recall 0 and exit 0."""
     ckpt = load_checkpoint_dict(trained_run / "checkpoints" / "epoch_002.pt")
     name = next(k for k, v in ckpt["model"].items() if v.is_floating_point() and v.numel() > 1)
     ckpt["model"][name].view(-1)[1] = float("nan")
@@ -42,7 +42,7 @@ def test_non_finite_outputs_are_reported_not_dropped(trained_run):
 
 def test_non_finite_loss_stops_training_naming_the_frames(fault_data, tool, tmp_path):
     """lr 1e12 breaks the weights at the first step: every later step is skipped and logged with its frames, and
-    the fifth in a row (train.max_nonfinite_steps) stops the run naming the newest checkpoint (issue 19)."""
+    the fifth in a row (train.max_nonfinite_steps) stops the run naming the newest checkpoint."""
     out = tmp_path / "run"
     code, err = tool("train", *train_argv(fault_data, out, "--set", "train.lr=1e12", "--set", "train.grad_clip=0",
                                           "--set", "train.epochs=3", "--set", "train.eval_every=10"))
@@ -59,7 +59,7 @@ def test_non_finite_loss_stops_training_naming_the_frames(fault_data, tool, tmp_
     ("empty", "the file is empty or cut short"),
 ])
 def test_damaged_checkpoint_is_refused(kind, named, trained_run, tool, tmp_path):
-    """Issue 17.9: random bytes were reported as 'holds Python objects'."""
+    """A truncated, random or empty checkpoint is named as unreadable, not as one that holds Python objects."""
     good = (trained_run / "checkpoints" / "epoch_002.pt").read_bytes()
     data = {"truncated": good[:len(good) // 2], "random": os.urandom(4096), "empty": b""}[kind]
     bad = tmp_path / "epoch_002.pt"
@@ -98,7 +98,7 @@ def _assert_same_run(run, reference):
 
 
 def test_kill_during_evaluation_then_resume(trained_run, fault_data, tmp_path):
-    """kill -9 while epoch 1 is evaluated (after its checkpoint): its history line survives (issue 17.8) and
+    """kill -9 while epoch 1 is evaluated (after its checkpoint): its history line survives and
     --resume ends bit-identical to the uninterrupted run."""
     run = tmp_path / "run"
     proc, marker = stalling_trainer(tmp_path, "eval", train_argv(fault_data, run))

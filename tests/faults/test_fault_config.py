@@ -21,8 +21,8 @@ from faultkit import snapshot, train_argv
     ("train.epoch=3", "unknown config key 'train.epoch'; did you mean 'epochs'?"),
 ])
 def test_bad_config_value_is_refused_naming_the_key(override, named, tool, fault_data, tmp_path):
-    """Issue 17.4 and 17.7: values were read wrongly (2.7 epochs trained 2, 'maybe' read as true), gave
-    TypeError tracebacks, or were checked only after the first epoch."""
+    """A value of the wrong kind or range (2.7 epochs, 'maybe' for a switch) is refused before training starts,
+    naming the key: never read as something else, never a TypeError traceback."""
     out = tmp_path / "run"
     code, err = tool("train", *train_argv(fault_data, out, "--set", override))
     assert code == 2 and named in err, err
@@ -41,7 +41,7 @@ def test_config_file_values_and_encoding_are_checked(tool, fault_data, tmp_path)
 
 
 def test_bad_test_frame_stops_training_before_it_starts(data_copy, tool, tmp_path):
-    """Issue 17.4: a bad frame of the test split surfaced only after the first epoch (a traceback)."""
+    """A bad frame of the test split stops training before its first step, named, with no checkpoint written."""
     test_id = (data_copy / "ImageSets" / "test.txt").read_text().split()[-1]
     bad = data_copy / "points" / "1.8" / f"{test_id}.npy"
     bad.write_bytes(bad.read_bytes()[:100])
@@ -52,7 +52,7 @@ def test_bad_test_frame_stops_training_before_it_starts(data_copy, tool, tmp_pat
 
 
 def test_refused_start_and_resume_change_no_file(trained_run, fault_data, tool):
-    """Issue 17.2: a refused run overwrote the run's config.yaml."""
+    """A refused start or resume changes no file of the run (config.yaml included)."""
     before = snapshot(trained_run)
     code, err = tool("train", *train_argv(fault_data, trained_run, "--model", "pillarnet"))
     assert code == 2 and f"{trained_run / 'checkpoints'} already holds checkpoints" in err and "--resume" in err

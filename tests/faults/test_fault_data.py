@@ -9,7 +9,7 @@ from faultkit import snapshot
 
 
 def test_empty_points_file_is_named_by_every_reader(data_copy, tool, tmp_path):
-    """Issue 17.1: a 0-byte points file (an interrupted copy) raised EOFError everywhere."""
+    """A 0-byte points file (an interrupted copy) is named by validate and analyze, and --skip-bad skips it."""
     bad = data_copy / "points" / "1.8" / "0000_001.npy"
     bad.write_bytes(b"")
     before = snapshot(data_copy)
@@ -67,8 +67,8 @@ def test_missing_points_file_is_named(data_copy, tool, tmp_path):
 
 
 def test_stale_ground_truth_database_is_rebuilt(data_copy):
-    """Issue 17.3: re-simulating into the same folder, or editing labels in place, must not reuse the old
-    vehicles of ROOT/gt_database."""
+    """Re-simulating into the same folder, or editing labels in place, does not reuse the old vehicles of
+    ROOT/gt_database."""
     from detbench.data.augment import AugmentConfig
     from detbench.sim.dataset import simulate_dataset
     from detbench.train import TrainingSet
@@ -95,7 +95,7 @@ def test_stale_ground_truth_database_is_rebuilt(data_copy):
 
 @pytest.mark.parametrize("seed", [2**63, 2**64, 2**128])
 def test_big_seeds_give_their_own_data_and_are_recorded(seed, tmp_path):
-    """Issue 17.6: seeds 2^63, 2^64 and 2^128 gave seed 0's data."""
+    """Seeds 2^63, 2^64 and 2^128 give their own data, not seed 0's, and the dataset records them."""
     from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
     from detbench.sim.dataset import simulate_dataset
 

@@ -1,4 +1,4 @@
-"""A full disk while training, simulating or writing a report (issue 17.8): a real full file system
+"""A full disk while training, simulating or writing a report: a real full file system
 (a small tmpfs mounted in a user and mount namespace, `unshare -rm`, where the system allows it; no root
 needed) and a small file-size limit (RLIMIT_FSIZE, errno EFBIG) in a subprocess. The error says what
 could not be written and why; no temporary or partial file is left; earlier files are intact."""

@@ -1,4 +1,4 @@
-"""Numerical faults (issue 17.9): huge angles, NaN boxes, impossible heights."""
+"""Numerical faults: huge angles, NaN boxes, impossible heights."""
 import math
 
 import numpy as np

@@ -91,7 +91,7 @@ def _export(tool, data, out, *extra):
 
 
 def test_failed_export_and_import_with_overwrite_keep_the_earlier_ones(data_copy, tool, tmp_path):
-    """Both used to delete (export) or overwrite in place (import) before a bad frame stopped them."""
+    """A bad frame stops export and import with --overwrite before the existing folder is deleted or overwritten."""
     export = tmp_path / "opc"
     assert _export(tool, data_copy, export)[0] == 0
     imported = tmp_path / "imported"
