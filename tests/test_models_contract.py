@@ -96,3 +96,19 @@ def test_two_stage_models_declare_the_output_stage_switch(name):
         model.set_output_stage("refined")
         with pytest.raises(ValueError, match="'refined' or 'proposals'"):
             model.set_output_stage("rpn")
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_model_config_is_named_by_its_file_and_declares_its_width_keys(name):
+    """configs/<name>.yaml configures the registered `name` (written nowhere else) and lists the keys of its
+    model: section that hold channel widths, each present in every preset's config."""
+    from detbench.config import get
+    from detbench.train.run_config import preset_names, width_keys
+
+    keys = width_keys(name)
+    assert keys, f"configs/{name}.yaml: width_keys is empty, so the trade study has no width knob for {name}"
+    for preset in [None, *preset_names()]:
+        cfg = load_run_config(name, preset)
+        assert cfg["model"]["name"] == name and "width_keys" not in cfg
+        missing = [k for k in keys if get(cfg["model"], k) is None]
+        assert not missing, f"{name} ({preset or 'no'} preset): width_keys {missing} not in its model: section"
