@@ -107,6 +107,29 @@ def load_config(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:
     return deep_merge(merged, data)
 
 
+def model_name_of(path: str | Path) -> str | None:
+    """The detector a config file configures, or None when it names none.
+
+    A model's registered name is written once: as the file name of its config,
+    configs/<name>.yaml (any top-level file of CONFIG_DIR with a `model:` section). A config
+    elsewhere (a user's file, a run's saved config.yaml) names its detector with `model.name`
+    or inherits it from a base; of the files `load_config` merges, the last that names one wins.
+    """
+    path = resolve_config_path(path)
+    data = _read_yaml(path)
+    model = data.get("model")
+    if isinstance(model, Mapping) and model.get("name"):
+        return str(model["name"])
+    if isinstance(model, Mapping) and path.parent == CONFIG_DIR.resolve():
+        return path.stem
+    bases = data.get("_base_", [])
+    for b in reversed([bases] if isinstance(bases, str) else bases):
+        name = model_name_of(resolve_config_path(b, path.parent))
+        if name:
+            return name
+    return None
+
+
 @functools.lru_cache(maxsize=1)
 def _shipped_defaults() -> dict:
     return load_config(CONFIG_DIR / DEFAULTS_FILE)

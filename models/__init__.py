@@ -1,16 +1,19 @@
 """Detectors, one file each, built from the shared stages in models/stages.
 
 `REGISTRY` maps a model name to its class; `build_model(name, model_cfg)` builds one from
-the `model:` section of its config (configs/<name>.yaml). Every class follows the detector
-contract `detbench.train.detector.Detector` (forward, loss, predict, STAGES and
-`prepare_config(model_cfg, train_boxes) -> model_cfg`, which fills data-derived values:
-SECOND sizes its anchors from the training boxes); tests/test_models_contract.py checks
-each registered model. tools/train.py calls `prepare_model_config` once before building,
+the `model:` section of its config, configs/<name>.yaml (the key and that file's name are
+the only places a model's name is written: the run config's `model.name` comes from the
+file). Every class follows the detector contract `detbench.train.detector.Detector`
+(forward, loss, predict, STAGES and `prepare_config(model_cfg, train_boxes) -> model_cfg`,
+which fills data-derived values: SECOND sizes its anchors from the training boxes); the
+two-stage ones also `TwoStageDetector` (set_output_stage). tests/test_models_contract.py
+checks each registered model. tools/train.py calls `prepare_model_config` once before building,
 and the result is stored in the checkpoint so evaluation rebuilds the same model.
 """
 from __future__ import annotations
 
 import difflib
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch.nn as nn
@@ -20,7 +23,10 @@ from .pillarnet import PillarNet
 from .pointrcnn import PointRCNN
 from .second import SECOND
 
-REGISTRY: dict[str, type[nn.Module]] = {
+if TYPE_CHECKING:  # detbench.train loads the whole training stack: imported for the annotations only
+    from detbench.train.detector import Detector
+
+REGISTRY: dict[str, type[Detector]] = {
     "second": SECOND,
     "pillarnet": PillarNet,
     "ct3d": CT3D,
@@ -28,7 +34,7 @@ REGISTRY: dict[str, type[nn.Module]] = {
 }
 
 
-def get_model_class(name: str) -> type[nn.Module]:
+def get_model_class(name: str) -> type[Detector]:
     if name not in REGISTRY:
         close = difflib.get_close_matches(name, list(REGISTRY), n=1)
         hint = f"; did you mean {close[0]!r}?" if close else ""
@@ -42,6 +48,7 @@ def prepare_model_config(name: str, model_cfg: dict, train_boxes: np.ndarray) ->
 
 
 def build_model(name: str, model_cfg: dict) -> nn.Module:
+    """The registered detector `name` (an `nn.Module` following `Detector`) built from `model_cfg`."""
     return get_model_class(name)(model_cfg)
 
 

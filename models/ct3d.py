@@ -1,7 +1,8 @@
 """CT3D-style two-stage detector (Sheng et al., "Improving 3D Object Detection with
 Channel-wise Transformer", ICCV 2021): SECOND's proposals refined by a channel-wise transformer.
 
-The model is SECOND (the class itself: no second copy of its stages) with a second stage:
+The model is SECOND's network (`SECONDStages`, its modules registered under SECOND's names,
+so a SECOND checkpoint initialises them) with a second stage:
 
   points --SECOND (vfe, backbone3d, to_bev, backbone2d, head)--> anchor scores and boxes
   --select_proposals (NMS; train / test budgets)--> RoIs (B, R, 7)
@@ -17,21 +18,21 @@ jointly from the first step, as the published configuration.
 """
 from __future__ import annotations
 
-import copy
 from typing import NamedTuple
 
 import numpy as np
 import torch
+import torch.nn as nn
 
 from detbench.data.batch import Batch, Detections
 from detbench.ops import ResidualBoxCoder
 
-from .second import SECOND
+from .second import SECOND, SECONDStages
 from .stages import AnchorHeadOutput
 from .stages.ct3d_head import CT3DRoIHead
 from .stages.two_stage import (
-    TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
-    rois_for_refinement,
+    TARGET_KEYS, OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets,
+    refine_loss, require_keys, rois_for_refinement,
 )
 
 ROI_HEAD_KEYS = ("num_points", "radius_scale", "hidden_dim", "heads", "enc_layers", "dim_feedforward", "dropout",
@@ -44,12 +45,14 @@ class TwoStageOutput(NamedTuple):
     refine: RefineOutput  # the second stage on the RoIs
 
 
-class CT3D(SECOND):
-    name = "ct3d"
+class CT3D(OutputStageSwitch, nn.Module):
     STAGES = {**SECOND.STAGES, "roi_head": ["roi_head", "refine"]}
 
     def __init__(self, cfg: dict):
-        super().__init__(cfg)
+        super().__init__()
+        self.cfg = cfg
+        self.rpn = SECONDStages(cfg)  # the first stage; its modules are this model's children
+        self.rpn.attach(self)
         rh = require_keys(cfg.get("roi_head"), ROI_HEAD_KEYS, "ct3d model.roi_head")
         self.rh = rh
         self.proposal_cfg = proposal_budgets(rh["proposals"], "ct3d model.roi_head.proposals")
@@ -61,21 +64,15 @@ class CT3D(SECOND):
                                     mlp_hidden=rh["mlp_hidden"], max_pool_skip=rh["max_pool_skip"])
         self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
         self.coder = ResidualBoxCoder()
-        self.output_stage = "refined"
 
     @staticmethod
     def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
-        return SECOND.prepare_config(copy.deepcopy(model_cfg), train_boxes)
-
-    def set_output_stage(self, stage: str) -> None:
-        """'refined' (default): the second stage's boxes; 'proposals': the first stage's detections."""
-        if stage not in ("refined", "proposals"):
-            raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
-        self.output_stage = stage
+        """SECOND's: `head.anchor_sizes: auto` resolved from the training boxes (N, 7)."""
+        return SECOND.prepare_config(model_cfg, train_boxes)
 
     def forward(self, batch: Batch) -> TwoStageOutput:
-        rpn = super().forward(batch)
-        boxes, scores = self.head.decode(rpn)
+        rpn = self.rpn(batch)
+        boxes, scores = self.rpn.head.decode(rpn)
         r = rois_for_refinement(boxes, scores, None, batch.gt_boxes, batch.gt_mask, self.proposal_cfg,
                                 self.target_cfg, self.training)
         cls, reg = self.refine(self.roi_head(batch.points, r.rois))
@@ -83,11 +80,11 @@ class CT3D(SECOND):
 
     def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
         w = self.loss_weights
-        rpn_total, rpn_parts = super().loss(out.rpn, batch)
+        rpn_total, rpn_parts = self.rpn.loss(out.rpn, batch)
         rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w)
         return w["rpn"] * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
 
     def predict(self, out: TwoStageOutput, batch: Batch) -> list[Detections]:
         if self.output_stage == "proposals":
-            return super().predict(out.rpn, batch)
-        return predict_refined(out.refine, self.coder, self.head.post)
+            return self.rpn.predict(out.rpn)
+        return predict_refined(out.refine, self.coder, self.rpn.head.post)

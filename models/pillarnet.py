@@ -42,7 +42,6 @@ class PillarNet(nn.Module):
     Stages: `vfe` (pillar encoder), `backbone` (sparse ResNet), `neck`, `head`.
     """
 
-    name = "pillarnet"
     # top-level children per stage, for tools/benchmark.py's latency split
     STAGES = {"voxelize": ["vfe"], "backbone": ["backbone"], "neck": ["neck"], "head": ["head"]}
 

@@ -36,9 +36,11 @@ from .stages.pointnet2 import PointNet2MSG, sample_frame_points
 from .stages.pointrcnn_head import PointRCNNRoIHead
 from .stages.postprocess import select_detections
 from .stages.two_stage import (
-    TARGET_KEYS, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets, refine_loss, require_keys,
-    rois_for_refinement,
+    TARGET_KEYS, OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets,
+    refine_loss, require_keys, rois_for_refinement,
 )
+
+POINT_HEAD_KEYS = ("cls_fc", "reg_fc", "extra_width", "mean_size", "box_coding", "bin", "loss_weights")
 
 
 class PointRCNNOutput(NamedTuple):
@@ -49,24 +51,23 @@ class PointRCNNOutput(NamedTuple):
     refine: RefineOutput  # the second stage on the RoIs
 
 
-class PointRCNN(nn.Module):
-    name = "pointrcnn"
+class PointRCNN(OutputStageSwitch, nn.Module):
     STAGES = {"backbone": ["backbone"], "point_head": ["point_head"], "roi_head": ["roi_head", "refine"]}
 
     def __init__(self, cfg: dict):
         super().__init__()
         self.cfg = cfg
-        s, bb, ph, rh = cfg["sampling"], cfg["backbone"], cfg["point_head"], cfg["roi_head"]
+        s, bb, rh = cfg["sampling"], cfg["backbone"], cfg["roi_head"]
+        ph = require_keys(cfg["point_head"], POINT_HEAD_KEYS, "pointrcnn model.point_head")
         self.num_points, self.far_threshold = int(s["num_points"]), float(s["far_threshold"])
         if isinstance(ph["mean_size"], str):
             raise ValueError("PointRCNN: point_head.mean_size is still 'auto'; resolve it from the training data "
                              "(tools/train.py does) or give [length, width, height] in metres")
         npoints = [None if v in (None, -1) else int(v) for v in bb["npoints"]]
         self.backbone = PointNet2MSG(1, npoints, bb["radii"], bb["nsamples"], bb["mlps"], bb["fp_mlps"])
-        # checkpoints written before box_coding existed used the residual coding
         self.point_head = PointHead(self.backbone.out_channels, ph["cls_fc"], ph["reg_fc"], ph["mean_size"],
-                                    ph["extra_width"], box_coding=ph.get("box_coding", "residual"),
-                                    bin_cfg=ph.get("bin"), loss_weights=ph.get("loss_weights"))
+                                    extra_width=ph["extra_width"], box_coding=ph["box_coding"], bin_cfg=ph["bin"],
+                                    loss_weights=ph["loss_weights"])
         self.proposal_cfg = proposal_budgets(rh["proposals"], "pointrcnn model.roi_head.proposals")
         self.target_cfg = require_keys(rh["targets"], TARGET_KEYS, "pointrcnn model.roi_head.targets")
         sa_np = [None if v in (None, -1) else int(v) for v in rh["sa_npoints"]]
@@ -78,7 +79,6 @@ class PointRCNN(nn.Module):
         self.loss_weights = require_keys(rh["loss_weights"], ("rcnn_cls", "rcnn_reg", "rcnn_corner"),
                                          "pointrcnn model.roi_head.loss_weights")
         self.post = dict(cfg["post"])
-        self.output_stage = "refined"
 
     @staticmethod
     def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
@@ -92,12 +92,6 @@ class PointRCNN(nn.Module):
                              "vehicles to size it from; give point_head.mean_size explicitly")
         cfg["point_head"]["mean_size"] = [round(float(v), 3) for v in sizes.mean(axis=0)]
         return cfg
-
-    def set_output_stage(self, stage: str) -> None:
-        """'refined' (default): the second stage's boxes; 'proposals': the first stage's boxes."""
-        if stage not in ("refined", "proposals"):
-            raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
-        self.output_stage = stage
 
     def forward(self, batch: Batch) -> PointRCNNOutput:
         b, n = batch.batch_size, self.num_points

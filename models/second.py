@@ -6,6 +6,9 @@ The model is the composition of shared stages, read top to bottom:
   --HeightCompression--> BEV (B, C*D, H, W) --BEVBackbone--> BEV features
   --AnchorHead--> class / box / direction logits --> loss | Detections
 
+`SECONDStages` holds that chain; `SECOND` is the detector made of it alone, and CT3D uses
+it as its first stage.
+
 Configuration: configs/second.yaml (`model:` section). Anchor sizes come from the data
 (`anchor_sizes: auto` is resolved by tools/train.py from the training split before the
 model is built, and the resolved sizes are stored in the checkpoint's config).
@@ -23,14 +26,17 @@ from detbench.data.batch import Batch, Detections
 from .stages import AnchorHead, AnchorHeadOutput, BEVBackbone, HeightCompression, MeanVFE, SparseBackbone8x, VoxelGrid
 
 
-class SECOND(nn.Module):
-    name = "second"
-    # top-level children per stage, for tools/benchmark.py's latency split
-    STAGES = {"voxelize": ["vfe"], "backbone3d": ["backbone3d"], "bev": ["to_bev", "backbone2d"], "head": ["head"]}
+class SECONDStages:
+    """SECOND's network: its stage modules and the forward / loss / predict that chain them.
+
+    A plain holder, not an `nn.Module`: the detector that uses it registers its modules under
+    `MODULES`' names (`attach`), so SECOND and a model with SECOND as its first stage (CT3D)
+    name their weights alike and a SECOND checkpoint initialises that first stage.
+    """
+
+    MODULES = ("vfe", "backbone3d", "to_bev", "backbone2d", "head")  # in build order
 
     def __init__(self, cfg: dict):
-        super().__init__()
-        self.cfg = cfg
         self.grid = VoxelGrid(tuple(cfg["point_cloud_range"]), tuple(cfg["voxel_size"]))
         b3, b2, head = cfg["backbone3d"], cfg["backbone2d"], cfg["head"]
         self.vfe = MeanVFE(self.grid)
@@ -49,6 +55,34 @@ class SECOND(nn.Module):
                              "(tools/train.py does) or give [[length, width, height], ...] in metres")
         self.head = AnchorHead(self.backbone2d.out_channels, self.grid, stride, sizes,
                                head["rotations"], head["pos_iou"], head["neg_iou"], post=cfg["post"])
+
+    def attach(self, owner: nn.Module) -> None:
+        """Register the stage modules as top-level children of `owner`, named as in `MODULES`."""
+        for name in self.MODULES:
+            owner.add_module(name, getattr(self, name))
+
+    def __call__(self, batch: Batch) -> AnchorHeadOutput:
+        voxels = self.vfe(batch.points, batch.batch_size)
+        sparse = self.backbone3d(voxels)
+        bev = self.backbone2d(self.to_bev(sparse))
+        return self.head(bev)
+
+    def loss(self, out: AnchorHeadOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
+        return self.head.loss(out, batch.gt_boxes, batch.gt_mask)
+
+    def predict(self, out: AnchorHeadOutput) -> list[Detections]:
+        return self.head.predict(out)
+
+
+class SECOND(nn.Module):
+    # top-level children per stage, for tools/benchmark.py's latency split
+    STAGES = {"voxelize": ["vfe"], "backbone3d": ["backbone3d"], "bev": ["to_bev", "backbone2d"], "head": ["head"]}
+
+    def __init__(self, cfg: dict):
+        super().__init__()
+        self.cfg = cfg
+        self.net = SECONDStages(cfg)
+        self.net.attach(self)
 
     @staticmethod
     def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
@@ -77,16 +111,13 @@ class SECOND(nn.Module):
         return cfg
 
     def forward(self, batch: Batch) -> AnchorHeadOutput:
-        voxels = self.vfe(batch.points, batch.batch_size)
-        sparse = self.backbone3d(voxels)
-        bev = self.backbone2d(self.to_bev(sparse))
-        return self.head(bev)
+        return self.net(batch)
 
     def loss(self, out: AnchorHeadOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
-        return self.head.loss(out, batch.gt_boxes, batch.gt_mask)
+        return self.net.loss(out, batch)
 
     def predict(self, out: AnchorHeadOutput, batch: Batch) -> list[Detections]:
-        return self.head.predict(out)
+        return self.net.predict(out)
 
 
 def _prod(xs) -> int:

@@ -262,3 +262,19 @@ def test_wheel_ships_the_configs_and_every_module(tmp_path):
     assert len(configs) > 5 and configs <= names, sorted(configs - names)
     modules = {p.relative_to(root).as_posix() for top in ("detbench", "models") for p in (root / top).rglob("*.py")}
     assert modules <= names, sorted(modules - names)
+
+
+def test_a_config_names_its_detector_by_file_name_base_or_model_name(tmp_path):
+    from detbench.train.run_config import load_run_config, width_keys
+
+    assert C.model_name_of("ct3d.yaml") == "ct3d" and C.model_name_of("default.yaml") is None
+    write(tmp_path / "mine.yaml", "_base_: ct3d.yaml\ntrain:\n  lr: 0.001\n")
+    cfg = load_run_config(config=tmp_path / "mine.yaml")
+    assert cfg["model"]["name"] == "ct3d" and list(cfg["model"])[0] == "name" and cfg["train"]["lr"] == 0.001
+    write(tmp_path / "named.yaml", "_base_: second.yaml\nmodel:\n  name: other\n")
+    assert load_run_config(config=tmp_path / "named.yaml")["model"]["name"] == "other"
+    write(tmp_path / "none.yaml", "model:\n  voxel_size: [0.1, 0.1, 0.1]\n")
+    with pytest.raises(C.ConfigError, match="names no detector"):
+        load_run_config(config=tmp_path / "none.yaml")
+    with pytest.raises(C.ConfigError, match="width_keys"):
+        width_keys("default")

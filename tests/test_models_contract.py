@@ -13,7 +13,7 @@ import torch
 
 import models
 from detbench.data.batch import Batch, Detections, Sample, collate
-from detbench.train.detector import Detector
+from detbench.train.detector import Detector, TwoStageDetector
 from detbench.train.run_config import load_run_config
 
 CAR = np.array([20.0, 1.0, 0.8, 4.5, 1.9, 1.6, 0.3], np.float32)  # metres, radians
@@ -83,3 +83,32 @@ def test_model_follows_the_contract(name):
         assert d.boxes.shape == (k, 7) and d.scores.shape == (k,) and d.labels.shape == (k,)
         assert d.boxes.dtype == torch.float32 and d.scores.dtype == torch.float32 and d.labels.dtype == torch.int64
         assert bool(((d.scores >= 0) & (d.scores <= 1)).all())
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_two_stage_models_declare_the_output_stage_switch(name):
+    """The models with a proposal and a refinement stage follow `TwoStageDetector` (tools/eval.py --stage);
+    the others do not claim to."""
+    model = smoke_model(name)
+    assert isinstance(model, TwoStageDetector) == (name in ("ct3d", "pointrcnn")), name
+    if isinstance(model, TwoStageDetector):
+        model.set_output_stage("proposals")
+        model.set_output_stage("refined")
+        with pytest.raises(ValueError, match="'refined' or 'proposals'"):
+            model.set_output_stage("rpn")
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_model_config_is_named_by_its_file_and_declares_its_width_keys(name):
+    """configs/<name>.yaml configures the registered `name` (written nowhere else) and lists the keys of its
+    model: section that hold channel widths, each present in every preset's config."""
+    from detbench.config import get
+    from detbench.train.run_config import preset_names, width_keys
+
+    keys = width_keys(name)
+    assert keys, f"configs/{name}.yaml: width_keys is empty, so the trade study has no width knob for {name}"
+    for preset in [None, *preset_names()]:
+        cfg = load_run_config(name, preset)
+        assert cfg["model"]["name"] == name and "width_keys" not in cfg
+        missing = [k for k in keys if get(cfg["model"], k) is None]
+        assert not missing, f"{name} ({preset or 'no'} preset): width_keys {missing} not in its model: section"

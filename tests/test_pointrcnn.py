@@ -12,6 +12,13 @@ from test_second import batch_of, box_points
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
 
 
+def point_head_args(box_coding: str) -> dict:
+    """PointHead's configured values (configs/pointrcnn.yaml) with the given box coding."""
+    ph = load_run_config("pointrcnn", "paper")["model"]["point_head"]
+    return {"extra_width": ph["extra_width"], "loss_weights": ph["loss_weights"], "bin_cfg": ph["bin"],
+            "box_coding": box_coding}
+
+
 def tiny_cfg():
     cfg = load_run_config("pointrcnn", "smoke")["model"]
     cfg["sampling"]["num_points"] = 256
@@ -28,7 +35,7 @@ def test_point_targets_on_a_hand_made_scene():
     t = point_targets(xyz, valid, torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool), extra_width=0.2)
     assert t.labels.tolist() == [[1, -1, 0, -1]]
     assert torch.allclose(t.boxes[0, 0], torch.tensor(CAR)) and not t.boxes[0, 2].any()
-    none = point_targets(xyz, valid, torch.zeros(1, 0, 7), torch.zeros(1, 0, dtype=torch.bool))
+    none = point_targets(xyz, valid, torch.zeros(1, 0, 7), torch.zeros(1, 0, dtype=torch.bool), extra_width=0.2)
     assert none.labels.tolist() == [[0, 0, 0, -1]]
 
 
@@ -240,7 +247,7 @@ def test_bin_coder_edges_and_clamping():
 def test_bin_coding_point_head_losses_are_finite_and_learnable():
     from models.stages.point_head import PointHead, PointHeadOutput, PointTargets
     torch.manual_seed(0)
-    head = PointHead(16, [32], [32], [4.5, 1.9, 1.6], box_coding="bin")
+    head = PointHead(16, [32], [32], [4.5, 1.9, 1.6], **point_head_args("bin"))
     assert head.code_size == head.bin_coder.code_size
     xyz = torch.tensor([[[10.0, 2.0, 0.8], [7.8, 1.2, 0.2], [40.0, 0.0, 0.5], [9.0, 2.0, 0.8]]])
     # point 1 lies 2.2 m behind the centre; point 3's box is 25 m away (clamped to the range's edge)
@@ -280,14 +287,15 @@ def test_bin_coding_point_head_losses_are_finite_and_learnable():
         opt.step()
     assert parts["loss_point_box"] < 0.3 * first
     with pytest.raises(ValueError, match="box_coding"):
-        PointHead(16, [32], [32], [4.5, 1.9, 1.6], box_coding="bins")
+        PointHead(16, [32], [32], [4.5, 1.9, 1.6], **point_head_args("bins"))
 
 
-def test_both_box_codings_build_and_old_configs_default_to_residual():
+def test_both_box_codings_build_and_the_config_names_every_point_head_value():
     cfg = tiny_cfg()
     assert cfg["point_head"]["box_coding"] == "bin"
     assert models.build_model("pointrcnn", cfg).point_head.code_size == 76
     cfg["point_head"]["box_coding"] = "residual"
     assert models.build_model("pointrcnn", cfg).point_head.code_size == 8
-    del cfg["point_head"]["box_coding"]  # a checkpoint written before the key existed
-    assert models.build_model("pointrcnn", cfg).point_head.box_coding == "residual"
+    del cfg["point_head"]["box_coding"]  # the model has no value of its own: configs/pointrcnn.yaml is the home
+    with pytest.raises(ValueError, match=r"point_head: missing key\(s\) \['box_coding'\]"):
+        models.build_model("pointrcnn", cfg)

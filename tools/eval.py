@@ -154,6 +154,7 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_
     import models
     from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
+    from detbench.train.detector import TwoStageDetector
     from detbench.train.inference import predict_frames
 
     try:
@@ -161,7 +162,7 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_
     except CheckpointError as e:
         raise ToolError(str(e)) from None
     if stage != "refined":
-        if not hasattr(model, "set_output_stage"):
+        if not isinstance(model, TwoStageDetector):
             raise ToolError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
                             f"two-stage models (pointrcnn, ct3d)")
         model.set_output_stage(stage)

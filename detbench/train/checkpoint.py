@@ -260,7 +260,7 @@ def init_from_checkpoint(model: nn.Module, path: str | os.PathLike, model_config
     loaded = [k for k in own if k in src]
     if not loaded:
         raise CheckpointError(f"{path}: no weight of this {ckpt['model_name']} checkpoint fits model "
-                              f"{getattr(core, 'name', type(core).__name__)}; --init-from needs a checkpoint whose "
+                              f"{model_config.get('name', type(core).__name__)}; --init-from needs a checkpoint whose "
                               f"layers the model shares (e.g. a second checkpoint for ct3d)")
     merged = dict(own)
     merged.update({k: src[k] for k in loaded})

@@ -3,7 +3,8 @@
 A detector is an `nn.Module` that satisfies `Detector` (models/ registers one per file;
 tests/test_models_contract.py checks every registered model against it). Nothing else
 of a model is used by `detbench.train.train`, `detbench.train.inference.predict_frames`
-or tools/benchmark.py.
+or tools/benchmark.py. A two-stage detector also satisfies `TwoStageDetector`: it can
+predict its first stage's boxes instead of the refined ones (tools/eval.py --stage).
 
 Data in (detbench.data.batch):
 
@@ -26,7 +27,7 @@ import torch
 
 from detbench.data.batch import Batch, Detections
 
-__all__ = ["Detector"]
+__all__ = ["Detector", "TwoStageDetector"]
 
 
 @runtime_checkable
@@ -66,4 +67,16 @@ class Detector(Protocol):
         training split's LiDAR-detected boxes (N, 7) (e.g. SECOND's `anchor_sizes: auto`).
         Called once before the model is built; the result is stored in the checkpoint so
         evaluation rebuilds the same model. A model with nothing to derive returns a copy."""
+        ...
+
+
+@runtime_checkable
+class TwoStageDetector(Detector, Protocol):
+    """A detector with a proposal stage and a refinement stage (PointRCNN, CT3D): `predict`
+    returns either stage's boxes. models/stages/two_stage.py implements the switch once
+    (`OutputStageSwitch`); tools check for it with `isinstance(model, TwoStageDetector)`."""
+
+    def set_output_stage(self, stage: str) -> None:
+        """'refined' (the default): `predict` returns the second stage's boxes; 'proposals': the
+        first stage's detections, through the same final selection. Any other stage is a ValueError."""
         ...

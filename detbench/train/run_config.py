@@ -8,13 +8,21 @@ Resolution order (later wins):
   command-line flags and --set key=value
 Every key a later layer sets must exist in the first two layers; an unknown key is an
 error naming the closest known one.
+
+The run config's `model.name` is the detector's registered name, which its config file's
+name gives (configs/<name>.yaml; `detbench.config.model_name_of`). A model's YAML also
+declares `width_keys`: the keys of its `model:` section that hold channel widths, which the
+trade study scales (`width_keys(model)`); they describe the model, not a run, so the run
+config leaves them out.
 """
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Sequence
 
-from detbench.config import CONFIG_DIR, ConfigError, apply_overrides, deep_merge, load_config, validate
+from detbench.config import (
+    CONFIG_DIR, ConfigError, apply_overrides, deep_merge, get, load_config, model_name_of, validate,
+)
 from detbench.data.augment import AugmentConfig
 from detbench.eval.evaluate import EvalConfig
 from detbench.train.loop import TrainConfig
@@ -35,8 +43,12 @@ def load_run_config(model: str | None = None, preset: str | None = None, config:
     source = config or f"{model}.yaml"
     base = load_config(source)
     model_presets = base.pop("presets", {}) or {}
-    if "model" not in base or "name" not in base.get("model", {}):
-        raise ConfigError(f"{source}: the config has no model.name; model configs live in configs/<name>.yaml")
+    base.pop("width_keys", None)
+    name = model_name_of(source)
+    if "model" not in base or not name:
+        raise ConfigError(f"{source}: the config names no detector; model configs live in configs/<name>.yaml, "
+                          f"and a config elsewhere inherits from one (_base_: <name>.yaml) or sets model.name")
+    base["model"] = {"name": name, **base["model"]}
     reference = base
     cfg = base
     if preset:
@@ -54,3 +66,19 @@ def load_run_config(model: str | None = None, preset: str | None = None, config:
     AugmentConfig.from_dict(cfg.get("augment"), where="augment")
     EvalConfig.from_dict(cfg.get("eval"), where="eval")  # before training, not after its first epoch
     return cfg
+
+
+def width_keys(model: str) -> tuple[str, ...]:
+    """The dotted keys under `model:` whose values are channel widths, from the `width_keys` list
+    of configs/<model>.yaml (the trade study's width knob scales them; empty: the model has
+    none). ConfigError when the YAML declares no list or lists a key its `model:` section lacks."""
+    source = f"{model}.yaml"
+    cfg = load_config(source)
+    keys = cfg.get("width_keys")
+    if not isinstance(keys, list) or not all(isinstance(k, str) for k in keys):
+        raise ConfigError(f"{source}: needs `width_keys`, a list of the dotted keys under model: that hold channel "
+                          f"widths (e.g. [backbone2d.num_filters]; [] when the model has none), got {keys!r}")
+    missing = [k for k in keys if get(cfg.get("model") or {}, k) is None]
+    if missing:
+        raise ConfigError(f"{source}: width_keys {missing} are not keys of its model: section")
+    return tuple(keys)

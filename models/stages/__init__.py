@@ -33,9 +33,10 @@ from .pointrcnn_head import PointRCNNRoIHead
 from .postprocess import select_detections
 from .sparse_resnet2d import EncoderFeatures, SparseResNet2d
 from .two_stage import (
-    LOG_SIZE_CLAMP, PAD_ROI, PROPOSAL_KEYS, TARGET_KEYS, Proposals, RefineHead, RefineOutput, RoIs, RoiTargets,
-    confidence_targets, decode_refined, encode_refine_targets, fold_heading, predict_refined, proposal_budgets,
-    refine_loss, require_keys, rois_for_refinement, rotate_z, sample_proposal_targets, select_proposals,
+    LOG_SIZE_CLAMP, OUTPUT_STAGES, PAD_ROI, PROPOSAL_KEYS, TARGET_KEYS, OutputStageSwitch, Proposals, RefineHead,
+    RefineOutput, RoIs, RoiTargets, confidence_targets, decode_refined, encode_refine_targets, fold_heading,
+    predict_refined, proposal_budgets, refine_loss, require_keys, rois_for_refinement, rotate_z,
+    sample_proposal_targets, select_proposals,
 )
 from .vfe import MeanVFE
 
@@ -57,9 +58,9 @@ __all__ = [
     "PointRCNNRoIHead",
     "select_detections",
     "EncoderFeatures", "SparseResNet2d",
-    "LOG_SIZE_CLAMP", "PAD_ROI", "PROPOSAL_KEYS", "TARGET_KEYS", "Proposals", "RefineHead", "RefineOutput", "RoIs",
-    "RoiTargets", "confidence_targets", "decode_refined", "encode_refine_targets", "fold_heading", "predict_refined",
-    "proposal_budgets", "refine_loss", "require_keys", "rois_for_refinement", "rotate_z", "sample_proposal_targets",
-    "select_proposals",
+    "LOG_SIZE_CLAMP", "OUTPUT_STAGES", "PAD_ROI", "PROPOSAL_KEYS", "TARGET_KEYS", "OutputStageSwitch", "Proposals",
+    "RefineHead", "RefineOutput", "RoIs", "RoiTargets", "confidence_targets", "decode_refined", "encode_refine_targets",
+    "fold_heading", "predict_refined", "proposal_budgets", "refine_loss", "require_keys", "rois_for_refinement",
+    "rotate_z", "sample_proposal_targets", "select_proposals",
     "MeanVFE",
 ]

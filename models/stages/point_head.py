@@ -1,7 +1,7 @@
 """PointRCNN's first-stage head: foreground segmentation and one box per point.
 
 - `point_targets`: a point is foreground when it lies inside a ground-truth box; points in the
-  box enlarged by `extra_width` (0.2 m per side, the published value) but outside the box are
+  box enlarged by `extra_width` (metres per side; configs/pointrcnn.yaml) but outside the box are
   ignored by the segmentation loss (their label is unsure: a box edge, a mirror); the rest is
   background. A foreground point's box target is the box it lies in.
 - Box coding, chosen by `box_coding` (the presets use bins; docs/results.md, "PointRCNN", has the runs behind that):
@@ -9,11 +9,15 @@
     PointResidualCoder with mean sizes): centre offsets divided by the mean BEV diagonal (z by
     the mean height), log size ratios, heading as (cos, sin); smooth-L1 on all 8 values.
   - `bin`: the PointRCNN paper's bin-based coding (`detbench.ops.PointBinCoder`): the x and y
-    offsets as 0.5 m bins within +-3 m of the point (cross-entropy) plus a residual inside the
-    true bin (smooth-L1), z as a plain residual, the heading as 12 bins + residual, the size
-    as a residual against the mean size (weighted 3, as the authors' code).
+    offsets as bins within a scope around the point (cross-entropy) plus a residual inside the
+    true bin (smooth-L1), z as a plain residual, the heading as bins + residual, the size as a
+    residual against the mean size (weighted `point_size`). The paper's values (0.5 m bins
+    within +-3 m, 12 heading bins, size weight 3) are in configs/pointrcnn.yaml.
 - `PointHead`: two shared-MLP branches on the backbone's per-point features; `loss` (sigmoid
   focal loss for segmentation, the coding's box loss on the foreground points) and `decode`.
+
+Every configurable value comes from the `model.point_head` section of configs/pointrcnn.yaml,
+their one home: the signatures here take them without defaults.
 """
 from __future__ import annotations
 
@@ -27,6 +31,7 @@ import torch.nn.functional as F
 from detbench.ops import PointBinCoder, ResidualBoxCoder, points_in_boxes_mask
 
 from .losses import sigmoid_focal_loss, weighted_smooth_l1
+from .two_stage import require_keys
 
 
 class PointTargets(NamedTuple):
@@ -36,7 +41,7 @@ class PointTargets(NamedTuple):
 
 @torch.no_grad()
 def point_targets(xyz: torch.Tensor, valid: torch.Tensor, gt_boxes: torch.Tensor, gt_mask: torch.Tensor,
-                  extra_width: float = 0.2) -> PointTargets:
+                  extra_width: float) -> PointTargets:
     """Segmentation labels and box targets for points (B, N, 3) against padded ground truth (B, M, 7).
 
     `valid` (B, N) False marks filler points (ignored). A point inside several boxes takes
@@ -71,9 +76,12 @@ class PointHead(nn.Module):
     """Segmentation and box branches on per-point features (B, N, C)."""
 
     def __init__(self, in_channels: int, cls_fc: Sequence[int], reg_fc: Sequence[int],
-                 mean_size: Sequence[float], extra_width: float = 0.2, focal_alpha: float = 0.25,
-                 focal_gamma: float = 2.0, loss_weights: dict | None = None, box_coding: str = "residual",
-                 bin_cfg: dict | None = None):
+                 mean_size: Sequence[float], *, extra_width: float, loss_weights: dict, box_coding: str,
+                 bin_cfg: dict | None, focal_alpha: float = 0.25, focal_gamma: float = 2.0):
+        """`box_coding` 'residual' or 'bin' (then `bin_cfg` holds loc_scope, loc_bin_size and
+        num_heading_bins); `loss_weights` point_cls, point_box and point_size (the bin coding's
+        size term); `extra_width` metres per side. The focal loss's alpha and gamma are the
+        published ones."""
         super().__init__()
         ms = [float(v) for v in mean_size]
         if len(ms) != 3 or min(ms) <= 0:
@@ -82,7 +90,8 @@ class PointHead(nn.Module):
             raise ValueError(f"PointRCNN: point_head.box_coding must be 'residual' or 'bin', got {box_coding!r}")
         self.box_coding = box_coding
         if box_coding == "bin":
-            b = {"loc_scope": 3.0, "loc_bin_size": 0.5, "num_heading_bins": 12, **(bin_cfg or {})}
+            b = require_keys(bin_cfg, ("loc_scope", "loc_bin_size", "num_heading_bins"),
+                             "pointrcnn model.point_head.bin")
             self.bin_coder = PointBinCoder(ms, float(b["loc_scope"]), float(b["loc_bin_size"]),
                                            int(b["num_heading_bins"]))
             code_size = self.bin_coder.code_size
@@ -96,7 +105,8 @@ class PointHead(nn.Module):
         self.register_buffer("mean_size", torch.tensor(ms), persistent=False)
         self.extra_width = float(extra_width)
         self.focal_alpha, self.focal_gamma = float(focal_alpha), float(focal_gamma)
-        self.loss_weights = {"point_cls": 1.0, "point_box": 1.0, "point_size": 3.0, **(loss_weights or {})}
+        self.loss_weights = require_keys(loss_weights, ("point_cls", "point_box", "point_size"),
+                                         "pointrcnn model.point_head.loss_weights")
 
     @staticmethod
     def _branch(cin: int, fc: Sequence[int], cout: int) -> nn.Sequential:

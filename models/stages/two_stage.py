@@ -72,6 +72,22 @@ class RefineOutput(NamedTuple):
     targets: RoiTargets | None  # training targets of these RoIs (None in evaluation)
 
 
+OUTPUT_STAGES = ("refined", "proposals")  # what `set_output_stage` accepts
+
+
+class OutputStageSwitch:
+    """`set_output_stage` of a two-stage detector (`detbench.train.detector.TwoStageDetector`):
+    the model's `predict` returns its first stage's detections while `output_stage` is 'proposals'."""
+
+    output_stage: str = "refined"
+
+    def set_output_stage(self, stage: str) -> None:
+        """'refined' (default): the second stage's boxes; 'proposals': the first stage's detections."""
+        if stage not in OUTPUT_STAGES:
+            raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
+        self.output_stage = stage
+
+
 def require_keys(cfg: dict | None, keys: tuple[str, ...], where: str) -> dict:
     """A copy of `cfg` after checking it holds exactly `keys`; errors name `where` and the key."""
     cfg = dict(cfg or {})
