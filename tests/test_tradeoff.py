@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from detbench.eval.tradeoff import (
+from detbench.studies.tradeoff import (
     CostModel, Task, mark_pareto, pareto_flags, plan_within_budget, plot_learning_curves, plot_tradeoff,
     train_seconds_at_step, tradeoff_markdown,
 )

@@ -27,7 +27,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 
 from detbench.data.frame import DEFAULT_LANE_WIDTH, height_key  # noqa: E402
 from detbench.data.regions import RANGE_NAMES  # noqa: E402
-from detbench.eval.ability import DEFAULT_THRESHOLDS, AbilityStudy, ability_markdown  # noqa: E402
+from detbench.studies.ability import DEFAULT_THRESHOLDS, AbilityStudy, ability_markdown  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
@@ -224,7 +224,7 @@ def main(argv=None) -> int:
     atomic_write_text(out / "ability.md", ability_markdown(report))
     written = [json_path, out / "ability.md"]
     if not args.no_figures:
-        from detbench.eval.ability_plots import save_ability_figures
+        from detbench.studies.ability_plots import save_ability_figures
 
         written += list(save_ability_figures(report, out, example).values())
     # a short summary on the terminal: LDR of all vehicles per range and height

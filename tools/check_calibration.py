@@ -19,7 +19,7 @@ from a bootstrap over scenes.
 It also states the precision a study of a given length can have (`precision`: one scene's
 scatter turned into the uncertainty of n scenes) and how often a fresh study meets every
 criterion (`pass_rate`, from 2000 studies whose scenes are resampled from all seeds' scenes).
-The statistics live in detbench/eval/calibration.py; this tool runs the simulator, parses
+The statistics live in detbench/studies/calibration.py; this tool runs the simulator, parses
 the arguments and writes the report.
 
 Examples:
@@ -49,7 +49,7 @@ if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("mod
 
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.regions import LEVELS, RANGE_NAMES  # noqa: E402
-from detbench.eval import calibration as cc  # noqa: E402
+from detbench.studies import calibration as cc  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 LEVEL_TITLES = {"all": "All (Table IV)", "top3": "Top3 (Table V)", "top6": "Top6 (Table VI)"}

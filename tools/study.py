@@ -39,8 +39,8 @@ import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults b
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.data.frame import height_key  # noqa: E402
-from detbench.eval.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height  # noqa: E402
-from detbench.eval.study_summary import (  # noqa: E402
+from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height  # noqa: E402
+from detbench.studies.study_summary import (  # noqa: E402
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402

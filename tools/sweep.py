@@ -5,7 +5,7 @@ One sensor (a Table I / II preset, changed with --set sensor.KEY=VALUE) at every
 --heights (default 0.3 to 2.2 m in 0.1 m steps) sees the same simulated traffic: each instant
 is simulated once and ray-cast once per height. Reported per height: LDR by range and
 importance level (the paper's Tables IV-VI, heights as rows) and against distance, with 95 %
-intervals from a bootstrap over scenes; the placement scores of detbench.eval.placement
+intervals from a bootstrap over scenes; the placement scores of detbench.studies.placement
 (evidence per LiDAR-detected vehicle, S-MIG of Hu et al. 2022); and, given report.json files
 of detectors trained and tested at several heights, the rank correlation of every score with
 their recall and AP@R40 (Spearman, Kendall, intervals, and where the score fails).
@@ -173,8 +173,8 @@ def simulate(args, sweep, lidars, cfg) -> dict:
 
 def run_sweep(args) -> dict:
     from detbench.config import ConfigError
-    from detbench.eval.placement import EVIDENCE_SCALE_POINTS, VoxelGrid, ray_coverage
-    from detbench.eval.sweep import HeightSweep
+    from detbench.studies.placement import EVIDENCE_SCALE_POINTS, VoxelGrid, ray_coverage
+    from detbench.studies.sweep import HeightSweep
     from detbench.sim import load_sim_config
 
     sensor_changes, sim_overrides = split_overrides(args.overrides)
@@ -266,7 +266,7 @@ def main(argv=None) -> int:
             raise UserError("--bootstrap needs 0 or more replicates")
         report = run_sweep(args)
     if args.detector_reports:
-        from detbench.eval.rankcorr import correlate_sweep, load_detector_reports
+        from detbench.studies.rankcorr import correlate_sweep, load_detector_reports
 
         try:
             figures, skipped = load_detector_reports(args.detector_reports)
@@ -277,13 +277,13 @@ def main(argv=None) -> int:
         report["correlation"] = corr
         for note in corr["notes"] + [f"skipped {s['source']}: {s['reason']}" for s in skipped]:
             print(f"note: {note}", file=sys.stderr)
-    from detbench.eval.sweep import sweep_markdown
+    from detbench.studies.sweep import sweep_markdown
 
     atomic_write_json(json_path, report)
     atomic_write_text(out / "sweep.md", sweep_markdown(report))
     written = [json_path, out / "sweep.md"]
     if not args.no_figures:
-        from detbench.eval.sweep_plots import save_sweep_figures
+        from detbench.studies.sweep_plots import save_sweep_figures
 
         written += list(save_sweep_figures(report, out).values())
     _summary(report)

@@ -67,7 +67,7 @@ import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults b
 import models  # noqa: E402
 from detbench.config import CONFIG_DIR, ConfigError  # noqa: E402
 from detbench.data.regions import RANGE_NAMES, RANGES  # noqa: E402
-from detbench.eval.tradeoff import (  # noqa: E402
+from detbench.studies.tradeoff import (  # noqa: E402
     PRIOR_SECONDS, CostModel, Task, mark_pareto, plan_within_budget, plot_learning_curves, plot_tradeoff,
     train_seconds_at_step, tradeoff_markdown,
 )
