@@ -47,8 +47,6 @@ import sys
 import time
 from pathlib import Path
 
-from pathlib import Path
-
 ROOT = Path(__file__).resolve().parents[1]
 # Not installed (run from a checkout): the repository root holds detbench and models.
 if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
