@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from detbench.data import DatasetWriter, Frame, Sensor
-from detbench.eval.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
+from detbench.studies.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
 
 
 @pytest.fixture

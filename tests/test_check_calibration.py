@@ -1,4 +1,4 @@
-"""detbench.eval.calibration (Tables IV-VI criteria, decomposition, judging over seeds, precision, pass
+"""detbench.studies.calibration (Tables IV-VI criteria, decomposition, judging over seeds, precision, pass
 rates) and tools/check_calibration.py end to end."""
 import json
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval import calibration as cc
-from detbench.eval.ability import PAPER_TABLES, decomposition, paper_decomposition
+from detbench.studies import calibration as cc
+from detbench.studies.ability import PAPER_TABLES, decomposition, paper_decomposition
 
 ALL, TOP3, TOP6 = (LEVELS.index(lv) for lv in ("all", "top3", "top6"))
 SMALL, MODERATE, LARGE = range(3)
@@ -112,7 +112,7 @@ def test_judge_seeds_counts_seeds_within_and_the_pooled_bar():
 
 def test_scene_counts_layout_and_ability_decomposition():
     from detbench.data.frame import Frame, Sensor
-    from detbench.eval.ability import AbilityStudy
+    from detbench.studies.ability import AbilityStudy
 
     # one instant: ego lane holds three vehicles at 10, 20, 30 m, the left lane one at 15 m; only the first two
     # ego-lane vehicles and the left one are hit

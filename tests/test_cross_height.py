@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
+from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
 
 
 def _rep(model, trained, tested, ap):

@@ -1,4 +1,4 @@
-"""Rank correlations of placement scores with detector figures (detbench.eval.rankcorr): known answers."""
+"""Rank correlations of placement scores with detector figures (detbench.studies.rankcorr): known answers."""
 import itertools
 import json
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.rankcorr import (
+from detbench.studies.rankcorr import (
     bootstrap_interval, correlate_sweep, correlation_markdown, kendall_tau_b, load_detector_reports,
     permutation_pvalue, rank_agreement, rankdata, spearman,
 )

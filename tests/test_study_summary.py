@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.study_summary import (
+from detbench.studies.study_summary import (
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, paired_recall_difference,
     unlearned_lines, unlearned_models,
 )

@@ -1,4 +1,4 @@
-"""The height sweep (detbench.eval.sweep, tools/sweep.py) and the placement scores (detbench.eval.placement)."""
+"""The height sweep (detbench.studies.sweep, tools/sweep.py) and the placement scores (detbench.studies.placement)."""
 import json
 import math
 
@@ -7,12 +7,12 @@ import pytest
 
 from detbench.data.frame import Frame, Sensor
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.ability import stacked_masks
-from detbench.eval.placement import (
+from detbench.studies.ability import stacked_masks
+from detbench.studies.placement import (
     OccupancyGrid, VoxelGrid, binary_entropy_bits, evidence, evidence_sums, importance_weights, ray_coverage,
     scores_from_sums, smig,
 )
-from detbench.eval.sweep import HeightSweep
+from detbench.studies.sweep import HeightSweep
 
 
 # ---------------------------------------------------------------------------- placement scores

@@ -4,18 +4,19 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from detbench.eval.tradeoff import (
+from detbench.config import ConfigError
+
+from detbench.studies.runner import run_command
+from detbench.studies.tradeoff import (
     CostModel, Task, mark_pareto, pareto_flags, plan_within_budget, plot_learning_curves, plot_tradeoff,
     train_seconds_at_step, tradeoff_markdown,
 )
+from detbench.studies.tradeoff_points import KNOBS, fit_range, scale_widths, set_dotted, sweep_points
 from detbench.utils.bench import median_p90
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # ---- Pareto -------------------------------------------------------------------------------------
@@ -175,25 +176,14 @@ def test_markdown_marks_the_front_and_unmodelled_ranges(tmp_path):
     assert plot_learning_curves(result["curves"], tmp_path / "c.png", ends).stat().st_size > 10_000
 
 
-# ---- the sweep's points (tools/tradeoff.py) -------------------------------------------------------------
-@pytest.fixture(scope="module")
-def tradeoff_tool():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("detbench_tools_tradeoff_t", ROOT / "tools" / "tradeoff.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
+# ---- the sweep's points (detbench.studies.tradeoff_points) -------------------------------------------------------------
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
-def test_sweep_points_build_and_cover_the_knobs(tradeoff_tool, model):
+def test_sweep_points_build_and_cover_the_knobs(model):
     import models
     from detbench.train.run_config import load_run_config
 
     mc = load_run_config(model, "smoke")["model"]
-    pts = tradeoff_tool.sweep_points(model, mc, tradeoff_tool.KNOBS, "cpu", cores=4, default_threads=1)
+    pts = sweep_points(model, mc, KNOBS, "cpu", cores=4, default_threads=1, registry=models)
     assert pts[0].name == "preset" and not pts[0].train and not pts[0].infer
     assert len({p.id for p in pts}) == len(pts) >= 15
     knobs = {p.knob for p in pts}
@@ -216,7 +206,7 @@ def test_sweep_points_build_and_cover_the_knobs(tradeoff_tool, model):
             continue
         cfg = json.loads(json.dumps(mc))
         for key, value in p.train.items():
-            tradeoff_tool._set(cfg, key.removeprefix("model."), value)
+            set_dotted(cfg, key.removeprefix("model."), value)
         params[p.name] = n_params(cfg)  # every trained point builds
         if p.region_range:
             from detbench.data.regions import RANGES
@@ -227,33 +217,35 @@ def test_sweep_points_build_and_cover_the_knobs(tradeoff_tool, model):
     assert params["width x0.5"] < params["preset"] < params["width x2"]
 
 
-def test_fit_range_finds_the_smallest_grid_that_builds(tradeoff_tool):
+def test_fit_range_finds_the_smallest_grid_that_builds():
+    import models
     from detbench.train.run_config import load_run_config
 
     mc = load_run_config("second", "smoke")["model"]  # 0.2 m voxels, BEV stride 16 -> 3.2 m steps
-    assert tradeoff_tool.fit_range("second", mc, 53.6, 6.0) == [0.0, -6.4, -0.6, 54.4, 6.4, 4.2]
-    assert tradeoff_tool.fit_range("second", mc, 153.6, 16.0) == [0.0, -16.0, -0.6, 153.6, 16.0, 4.2]
+    assert fit_range("second", mc, 53.6, 6.0, registry=models) == [0.0, -6.4, -0.6, 54.4, 6.4, 4.2]
+    assert fit_range("second", mc, 153.6, 16.0, registry=models) == [0.0, -16.0, -0.6, 153.6, 16.0, 4.2]
     pr = load_run_config("pointrcnn", "smoke")["model"]  # no grid: the range itself
-    assert tradeoff_tool.fit_range("pointrcnn", pr, 53.6, 6.0) == [0.0, -6.0, -0.6, 53.6, 6.0, 4.2]
+    assert fit_range("pointrcnn", pr, 53.6, 6.0, registry=models) == [0.0, -6.0, -0.6, 53.6, 6.0, 4.2]
 
 
-def test_scale_widths(tradeoff_tool):
+def test_scale_widths():
     from detbench.train.run_config import load_run_config
 
     mc = load_run_config("ct3d", "cpu")["model"]
-    half = tradeoff_tool.scale_widths("ct3d", mc, 0.5)
+    half = scale_widths("ct3d", mc, 0.5)
     assert half["model.backbone3d.channels"] == [v // 2 for v in mc["backbone3d"]["channels"]]
     assert half["model.roi_head.hidden_dim"] % mc["roi_head"]["heads"] == 0
-    assert tradeoff_tool.scale_widths("unknown", mc, 0.5) == {}
+    with pytest.raises(ConfigError, match="unknown"):  # a model without a config has no width keys to read
+        scale_widths("unknown", mc, 0.5)
 
 
-def test_run_until_deadline_stops_a_task(tradeoff_tool, tmp_path):
+def test_run_command_stops_a_task_at_its_deadline(tmp_path):
     t0 = time.perf_counter()
-    res = tradeoff_tool.run_until_deadline([sys.executable, "-c", "import time; time.sleep(60)"],
-                                           tmp_path / "log.txt", deadline=time.perf_counter() + 1.0)
-    assert res["timed_out"] and res["returncode"] != 0 and time.perf_counter() - t0 < 30
-    res = tradeoff_tool.run_until_deadline([sys.executable, "-c", "print('hi')"], tmp_path / "log.txt", deadline=None)
-    assert not res["timed_out"] and res["returncode"] == 0 and "hi" in (tmp_path / "log.txt").read_text()
+    res = run_command([sys.executable, "-c", "import time; time.sleep(60)"], log=tmp_path / "log.txt",
+                      deadline=time.perf_counter() + 1.0)
+    assert res.timed_out and res.returncode != 0 and time.perf_counter() - t0 < 30
+    res = run_command([sys.executable, "-c", "print('hi')"], log=tmp_path / "log.txt", deadline=None)
+    assert not res.timed_out and res.returncode == 0 and "hi" in (tmp_path / "log.txt").read_text()
 
 
 # ---- end to end (reduced) ------------------------------------------------------------------------------

@@ -137,23 +137,26 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     assert "[9/9] combine reports" in proc.stdout
 
 
-def test_study_models_come_from_models_then_the_preset_then_the_registry(load_tool):
-    study = load_tool("study")
+def test_study_models_come_from_models_then_the_preset_then_the_registry():
+    import models
+    from detbench.studies.study import study_models
+
     # quick leaves PointRCNN out (it does not learn in a few minutes per height); --models wins
-    assert study.study_models("quick", None, []) == (["ct3d", "pillarnet", "second"], ["pointrcnn"])
-    assert study.study_models("quick", ["pointrcnn"], []) == (["pointrcnn"], [])
-    assert study.study_models("smoke", None, []) == (["ct3d", "pillarnet", "pointrcnn", "second"], [])
+    assert study_models("quick", None, [], registry=models) == (["ct3d", "pillarnet", "second"], ["pointrcnn"])
+    assert study_models("quick", ["pointrcnn"], [], registry=models) == (["pointrcnn"], [])
+    assert study_models("smoke", None, [], registry=models) == (["ct3d", "pillarnet", "pointrcnn", "second"], [])
     with pytest.raises(ValueError):
-        study.study_models("smoke", None, ["study.models=[nosuchmodel]"])
+        study_models("smoke", None, ["study.models=[nosuchmodel]"], registry=models)
 
 
-def test_study_progress_time_left_counts_the_stage_starting_now(load_tool, capsys):
+def test_study_progress_time_left_counts_the_stage_starting_now(capsys):
     """The time left names every stage not yet finished, the one starting included: with SECOND's
     training measured at 100 s and its evaluation at 10 s, starting its second training leaves
     100 + 10 + 100 + 10 s (a guess-free figure), not the 120 s of the stages after it."""
-    study = load_tool("study")
+    from detbench.studies.study import Progress
+
     stages = [("train", "second"), ("eval", "second")] * 3 + [("combine", None)]
-    prog = study.Progress(stages)
+    prog = Progress(stages)
     prog.start("train second at 0.5 m")
     assert "measured after the first training" in capsys.readouterr().out
     prog.finish("train", "second", 100.0)

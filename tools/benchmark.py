@@ -180,7 +180,7 @@ def main(argv=None) -> int:
         return 0
     import torch
 
-    from detbench.data.frame import height_key
+    from detbench.train.run_layout import eval_report_path, study_run_dir
 
     names = args.models or sorted(models.REGISTRY)
     for name in names:
@@ -196,11 +196,11 @@ def main(argv=None) -> int:
         models.get_model_class(name)
         ckpt, report = None, None
         if args.study:
-            run_dir = Path(args.study) / f"{name}_h{height_key(args.height)}"
+            run_dir = study_run_dir(args.study, name, args.height)
             summary = run_dir / "train_summary.json"
             if summary.is_file():
                 ckpt = read_json(summary)["checkpoint"]
-            rep = run_dir / f"eval_h{height_key(args.height)}_test" / "report.json"
+            rep = eval_report_path(run_dir, args.height)
             report = read_json(rep) if rep.is_file() else None
         for dev in devices:
             spec = json.dumps({"model": name, "device": dev, "ckpt": ckpt})

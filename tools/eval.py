@@ -197,11 +197,9 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
     if args.test_height is not None:
         args.height = args.test_height
     if args.out is None:
-        from detbench.data.frame import height_key
+        from detbench.train.run_layout import eval_dir_name, run_dir_of_checkpoint
 
-        run_dir = Path(args.ckpt).resolve().parent.parent
-        stage = "" if args.stage == "refined" else f"_{args.stage}"
-        args.out = run_dir / f"eval_h{height_key(args.height)}_{args.split}{stage}"
+        args.out = run_dir_of_checkpoint(args.ckpt) / eval_dir_name(args.height, args.split, args.stage)
 
 
 def write_report(report: dict, out: Path, title: str) -> list[Path]:

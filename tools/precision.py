@@ -64,8 +64,8 @@ def main(argv=None) -> int:
     import models
     from detbench.data import Height3Dataset
     from detbench.data.errors import DatasetError
-    from detbench.data.frame import height_key
     from detbench.train.checkpoint import CheckpointError
+    from detbench.train.run_layout import precision_dir_name, run_dir_of_checkpoint
 
     if args.frames < 0 or args.batch_size < 1:
         raise UserError("--frames must be >= 0 (0 = all) and --batch-size >= 1")
@@ -99,7 +99,7 @@ def main(argv=None) -> int:
         raise UserError(str(e)) from None
     report = {"checkpoint": str(args.ckpt), "model": ck["model_name"], "data": str(root), "height": height,
               "split": args.split, "torch": torch.__version__, "threads": torch.get_num_threads(), **report}
-    out = args.out or Path(args.ckpt).resolve().parent.parent / f"precision_h{height_key(height)}_{args.split}"
+    out = args.out or run_dir_of_checkpoint(args.ckpt) / precision_dir_name(height, args.split)
     atomic_write_json(out / "precision.json", report)
     md = precision_markdown(report, f"{ck['model_name']} at {height:g} m: inference precision against float32")
     atomic_write_text(out / "precision.md", md + f"\nCheckpoint: {args.ckpt}; torch {torch.__version__}, "

@@ -33,7 +33,6 @@ import torch  # noqa: E402
 
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
-from detbench.data.frame import height_key  # noqa: E402
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint  # noqa: E402
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
@@ -160,11 +159,11 @@ def main(argv=None) -> int:
     from detbench.eval.evaluate import EvalConfig
     from detbench.sim.dataset import default_dataset
     from detbench.train import AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed, \
-        main_process_first, train
+        main_process_first, run_layout, train
 
     cfg = run_config_from_args(args)
     model_name = cfg["model"]["name"]
-    out = Path(args.out or f"runs/{model_name}_h{height_key(args.height)}_{args.preset}")
+    out = Path(args.out or run_layout.default_train_dir(model_name, args.height, args.preset))
     info = init_distributed(args.device)
     tcfg = TrainConfig.from_dict(cfg["train"])
     torch.manual_seed(tcfg.seed)

@@ -41,9 +41,17 @@ RANGE_NAMES: tuple[str, ...] = tuple(RANGES)
 LEVELS: tuple[str, ...] = ("all", "top3", "top6")
 LEVEL_K: dict[str, int] = {"top3": 1, "top6": 2}  # vehicles kept per lane
 TOPK_LANES: tuple[int, ...] = (0, 1, -1)
+RANGE_LABELS: dict[str, str] = {"small": "Small", "moderate": "Moderate", "large": "Large"}  # in tables and figures
+LEVEL_LABELS: dict[str, str] = {"all": "All", "top3": "Top3", "top6": "Top6"}
 
 DETECTED_BOTTOM_LIFT = 0.05  # metres the box bottom is raised when counting points inside
 DETECTED_MIN_POINTS = 1  # points inside the lifted box that make a vehicle LiDAR-detected
+
+
+def range_extent_label(range_name: str) -> str:
+    """The range with its extent, for reports: "small (x <= 50 m, |y| <= 5 m)"."""
+    _, x_max, y_max = RANGES[range_name]
+    return f"{range_name} (x <= {x_max:g} m, |y| <= {y_max:g} m)"
 
 
 def check_range_name(range_name: str) -> str:

@@ -1,6 +1,9 @@
-"""Evaluation: the LiDAR detection-ability study, the detection evaluator, reports and figures.
+"""The detection evaluator: what a user of tools/eval.py needs.
 
-The paper's definitions they apply (ranges, levels, LiDAR-detected) live in detbench.data.regions.
+evaluate (matching, recall and AP@R40 by range and importance level), bootstrap (the scene
+bootstrap behind every interval), report (tables, CSV and figures of reports) and external
+(predictions in other tools' formats). The paper's definitions it applies (ranges, levels,
+LiDAR-detected) live in detbench.data.regions; the studies built on it live in detbench.studies.
 """
 from detbench.eval.evaluate import (
     EvalFrame,
@@ -23,5 +26,3 @@ from detbench.eval.report import (
     report_to_csv,
     report_to_markdown,
 )
-from detbench.eval.ability import AbilityStudy, ability_markdown
-from detbench.eval.ability_plots import plot_bev, save_ability_figures

@@ -34,11 +34,11 @@ import numpy as np
 from numba import njit, prange
 
 from detbench.config import ConfigError, section_with_defaults, shipped_default, shipped_defaults
-from detbench.eval.ability import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.data.layout import SPLIT_CHOICES
 from detbench.data.regions import (
     DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
 )
+from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
 IOU_KINDS: tuple[str, ...] = ("3d", "bev")
 # An IoU counts as reaching the threshold when IoU >= threshold - IOU_EPS. The exact IoU of

@@ -19,13 +19,11 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from detbench.data.frame import height_key
-from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.utils.io import atomic_save
+from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_LABELS, RANGE_NAMES
+from detbench.utils.figures import save_figure
 
 METRIC_FIELDS: tuple[str, ...] = ("total", "lidar_detected", "ldr", "tp", "fp", "recall", "ap_r40")
 METRIC_LABELS = {"recall": "Recall", "ap_r40": "AP@R40", "ldr": "LDR"}
-LEVEL_LABELS = {"all": "All", "top3": "Top3", "top6": "Top6"}
-RANGE_LABELS = {"small": "Small", "moderate": "Moderate", "large": "Large"}
 MISSING = "n/a"
 
 
@@ -341,13 +339,6 @@ def combined_csv(reports: Sequence[dict], sources: Sequence[str] | None = None) 
 # figures
 # --------------------------------------------------------------------------------------------
 
-def _save_figure(fig, path: str | Path) -> Path:
-    path = Path(path)
-    fmt = path.suffix.lstrip(".").lower() or "png"
-    atomic_save(path, lambda p: fig.savefig(p, format=fmt, dpi=150, bbox_inches="tight"))
-    return path
-
-
 def _grid(reports: Sequence[dict]):
     comb = combine_reports(reports)
     cell = {(e["model"], e["height"]): e["results"] for e in comb["entries"]}
@@ -424,7 +415,7 @@ def plot_by_height(reports: Sequence[dict], path: str | Path, range_name: str = 
     axes[1].legend(fontsize=8)
     fig.suptitle(f"{RANGE_LABELS[range_name]} range, {LEVEL_LABELS[level]} vehicles, "
                  f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g}")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_by_range(reports: Sequence[dict], path: str | Path, level: str = "all",
@@ -441,7 +432,7 @@ def plot_by_range(reports: Sequence[dict], path: str | Path, level: str = "all",
         _line_axes(ax, comb, cell, metric, r, level, f"{RANGE_LABELS[r]} range")
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{METRIC_LABELS[metric]} by range, {LEVEL_LABELS[level]} vehicles")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "large",
@@ -458,7 +449,7 @@ def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "
         _line_axes(ax, comb, cell, metric, range_name, lv, f"{LEVEL_LABELS[lv]} vehicles")
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{METRIC_LABELS[metric]} by importance level, {RANGE_LABELS[range_name]} range")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 __all__ = [

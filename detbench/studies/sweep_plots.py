@@ -16,8 +16,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from detbench.data.regions import LEVELS, RANGE_NAMES, RANGES
-from detbench.eval.ability_plots import _save
-from detbench.eval.placement import SCORE_NAMES
+from detbench.studies.placement import SCORE_NAMES
+from detbench.utils.figures import save_figure
 
 _LEVEL_STYLE = {"all": ("All", "#1f77b4", "o-"), "top3": ("Top3", "#d62728", "s-"), "top6": ("Top6", "#2ca02c", "^-")}
 _RANGE_STYLE = {"small": "#e0b000", "moderate": "#2ca02c", "large": "#3b7dd8"}
@@ -61,7 +61,7 @@ def plot_ldr_vs_height(report: dict, path: str | os.PathLike) -> Path:
                  f"{report['num_scenes']} scenes, same traffic at every height{', sensor ' + sensor if sensor else ''}; "
                  f"bands: 95 % bootstrap over scenes)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def plot_scores_vs_height(report: dict, path: str | os.PathLike) -> Path:
@@ -90,7 +90,7 @@ def plot_scores_vs_height(report: dict, path: str | os.PathLike) -> Path:
     fig.suptitle("Training-free placement scores against height (* primary score; definitions in the report)",
                  fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.92))
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def plot_ldr_distance_map(report: dict, path: str | os.PathLike) -> Path:
@@ -114,7 +114,7 @@ def plot_ldr_distance_map(report: dict, path: str | os.PathLike) -> Path:
     ax.set_ylabel("LiDAR mounting height (m)")
     ax.set_title(f"LDR against distance and height ({report['num_frames']} frames)", fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def save_sweep_figures(report: dict, out_dir: str | os.PathLike) -> dict[str, Path]:

@@ -59,7 +59,7 @@ _CELL_INDEX = {(r, lv): i for i, (r, lv) in enumerate((r, lv) for r in RANGE_NAM
 # ---------------------------------------------------------------------------- evidence scores
 def importance_weights(masks: np.ndarray) -> np.ndarray:
     """(3, M) float64 weights w_r(v) per range (rows follow RANGE_NAMES) from the (9, M) cell masks of
-    `detbench.eval.ability.stacked_masks`: 0 outside the range, else 1 + [Top6] + [Top3]."""
+    `detbench.studies.ability.stacked_masks`: 0 outside the range, else 1 + [Top6] + [Top3]."""
     masks = np.asarray(masks, dtype=bool)
     out = np.zeros((len(RANGE_NAMES), masks.shape[1]), np.float64)
     for i, r in enumerate(RANGE_NAMES):

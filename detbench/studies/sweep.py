@@ -5,7 +5,7 @@ Tables IV-VI layout, LDR against distance and the scene bootstrap): feed it the 
 instant at every height (`add(frames, counts)`, the same traffic at every height, e.g. one
 `HighwaySimulator.run(n, lidars)` step) and ask for `report(coverage=...)`. It adds, per height:
 
-- the evidence scores of detbench.eval.placement (per range, importance-weighted), with 95 %
+- the evidence scores of detbench.studies.placement (per range, importance-weighted), with 95 %
   intervals from the same scene bootstrap as the LDRs (the same resampled scenes for every
   height, score and cell);
 - LDR against distance with intervals;
@@ -26,11 +26,11 @@ import numpy as np
 
 from detbench.data.frame import Frame, height_key
 from detbench.data.regions import DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES
-from detbench.eval.ability import (
-    CELLS, LDR_DISTANCE_HALF_WIDTH_M, LDR_DISTANCE_MAX_M, AbilityStudy, bootstrap_ratios, frame_lanes,
-    percentile_interval, scene_bootstrap_weights, stacked_masks,
+from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
+from detbench.studies.ability import (
+    CELLS, LDR_DISTANCE_HALF_WIDTH_M, LDR_DISTANCE_MAX_M, AbilityStudy, frame_lanes, stacked_masks,
 )
-from detbench.eval.placement import (
+from detbench.studies.placement import (
     EVIDENCE_SCALE_POINTS, PRIMARY_SCORE, SCORE_NAMES, SCORE_UNITS, SUM_FIELDS, OccupancyGrid, VoxelGrid,
     evidence_sums, importance_weights, scores_from_sums, smig,
 )
@@ -248,7 +248,7 @@ def _ci(c, digits: int = 2) -> str:
 def sweep_markdown(report: dict, title: str = "Height sweep") -> str:
     """Markdown of a `HeightSweep.report()`: Tables IV-VI with heights as rows, LDR against distance,
     the placement scores, adjacent-height differences, best heights and, when present, the correlation
-    with trained detectors (report["correlation"], detbench.eval.rankcorr)."""
+    with trained detectors (report["correlation"], detbench.studies.rankcorr)."""
     ab = report["ability"]
     heights = report["heights"]
     unc = ab["extras"]["uncertainty"]
@@ -342,7 +342,7 @@ def sweep_markdown(report: dict, title: str = "Height sweep") -> str:
         out.append("")
     corr = report.get("correlation")
     if corr:
-        from detbench.eval.rankcorr import correlation_markdown
+        from detbench.studies.rankcorr import correlation_markdown
 
         out += [correlation_markdown(corr, report["scores"].get("primary")), ""]
     run = report.get("run")

@@ -28,7 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Mapping, Sequence
 
-from detbench.data.regions import RANGE_NAMES, RANGES
+from detbench.data.regions import RANGE_NAMES, range_extent_label
+from detbench.utils.figures import save_figure
 
 __all__ = ["pareto_flags", "mark_pareto", "Task", "Plan", "plan_within_budget", "CostModel", "PRIOR_SECONDS",
            "train_seconds_at_step", "tradeoff_markdown", "plot_tradeoff", "plot_learning_curves"]
@@ -239,11 +240,6 @@ def _f(v, fmt: str = ".3f") -> str:
     return "-" if not _finite(v) else format(v, fmt)
 
 
-def _range_label(r: str) -> str:
-    x0, x1, y = RANGES[r]
-    return f"{r} (x <= {x1:g} m, |y| <= {y:g} m)"
-
-
 def _front_cell(p: Mapping, key: str = "pareto") -> str:
     on = [r for r in RANGE_NAMES if (p.get(key) or {}).get(r)]
     return "**" + ", ".join(on) + "**" if on else ""
@@ -293,7 +289,7 @@ def tradeoff_markdown(result: Mapping) -> str:
     lines += ["## Pareto front per range", ""]
     for r in RANGE_NAMES:
         front = sorted((p for p in points if (p.get("pareto") or {}).get(r)), key=lambda p: _latency(p))
-        lines.append(f"- {_range_label(r)}: " + (" -> ".join(
+        lines.append(f"- {range_extent_label(r)}: " + (" -> ".join(
             f"{p['model']} / {p['point']} ({_f(_latency(p), '.1f')} ms, AP {_f(_ap(p, r))})" for p in front)
             or "no point with a figure"))
     lines.append("")
@@ -368,7 +364,6 @@ def plot_tradeoff(points: Sequence[Mapping], path: str | Path) -> Path:
     line per model through its own Pareto front, a star on the front of all models. Returns path."""
     from matplotlib.figure import Figure
 
-    from detbench.eval.report import _save_figure
 
     colors = _model_colors(p["model"] for p in points)
     fig = Figure(figsize=(15, 4.8), layout="constrained")
@@ -389,12 +384,12 @@ def plot_tradeoff(points: Sequence[Mapping], path: str | Path) -> Path:
         _ap_limits(ax, [_ap(p, r) for p in points])
         ax.set_xlabel("latency per frame, median (ms, log scale)")
         ax.set_ylabel("AP@R40 (3D IoU 0.7)")
-        ax.set_title(_range_label(r))
+        ax.set_title(range_extent_label(r))
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8, title="model (line: its Pareto front)", title_fontsize=8)
     fig.suptitle("Latency against accuracy; filled: trained at the point, hollow: preset model changed at "
                  "inference; star: on the front of all models")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset_points: Mapping[str, Mapping] = {}
@@ -404,7 +399,6 @@ def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset
     final model as a cross. Returns path."""
     from matplotlib.figure import Figure
 
-    from detbench.eval.report import _save_figure
 
     colors = _model_colors(list(curves) + list(preset_points))
     fig = Figure(figsize=(15, 4.6), layout="constrained")
@@ -424,8 +418,8 @@ def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset
                         for e in c.get("points", [])])
         ax.set_xlabel("training time (CPU-minutes)")
         ax.set_ylabel("AP@R40 (3D IoU 0.7)")
-        ax.set_title(_range_label(r))
+        ax.set_title(range_extent_label(r))
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8)
     fig.suptitle("Learning curves: checkpoints of one run per model, evaluated on the test split")
-    return _save_figure(fig, path)
+    return save_figure(fig, path)

@@ -19,7 +19,7 @@ height, so a failure is named, not only measured.
 
 `load_detector_reports` reads tools/eval.py report.json files (model, height, recall and
 AP@R40 per range and level); `correlate_sweep` correlates every score of a height sweep
-(detbench.eval.sweep) with every detector figure; `correlation_markdown` lays it out.
+(detbench.studies.sweep) with every detector figure; `correlation_markdown` lays it out.
 """
 from __future__ import annotations
 

@@ -34,6 +34,7 @@ from detbench.data.frame import DEFAULT_LANE_WIDTH, LANE_UNKNOWN, Frame, height_
 from detbench.data.regions import (
     DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, RANGES, detected_point_counts, region_masks,
 )
+from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
 DEFAULT_THRESHOLDS = (DETECTED_MIN_POINTS, 5, 10)  # minimum points inside a box to call it detected
 DEFAULT_BIN_M = 10.0
@@ -63,39 +64,6 @@ _LARGE_ALL = CELLS.index(("large", "all"))
 def ldr(detected: int, total: int) -> float:
     """detected / total, NaN when total is 0 (written as null in JSON)."""
     return float(detected) / float(total) if total else float("nan")
-
-
-def scene_bootstrap_weights(num_clusters: int, replicates: int, seed: int) -> np.ndarray:
-    """(replicates, num_clusters) float64: how often each scene is drawn in each bootstrap replicate.
-
-    Scenes are resampled with replacement (a multinomial draw of `num_clusters` out of
-    `num_clusters`), seeded, so the same counts and seed give the same intervals. Every
-    sum over scenes of a replicate is `weights @ per_scene_values`; the ability study and the
-    height sweep (detbench.eval.sweep) use the same draw, so their intervals agree."""
-    rng = np.random.default_rng(seed)
-    n = int(num_clusters)
-    return rng.multinomial(n, np.full(n, 1.0 / n), size=int(replicates)).astype(np.float64)
-
-
-def bootstrap_ratios(weights: np.ndarray, num: np.ndarray, den: np.ndarray) -> np.ndarray:
-    """Ratio of resampled sums: (B, ...) = (weights @ num) / (weights @ den), NaN where the
-    resampled denominator is 0. weights (B, C); num, den (C, ...) per-scene sums."""
-    bn = np.tensordot(weights, np.asarray(num, dtype=np.float64), axes=(1, 0))
-    bd = np.tensordot(weights, np.asarray(den, dtype=np.float64), axes=(1, 0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(bd > 0, bn / np.where(bd > 0, bd, 1.0), np.nan)
-
-
-def percentile_interval(samples: np.ndarray, confidence: float = 0.95) -> list | None:
-    """[lo, hi] percentile interval (rounded to 6 digits) of the finite bootstrap samples, or None when
-    fewer than 2 or fewer than half of them are finite."""
-    samples = np.asarray(samples, dtype=np.float64).reshape(-1)
-    good = samples[np.isfinite(samples)]
-    if good.size < max(2, samples.size // 2):
-        return None
-    q = (100.0 * (1.0 - confidence) / 2.0, 100.0 * (1.0 + confidence) / 2.0)
-    lo, hi = np.percentile(good, q)
-    return [round(float(lo), 6), round(float(hi), 6)]
 
 
 def stacked_masks(boxes: np.ndarray, lanes: np.ndarray) -> np.ndarray:
@@ -640,6 +608,6 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
 
 
 __all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "decomposition", "paper_decomposition", "stacked_masks", "frame_lanes",
-           "ldr", "scene_bootstrap_weights", "bootstrap_ratios", "percentile_interval",
+           "ldr",
            "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV", "PAPER_TABLE_V", "PAPER_TABLE_VI",
            "PAPER_TABLES"]

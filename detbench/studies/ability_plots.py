@@ -16,31 +16,20 @@ import os
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from detbench.eval.ability import ExampleFrames
-from detbench.data.regions import LEVELS, RANGE_NAMES, RANGES
-from detbench.utils.io import atomic_save
+from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_NAMES, RANGES
+from detbench.studies.ability import ExampleFrames
+from detbench.utils.figures import save_figure
 
 _PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"]
 _RANGE_COLOURS = {"small": "#f5d800", "moderate": "#2ca02c", "large": "#3b7dd8"}
-_LEVEL_NAMES = {"all": "All", "top3": "Top3", "top6": "Top6"}
 
 
 def _colours(heights: list[str]) -> dict[str, str]:
     return {h: _PALETTE[i % len(_PALETTE)] for i, h in enumerate(heights)}
-
-
-def _save(fig: Figure, path: str | os.PathLike, dpi: int = 120) -> Path:
-    FigureCanvasAgg(fig)
-
-    def write(tmp: Path) -> None:
-        fig.savefig(tmp, format="png", dpi=dpi, facecolor=fig.get_facecolor())
-
-    return atomic_save(path, write)
 
 
 def _ci(report: dict, h: str, r: str, lv: str):
@@ -106,12 +95,12 @@ def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "a
     labels = [f"{r}\n0-{RANGES[r][1]:g} m, |y|<={RANGES[r][2]:g} m" for r in groups]
     for ax in (ax_n, ax_l):
         ax.set_xticklabels(labels, fontsize=8)
-    what = _LEVEL_NAMES[level] + " vehicles"
+    what = LEVEL_LABELS[level] + " vehicles"
     ax_n.set_title(f"(a) LiDAR-detected vehicles by range ({what})", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by range ({what})", fontsize=10)
     fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def plot_ability_by_level(report: dict, path: str | os.PathLike, range_name: str = "large") -> Path:
@@ -120,12 +109,12 @@ def plot_ability_by_level(report: dict, path: str | os.PathLike, range_name: str
     fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, lv: report["heights"][h][range_name][lv],
                                  lambda h, lv: _ci(report, h, range_name, lv))
     for ax in (ax_n, ax_l):
-        ax.set_xticklabels([_LEVEL_NAMES[g] for g in groups])
+        ax.set_xticklabels([LEVEL_LABELS[g] for g in groups])
     ax_n.set_title(f"(a) LiDAR-detected vehicles by importance ({range_name} range)", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by importance ({range_name} range)", fontsize=10)
     fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
     fig.tight_layout(rect=(0, 0, 1, 0.93))
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def plot_ldr_vs_distance(report: dict, path: str | os.PathLike) -> Path:
@@ -154,7 +143,7 @@ def plot_ldr_vs_distance(report: dict, path: str | os.PathLike) -> Path:
     ax_c.set_xticks(edges)
     ax_c.tick_params(axis="x", labelsize=8)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def _bev_corners(boxes: np.ndarray) -> np.ndarray:
@@ -235,7 +224,7 @@ def plot_bev(example: ExampleFrames, path: str | os.PathLike, x_range=(-8.0, 152
                  f"white: not hit; yellow: ego; dashed: small / moderate / large range",
                  color="white", fontsize=9)
     fig.tight_layout(rect=(0, 0, 1, 0.965))
-    return _save(fig, path, dpi=110)
+    return save_figure(fig, path, dpi=110, fmt="png", tight=False)
 
 
 def save_ability_figures(report: dict, out_dir: str | os.PathLike, example: ExampleFrames | None = None

@@ -40,8 +40,8 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from detbench.data.regions import DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES
-from detbench.eval.ability import CELLS, PAPER_TABLES, AbilityStudy, bootstrap_ratios, percentile_interval, \
-    scene_bootstrap_weights
+from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
+from detbench.studies.ability import CELLS, PAPER_TABLES, AbilityStudy
 
 HEIGHTS = ("0.5", "1.0", "1.8")
 PARTS = ("second", "beyond")  # second-in-lane (Top6 - Top3), beyond-Top6 (All - Top6)

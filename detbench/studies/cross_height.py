@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Sequence
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
+from detbench.utils.figures import save_figure
 
 METRICS = {"ap_r40": "AP@R40", "recall": "Recall"}  # report key -> the name printed
 
@@ -73,7 +74,6 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
     from matplotlib.figure import Figure
     from matplotlib.patches import Rectangle
 
-    from detbench.eval.report import _save_figure
 
     hs, models = mat["heights"], mat["models"]
     fig = Figure(figsize=(3.2 * len(models) + 0.6, 3.2))
@@ -96,7 +96,7 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
         ax.set_title(m, fontsize=9)
     fig.suptitle(f"{name}, {mat['range']} range, {mat['level']} level (red: same height)", fontsize=9)
     fig.colorbar(im, ax=fig.axes, shrink=0.8)
-    return _save_figure(fig, path)
+    return save_figure(fig, path)
 
 
 __all__ = ["cross_height_matrix", "cross_height_markdown", "plot_cross_height"]

@@ -3,7 +3,7 @@
 Two questions a reader acts on, each answered with its uncertainty:
 
 - Which mounting height makes the LiDAR hit the most vehicles, per importance level and range?
-  From the ability study (`detbench.eval.ability`): the best height's LDR and its paired
+  From the ability study (`detbench.studies.ability`): the best height's LDR and its paired
   difference to the runner-up height, with the 95 % interval of the scene bootstrap (the
   heights of one scene see the same traffic, so the difference is paired).
 - Which detector finds the most LiDAR-detected vehicles at each height? From the evaluation
@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.ability import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
+from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
 RANGE_WORDS = {"small": "small", "moderate": "moderate", "large": "large"}
 LEVEL_WORDS = {"all": "All", "top3": "Top3", "top6": "Top6"}

@@ -1,0 +1,20 @@
+"""The studies built on the simulator, the evaluator and training (one layer above detbench.train).
+
+ability, ability_plots       how many vehicles a LiDAR at each height hits (the paper's Tables IV-VI, Fig. 5-7)
+ability_run                  the ability study fed from the simulator or a dataset (tools/analyze.py)
+calibration                  the statistics that judge the simulator's ability figures against the paper's
+calibration_check            the seeds simulated and judged, the report laid out (tools/check_calibration.py)
+sweep, sweep_plots           one sensor at many heights: LDR and the placement scores, with intervals
+sweep_sim                    the height sweep fed from the simulator (tools/sweep.py)
+placement                    training-free placement scores from ray coverage and occupancy
+rankcorr                     rank correlation of placement scores with trained detectors' figures
+cross_height                 detectors trained at one height and tested at the others
+study_summary                the answers that open a study's report (best height, best model)
+study                        the whole study: its stages, progress line and study.md (tools/study.py)
+tradeoff                     the trade study's Pareto flags, planner, cost model, report and figures
+tradeoff_points              the trade study's knobs and points
+tradeoff_worker              one point measured in its own process (python -m detbench.studies.tradeoff_worker)
+tradeoff_sweep               the trade sweep's scheduler within a budget, resuming (tools/tradeoff.py)
+runner                       one stage or task run as a child process, streamed or logged, with a deadline
+registry                     what the studies need of the detector registry, which the tools pass in
+"""

@@ -1,0 +1,370 @@
+"""The whole Height3 study: data, LiDAR detection ability, training and evaluation per model and height, report.
+
+For a preset: (1) the dataset (the preset's simulated default, or a dataset on disk); (2) the
+LiDAR detection-ability study at every height (tools/analyze.py); (3) each detector trained per
+height on that height's training split (tools/train.py); (4) each evaluated on the same
+height's test split, and with cross_height on the other heights' too (tools/eval.py); (5) the
+combined report, and study.md opening with the summary of detbench.studies.study_summary.
+Every stage is a tool in its own process (detbench.studies.runner); a stage whose output exists
+is skipped, so the study resumes. The run folders follow detbench.train.run_layout.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from detbench.config import ConfigError
+from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
+from detbench.studies.registry import ModelRegistry
+from detbench.studies.runner import run_command
+from detbench.studies.study_summary import (
+    detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
+)
+from detbench.train.run_config import load_run_config
+from detbench.train.run_layout import default_study_dir, eval_report_path, study_run_dir
+from detbench.utils.cli import EXIT_USER_ERROR, UserError
+from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+
+# What each preset's detector figures can and cannot show (printed in the study's summary).
+PRESET_CAVEATS = {
+    "smoke": "*Preset `smoke` proves that the pipeline runs end to end: a few frames, narrow models, two epochs. "
+             "Its detectors have not learned; their recall and AP (near 0) say nothing about the models or the "
+             "heights. Run `--preset quick` for figures that do.*",
+    "quick": "*Preset `quick` trains narrow models for a few minutes each on a small simulated dataset: the "
+             "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful within the "
+             "intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
+             "80 epochs). The ability figures are at the paper's scale.*",
+    "cpu": "*Preset `cpu` trains each detector about 10 minutes on 2 CPU cores: absolute figures are below the "
+           "paper's scale; differences between heights and models hold within the intervals shown.*",
+    "paper": "*Preset `paper`: the paper's data size and schedule.*",
+}
+
+
+@dataclass
+class StudyOptions:
+    """The study's settings (tools/study.py's arguments)."""
+
+    preset: str = "quick"
+    models: list[str] | None = None  # None: the preset's study.models, else every registered model
+    heights: list[float] | None = None  # None: the preset's data.heights
+    data: str | None = None  # a dataset on disk instead of the simulated default
+    device: str = "auto"
+    out: str | None = None  # None: run_layout.default_study_dir(preset)
+    overrides: list[str] = field(default_factory=list)  # --set KEY=VALUE for every training run
+    cross_height: bool = False
+    fresh: bool = False  # delete OUT first instead of resuming
+    no_progress: bool = False
+
+
+class Progress:
+    """The study's progress line: stage k of n, the model and height, elapsed and time left.
+
+    Time left is the sum, over the stages still to run, of the measured time of finished
+    stages of the same kind and model (training of SECOND at another height, say); a kind
+    not measured yet borrows the mean of the measured trainings (or evaluations), scaled by
+    nothing: it is said to be a guess until every model has run once.
+    """
+
+    def __init__(self, stages: list[tuple[str, str | None]]):
+        self.stages = stages  # (kind, model) per stage, in order
+        self.done: dict[tuple[str, str | None], list[float]] = {}
+        self.k = 0
+        self.t0 = time.perf_counter()
+
+    def left_s(self) -> tuple[float | None, bool]:
+        """Seconds left for the stages not yet finished (the one starting now included)."""
+        rest = self.stages[self.k:]
+        total, guess = 0.0, False
+        for kind, model in rest:
+            own = self.done.get((kind, model))
+            if own:
+                total += sum(own) / len(own)
+                continue
+            same_kind = [t for (k2, _), ts in self.done.items() if k2 == kind for t in ts]
+            if not same_kind:
+                if kind in ("train", "eval"):
+                    return None, True
+                continue  # data, ability, combine: short next to training
+
+            total += sum(same_kind) / len(same_kind)
+            guess = True
+        return total, guess
+
+    def start(self, what: str) -> None:
+        elapsed = (time.perf_counter() - self.t0) / 60.0
+        left, guess = self.left_s()  # before counting this stage: it has still to run
+        self.k += 1
+        if left is None:
+            eta = "time left: measured after the first training"
+        else:
+            eta = ("under a minute left" if left < 60 else f"about {left / 60.0:.0f} min left") + \
+                (" (a guess: some model has not run this kind of stage yet)" if guess else "")
+        print(f"\n=== [{self.k}/{len(self.stages)}] {what} | {elapsed:.1f} min elapsed, {eta}", flush=True)
+
+    def finish(self, kind: str, model: str | None, seconds: float) -> None:
+        self.done.setdefault((kind, model), []).append(seconds)
+
+    def skip(self) -> None:
+        self.k += 1
+
+
+def run_stage(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
+              model: str | None = None, *, cwd: str | os.PathLike | None = None) -> None:
+    """Run one stage as its own process in `cwd` (its output streams through); stop the study if it
+    fails: UserError when the stage ended on the user's error (exit 2), else SystemExit."""
+    if progress is not None:
+        progress.start(what)
+    else:
+        print(f"\n=== {what}", flush=True)
+    print(f"$ {' '.join(cmd)}", flush=True)
+    t0 = time.perf_counter()
+    proc = run_command(cmd, cwd=cwd)
+    if proc.returncode != 0:
+        msg = (f"study: {what} failed (exit {proc.returncode}); fix the error above and run the same "
+               f"command again: finished stages are kept and skipped")
+        # a stage that stopped on the user's error (exit 2) is the user's error here too; anything else is a bug
+        raise UserError(msg) if proc.returncode == EXIT_USER_ERROR else SystemExit(msg)
+    seconds = time.perf_counter() - t0
+    if progress is not None:
+        progress.finish(kind, model, seconds)
+    print(f"=== {what}: done in {seconds:.0f} s", flush=True)
+
+
+def study_models(preset: str, requested: list[str] | None, overrides: list[str], *,
+                 registry: ModelRegistry) -> tuple[list[str], list[str]]:
+    """(the models to study, the registered ones the preset leaves out): --models when given, else the
+    preset's `study.models`, else every registered model. Unknown names raise ValueError."""
+    cfg = load_run_config(sorted(registry.REGISTRY)[0], preset, overrides=overrides)
+    names = list(requested or [str(m) for m in (cfg["study"].get("models") or [])] or sorted(registry.REGISTRY))
+    for n in names:
+        registry.get_model_class(n)
+    return names, ([] if requested else sorted(set(registry.REGISTRY) - set(names)))
+
+
+def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.PathLike) -> tuple[Path, float]:
+    """Run the study (each stage a tool of `repo` in its own process, resumed where OUT has its
+    output) and write OUT/study.md and study.json: (the study.md path, the seconds it took).
+    Raises UserError naming the fix before anything is deleted or created."""
+    py = sys.executable
+    out = Path(args.out or default_study_dir(args.preset)).resolve()
+
+    def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
+            model: str | None = None) -> None:
+        run_stage(cmd, what, progress, kind, model, cwd=repo)
+
+    try:
+        names, left_out = study_models(args.preset, args.models, args.overrides, registry=registry)
+        base_cfg = load_run_config(names[0], args.preset, overrides=args.overrides)
+    except (ConfigError, ValueError, KeyError) as e:
+        raise UserError(str(e).strip("'\"")) from None
+    if args.data and not Path(args.data).is_dir():
+        raise UserError(f"--data {args.data}: no such folder; give a dataset written by tools/simulate.py or "
+                        f"python -m detbench.data.convert, or leave --data out for the simulated default")
+    bad_heights = [h for h in (args.heights or []) if not (h > 0 and h < 10)]
+    if bad_heights:
+        raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
+                        f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    # only now, with the arguments known to be good, is anything deleted or created
+    if args.fresh and out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+    heights = args.heights or [float(h) for h in base_cfg["data"]["heights"]]
+    quiet = ["--no-progress"] if args.no_progress else []
+    t_start = time.perf_counter()
+    study_cfg = dict(base_cfg.get("study") or {})
+    ability_frames = 0 if args.data else int(study_cfg.get("ability_frames", 0) or 0)
+    eval_device = "cpu" if args.device == "auto" else args.device
+
+    add_left_out = f"--models {' '.join(sorted(set(names) | set(left_out)))}"  # the study with them
+    if left_out:
+        print(f"note: the {args.preset} preset's study leaves out {', '.join(left_out)} (study.models in "
+              f"configs/presets/{args.preset}.yaml); add it with {add_left_out}", flush=True)
+
+    # The plan, for the progress line and its time left.
+    stages: list[tuple[str, str | None]] = [("data", None), ("ability", None)]
+    for name in names:
+        for _h in heights:
+            stages += [("train", name), ("eval", name)]
+    if args.cross_height:
+        stages += [("eval", name) for name in names for _h in heights for _t in heights if _t != _h]
+    stages.append(("combine", None))
+    progress = Progress(stages)
+
+    # 1. data
+    from detbench.sim.dataset import default_dataset
+
+    data_cfg = dict(base_cfg["data"])
+    if args.data:
+        data_cfg["root"] = str(Path(args.data).resolve())
+    else:
+        data_cfg["heights"] = sorted(set(map(float, data_cfg["heights"])) | set(heights))
+    progress.start(f"dataset ({args.preset} preset)")
+    t0 = time.perf_counter()
+    root = default_dataset(data_cfg, progress=not args.no_progress)
+    progress.finish("data", None, time.perf_counter() - t0)
+    print(f"dataset: {root}")
+    info = read_json(root / "dataset.json") if (root / "dataset.json").is_file() else {}
+
+    # 2. LiDAR detection ability at every height: on the preset's own simulated stream of
+    # study.ability_frames frames (counts only, no points: the paper's 8000 frames in about a
+    # minute), else on every frame of the dataset.
+    ability_json = out / "ability" / "ability.json"
+    if ability_json.is_file():
+        progress.skip()
+    elif ability_frames:
+        sets = [x for o in data_cfg.get("sim_overrides") or [] for x in ("--set", o)]
+        run([py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed", str(data_cfg.get("seed", 0)),
+             "--preset", str(data_cfg.get("sim_preset", "paper")), *sets,
+             "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet],
+            f"LiDAR detection ability ({ability_frames} simulated frames)", progress, "ability")
+    else:
+        run([py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights", *map(str, heights),
+             "--out", str(out / "ability"), *quiet], "LiDAR detection ability (every frame of the dataset)",
+            progress, "ability")
+
+    # 3-4. train and evaluate each model at each height
+    reports = []
+    for name in names:
+        for h in heights:
+            run_dir = study_run_dir(out, name, h)
+            report = eval_report_path(run_dir, h)
+            reports.append(report)
+            if report.is_file():
+                progress.skip()
+                progress.skip()
+                continue
+            summary = run_dir / "train_summary.json"
+            done = summary.is_file() and not read_json(summary).get("interrupted", False)
+            if done:
+                progress.skip()
+            else:
+                resume = ["--resume"] if (run_dir / "checkpoints").is_dir() else []
+                sets = [x for o in args.overrides for x in ("--set", o)]
+                run([py, "tools/train.py", "--model", name, "--height", str(h), "--preset", args.preset,
+                     "--data", str(root), "--device", args.device, "--out", str(run_dir), *resume, *sets,
+                     "--no-eval", *quiet], f"train {name} at {h:g} m", progress, "train", name)
+            ckpt = read_json(summary)["checkpoint"]
+            run([py, "tools/eval.py", "--ckpt", ckpt, "--split", "test", "--out", str(report.parent),
+                 "--device", eval_device, *quiet], f"evaluate {name} at {h:g} m", progress, "eval", name)
+
+    # 4b. the cross-height matrix: each checkpoint tested at the other heights
+    cross_reports = []
+    if args.cross_height:
+        for name in names:
+            for h in heights:
+                run_dir = study_run_dir(out, name, h)
+                ckpt = read_json(run_dir / "train_summary.json")["checkpoint"]
+                for t in heights:
+                    report = eval_report_path(run_dir, t)
+                    cross_reports.append(report)
+                    if t == h:
+                        continue
+                    if report.is_file():
+                        progress.skip()
+                        continue
+                    run([py, "tools/eval.py", "--ckpt", ckpt, "--test-height", str(t), "--split", "test",
+                         "--out", str(report.parent), "--device", eval_device, *quiet],
+                        f"evaluate {name} trained at {h:g} m on {t:g} m", progress, "eval", name)
+
+    # 5. combined report and figures
+    run([py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")],
+        "combine reports", progress, "combine")
+    ability = read_json(ability_json)
+    combined = read_json(out / "combined" / "combined.json")
+    report_dicts = [read_json(r) for r in reports]
+    seconds = time.perf_counter() - t_start
+    test_frames = report_dicts[0]["num_frames"] if report_dicts else 0
+    test_scenes = ((report_dicts[0].get("uncertainty") or {}).get("num_clusters") if report_dicts else None)
+    data_words = (f"`{root}`" + (f" ({info.get('num_frames', '?')} frames" if info else "")
+                  + (f", {info.get('frames_per_scene')} per scene)" if info.get("frames_per_scene") else
+                     (")" if info else "")))
+    src = (ability.get("extras") or {}).get("source") or {}
+    if src.get("kind") == "simulator":
+        ability_words = (f"{src.get('frames')} frames simulated by the `{src.get('preset')}` simulator preset, seed "
+                         f"{src.get('seed')}, {src.get('frames_per_scene')} per scene (hit counts, no points)")
+    else:
+        ability_words = f"every frame of {data_words}"
+    source_ability = f"*Preset `{args.preset}`; data: {ability_words}.*"
+    def detect_source(tested: str = "tested on the test split") -> str:
+        return (f"*Preset `{args.preset}`; trained on the train split and {tested} of {data_words}: "
+                f"{test_frames} test frames" + (f" from {test_scenes} scenes" if test_scenes else "") + ".*")
+
+    source_detect = detect_source()
+    # training time per model from the runs' own summaries: true across resumed invocations
+    train_s: dict[str, float] = {}
+    for name in names:
+        for h in heights:
+            summ = read_json(study_run_dir(out, name, h) / "train_summary.json")
+            train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
+    train_words = ("Training time (the runs' own, summed over heights; resumed invocations included): "
+                   + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
+                   + f"; {sum(train_s.values()) / 60:.1f} min in all.")
+    study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,
+             "ability_frames": ability_frames or None, "test_frames": test_frames, "test_scenes": test_scenes,
+             "seconds_this_invocation": round(seconds, 1),
+             "train_seconds": {m: round(t, 1) for m, t in train_s.items()},
+             "summary": {"heights": height_summary(ability),
+                         "detectors": {str(h): c for h, c in detector_summary(report_dicts).items()}},
+             "ability": ability, "detection": combined}
+    cross_lines: list[str] = []
+    if cross_reports:
+        cross_dicts = [read_json(r) for r in cross_reports]
+        mats = [cross_height_matrix(cross_dicts, "ap_r40", "small", "all"),
+                cross_height_matrix(cross_dicts, "recall", "large", "all")]
+        (out / "cross_height").mkdir(exist_ok=True)
+        atomic_write_json(out / "cross_height" / "cross_height.json", {"matrices": mats})
+        for mat in mats:
+            plot_cross_height(mat, out / "cross_height" / f"cross_height_{mat['metric']}_{mat['range']}.png")
+        cross_lines = ["## 3. Cross-height matrix", "", detect_source("tested on the test split at each height"),
+                       "", *[ln for mat in mats for ln in cross_height_markdown(mat)]]
+        atomic_write_text(out / "cross_height" / "cross_height.md", "\n".join(["# Cross-height matrix", "",
+                                                                             *cross_lines[2:]]))
+        study["cross_height"] = mats
+    atomic_write_json(out / "study.json", study)
+
+    def embed(md_path: Path, source: str) -> str:
+        """A tool's Markdown one level below the study's sections, its source under every heading."""
+        lines = []
+        for ln in md_path.read_text(encoding="utf-8").splitlines():
+            if ln.startswith("#"):
+                lines += ["##" + ln, "", source]
+            else:
+                lines.append(ln)
+        return "\n".join(lines)
+
+    lines = [f"# Height3 study ({args.preset} preset)", "",
+             f"Heights: {', '.join(f'{h:g} m' for h in heights)}. Models: {', '.join(names)}. "
+             f"Detection data: {data_words}. Ran {seconds / 60:.1f} min in this invocation. {train_words}", "",
+             "## Summary", "",
+             "**Which height sees the most vehicles?** LiDAR detection rate (LDR: vehicles with >= 1 point / all "
+             "vehicles), best height per importance level and range, and its paired lead over the next height "
+             "(95 % scene-bootstrap interval).", "", source_ability, "",
+             *height_summary_lines(ability), "",
+             "**Which detector finds the most LiDAR-detected vehicles?** Per height, the model with the highest "
+             "recall of the LiDAR-detected vehicles in the large range (every vehicle within 150 m ahead, "
+             "|y| <= 15 m), at 3D IoU >= 0.7 and score >= 0.1; intervals from a bootstrap over test scenes, the "
+             "lead paired over the same scenes.", "", source_detect, "",
+             *detector_summary_lines(report_dicts), "",
+             *unlearned_lines(report_dicts),
+             *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
+                f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""] if left_out else []),
+             PRESET_CAVEATS.get(args.preset, ""), "",
+             "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
+             "`python tools/study.py --preset paper --device cuda`.", "",
+             "## 1. LiDAR detection ability", "",
+             embed(out / "ability" / "ability.md", source_ability), "",
+             "## 2. Detectors on the LiDAR-detected vehicles (test split)", "",
+             embed(out / "combined" / "combined.md", source_detect), "",
+             *cross_lines,
+             "Per-run reports with 95 % intervals: " + ", ".join(
+                 f"`{r.parent.relative_to(out)}/report.md`" for r in reports), "",
+             "Figures: " + ", ".join(f"`{p.relative_to(out)}`" for p in sorted(out.glob("*/*.png"))), ""]
+    atomic_write_text(out / "study.md", "\n".join(lines))
+    return out / "study.md", seconds
+
+
+__all__ = ["PRESET_CAVEATS", "Progress", "StudyOptions", "run_stage", "run_study", "study_models"]

@@ -1,0 +1,16 @@
+"""Run-folder names (detbench.train.run_layout): the names tools/train.py, eval.py, study.py and benchmark.py share."""
+from pathlib import Path
+
+from detbench.train import run_layout as rl
+
+
+def test_run_folder_names():
+    assert rl.model_run_name("second", 1.8) == "second_h1.8"
+    assert rl.default_train_dir("second", 1, "cpu") == Path("runs/second_h1.0_cpu")
+    assert rl.default_study_dir("quick") == Path("runs/study_quick")
+    assert rl.study_run_dir("s", "ct3d", 0.5) == Path("s/ct3d_h0.5")
+    assert rl.eval_dir_name(1.8) == "eval_h1.8_test"
+    assert rl.eval_dir_name(0.5, "train", "proposals") == "eval_h0.5_train_proposals"
+    assert rl.eval_report_path("s/second_h1.8", 0.5) == Path("s/second_h1.8/eval_h0.5_test/report.json")
+    assert rl.precision_dir_name(1.8, "test") == "precision_h1.8_test"
+    assert rl.run_dir_of_checkpoint("r/checkpoints/epoch_002.pt") == Path("r").resolve()
