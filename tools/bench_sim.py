@@ -18,16 +18,14 @@ machine; the split is the sum over the run of each stage's time.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import os
 import platform
 import sys
 import time
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench import runtime  # noqa: E402  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.config import ConfigError  # noqa: E402

@@ -20,13 +20,11 @@ Units: metres, radians, seconds per frame; AP@R40 and recall are fractions in [0
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 from detbench.train.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
