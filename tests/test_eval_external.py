@@ -14,6 +14,7 @@ from detbench.eval.external import (
     kitti_camera_to_lidar, load_predictions, parse_prediction_text, predictions_from_result_pkl,
     vertical_offset_check,
 )
+import tools.eval
 
 CARS = np.array([[12.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.1], [26.0, 3.5, 0.8, 4.4, 1.9, 1.6, -0.2],
                  [41.0, -3.5, 1.5, 9.0, 2.5, 3.0, 0.0], [70.0, 0.5, 0.9, 4.6, 2.0, 1.8, 3.0]], dtype=np.float32)
@@ -168,10 +169,10 @@ def test_frame_check_does_not_cry_wolf(dataset):
     assert not vertical_offset_check(ds, {ds.frame_ids[0]: lifted[ds.frame_ids[0]]})["likely_frame_mismatch"]
 
 
-def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, load_tool):
+def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys):
     """A model trained on sensor-frame data predicts boxes 1.8 m low: evaluated as ground-frame boxes it scores
     TP 0 / AP 0; the report and stderr say why, and --pred-frame sensor gives the right figures."""
-    tool = load_tool("eval")
+    tool = tools.eval
     for h, pitch in ((0.5, 0.0), (1.8, 2.5)):
         ds = Height3Dataset(dataset, h, "test")
         annos = [opc_entry(f, boxes_ground_to_sensor(CARS, h, pitch), [0.9, 0.8, 0.7, 0.6], ["Vehicle"] * 4)
@@ -208,7 +209,7 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, 
     assert tool.main(["--ckpt", str(tmp_path / "none.pt"), "--pred-frame", "sensor", "--no-progress"]) == 2
 
 
-def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys, load_tool):
+def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys):
     ds = Height3Dataset(dataset, 0.5, "test")
     pred = tmp_path / "pred"
     pred.mkdir()
@@ -216,7 +217,7 @@ def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys, load_t
         lines = [" ".join(f"{v:.6g}" for v in b) + f" Vehicle {0.9 - 0.1 * i:.2f}" for i, b in enumerate(CARS)]
         (pred / f"{f}.txt").write_text("\n".join(lines + ["8 2 0.9 0.6 0.6 1.8 0 Cyclist 0.99"]) + "\n")
     out = tmp_path / "out"
-    assert load_tool("eval").main(["--data", str(dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
+    assert tools.eval.main(["--data", str(dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
                                    "--no-progress", "--no-extras"]) == 0
     assert "Cyclist 0 kept / 2 dropped" in capsys.readouterr().out
     rep = json.loads((out / "report.json").read_text())

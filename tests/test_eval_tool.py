@@ -9,6 +9,8 @@ import pytest
 
 from detbench.eval import evaluate_predictions, parse_prediction_file, read_prediction_dir
 from detbench.eval.evaluate import format_prediction_lines
+import tools.bench_eval
+import tools.eval
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,8 +80,8 @@ def test_help_runs_as_script():
         assert opt in out.stdout
 
 
-def test_ckpt_errors_name_the_file(tmp_path, capsys, load_tool):
-    tool = load_tool("eval")
+def test_ckpt_errors_name_the_file(tmp_path, capsys):
+    tool = tools.eval
     rc = tool.main(["--ckpt", str(tmp_path / "m.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "m.pt: checkpoint not found" in err
@@ -93,8 +95,8 @@ def test_ckpt_errors_name_the_file(tmp_path, capsys, load_tool):
     assert not (tmp_path / "o").exists()
 
 
-def test_argument_errors(tmp_path, capsys, load_tool):
-    tool = load_tool("eval")
+def test_argument_errors(tmp_path, capsys):
+    tool = tools.eval
     assert tool.main(["--height", "1.8", "--pred", str(tmp_path), "--out", str(tmp_path)]) == 2
     assert "missing --data" in capsys.readouterr().err
     assert tool.main(["--data", str(tmp_path), "--height", "1.8", "--out", str(tmp_path)]) == 2
@@ -105,7 +107,7 @@ def test_argument_errors(tmp_path, capsys, load_tool):
     assert "r.json: file not found" in capsys.readouterr().err
 
 
-def test_combine_cli(tmp_path, capsys, load_tool):
+def test_combine_cli(tmp_path, capsys):
     from detbench.eval import EvalFrame, evaluate
     from detbench.utils.io import atomic_write_json
 
@@ -116,7 +118,7 @@ def test_combine_cli(tmp_path, capsys, load_tool):
             rep = evaluate([EvalFrame([car], [3], [0], [car] * found, [0.9] * found)])
             paths.append(atomic_write_json(tmp_path / model / str(h) / "report.json",
                                            {"model": model, "height": h, "split": "test", **rep}))
-    tool = load_tool("eval")
+    tool = tools.eval
     out = tmp_path / "comb"
     assert tool.main(["--combine", *map(str, paths), "--out", str(out)]) == 0
     assert "models A, B; heights 0.5 m, 1.8 m" in capsys.readouterr().out
@@ -176,7 +178,7 @@ def test_evaluate_predictions_on_dataset(tiny_dataset):
         evaluate_predictions(ds, {"9999_999": preds[ids[0]]}, progress=False)
 
 
-def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
+def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
     from detbench.data import Height3Dataset
 
     test_ids = Height3Dataset(tiny_dataset, 1.8, "test").frame_ids
@@ -187,7 +189,7 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
                                              "70 0 0.8 4 2 1.6 0 0.7\n")
     (pred / f"{train_ids[0]}.txt").write_text("10 0 0.8 4 2 1.6 0 0.9\n")
     out = tmp_path / "out"
-    tool = load_tool("eval")
+    tool = tools.eval
     rc = tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--split", "test", "--pred", str(pred),
                     "--out", str(out), "--model", "SECOND", "--no-progress"])
     stdout = capsys.readouterr().out
@@ -222,8 +224,8 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
     assert "0.5" in capsys.readouterr().err
 
 
-def test_bench_eval_small_run(tmp_path, capsys, load_tool):
-    bench = load_tool("bench_eval")
+def test_bench_eval_small_run(tmp_path, capsys):
+    bench = tools.bench_eval
     assert bench.main(["--frames", "40", "--repeats", "1", "--out", str(tmp_path)]) == 0
     assert "median" in capsys.readouterr().out
     res = json.loads((tmp_path / "bench_eval.json").read_text())

@@ -9,11 +9,12 @@ import torch
 from detbench.sim.scans import synthetic_scan
 from detbench.sparse import SparseConvTensor
 from detbench.sparse.bench import backbone
+import tools.bench_sparse
 
 
 @pytest.fixture
-def bench(load_tool):
-    return load_tool("bench_sparse")
+def bench():
+    return tools.bench_sparse
 
 
 def test_help_lists_options_with_units(capsys, bench):

@@ -6,6 +6,10 @@ from pathlib import Path
 
 import pytest
 
+import tools.benchmark
+import tools.eval
+import tools.study
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -26,7 +30,7 @@ def run(args, cwd=ROOT):
 
 
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
-def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, load_tool, capsys):
+def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, capsys):
     out = tmp_path / "run"
     run(["tools/train.py", "--model", model, "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset),
          "--out", str(out), "--epochs", "1", "--no-progress", "--set", "train.tensorboard=false"])
@@ -53,7 +57,7 @@ def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, load_tool, ca
     # --stage proposals (in process, on the same checkpoint): the first stage alone of a two-stage
     # model; a one-stage model has no such stage and is refused before anything is written
     out_p = tmp_path / "e18_proposals"
-    rc = load_tool("eval").main(["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p), "--no-progress"])
+    rc = tools.eval.main(["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p), "--no-progress"])
     err = capsys.readouterr().err
     if model in ("pointrcnn", "ct3d"):
         assert rc == 0, err
@@ -88,8 +92,8 @@ def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
     assert "ms" in md and "MiB" in md
 
 
-def test_benchmark_idle_and_loaded_table(load_tool):
-    bench = load_tool("benchmark")
+def test_benchmark_idle_and_loaded_table():
+    bench = tools.benchmark
     idle = {"model": "second", "device": "cpu", "latency_ms": {"total": 100.0, "points": 5.0}, "train_step_ms": 400.0}
     loaded = {"latency_ms": {"total": 150.0, "points": 5.0}, "train_step_ms": 800.0}
     idle["loaded"] = bench._loaded_figures(idle, loaded, {"processes": 1})
@@ -137,8 +141,8 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     assert "[9/9] combine reports" in proc.stdout
 
 
-def test_study_models_come_from_models_then_the_preset_then_the_registry(load_tool):
-    study = load_tool("study")
+def test_study_models_come_from_models_then_the_preset_then_the_registry():
+    study = tools.study
     # quick leaves PointRCNN out (it does not learn in a few minutes per height); --models wins
     assert study.study_models("quick", None, []) == (["ct3d", "pillarnet", "second"], ["pointrcnn"])
     assert study.study_models("quick", ["pointrcnn"], []) == (["pointrcnn"], [])
@@ -147,11 +151,11 @@ def test_study_models_come_from_models_then_the_preset_then_the_registry(load_to
         study.study_models("smoke", None, ["study.models=[nosuchmodel]"])
 
 
-def test_study_progress_time_left_counts_the_stage_starting_now(load_tool, capsys):
+def test_study_progress_time_left_counts_the_stage_starting_now(capsys):
     """The time left names every stage not yet finished, the one starting included: with SECOND's
     training measured at 100 s and its evaluation at 10 s, starting its second training leaves
     100 + 10 + 100 + 10 s (a guess-free figure), not the 120 s of the stages after it."""
-    study = load_tool("study")
+    study = tools.study
     stages = [("train", "second"), ("eval", "second")] * 3 + [("combine", None)]
     prog = study.Progress(stages)
     prog.start("train second at 0.5 m")

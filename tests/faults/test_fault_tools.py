@@ -6,6 +6,8 @@ import sys
 
 import pytest
 
+import tools.study
+
 
 def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
     out = tmp_path / "study"
@@ -24,10 +26,10 @@ def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
-def test_a_failed_study_stage_keeps_the_users_error_apart_from_a_bug(load_tool, status, expected):
+def test_a_failed_study_stage_keeps_the_users_error_apart_from_a_bug(status, expected):
     from detbench.utils.cli import run_main
 
-    study = load_tool("study")
+    study = tools.study
 
     def main(_argv):
         study.run([sys.executable, "-c", f"import sys; sys.exit({status})"], "train second at 1.8 m")
