@@ -14,6 +14,7 @@ from detbench.eval.external import (
     kitti_camera_to_lidar, load_predictions, parse_prediction_text, predictions_from_result_pkl,
     vertical_offset_check,
 )
+from detbench.utils.cli import run_main
 import tools.eval
 
 CARS = np.array([[12.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.1], [26.0, 3.5, 0.8, 4.4, 1.9, 1.6, -0.2],
@@ -181,7 +182,7 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys):
         pkl.write_bytes(pickle.dumps(annos))
         base = ["--data", str(dataset), "--height", str(h), "--pred", str(pkl), "--no-progress", "--no-extras"]
         out = tmp_path / f"wrong_{h}"
-        assert tool.main(base + ["--out", str(out)]) == 0
+        assert run_main(tool.main, base + ["--out", str(out)]) == 0
         captured = capsys.readouterr()
         assert "warning: likely frame mismatch" in captured.err and "--pred-frame sensor" in captured.err
         rep = json.loads((out / "report.json").read_text())
@@ -193,7 +194,7 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys):
             assert rep["frame_check"]["median_dz_m"] == pytest.approx(-h, abs=1e-4)
         assert "**Warning: likely frame mismatch" in (out / "report.md").read_text()
         out = tmp_path / f"right_{h}"
-        assert tool.main(base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
+        assert run_main(tool.main, base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
         captured = capsys.readouterr()
         assert "warning" not in captured.err and "moved from the LiDAR's own frame" in captured.out
         rep = json.loads((out / "report.json").read_text())
@@ -204,9 +205,9 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys):
         # and the reverse mistake: ground-frame boxes declared as sensor-frame
         pkl.write_bytes(pickle.dumps([opc_entry(f, CARS, [0.9, 0.8, 0.7, 0.6], ["Vehicle"] * 4)
                                       for f in ds.frame_ids]))
-        assert tool.main(base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
+        assert run_main(tool.main, base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
         assert "pass --pred-frame ground" in capsys.readouterr().err
-    assert tool.main(["--ckpt", str(tmp_path / "none.pt"), "--pred-frame", "sensor", "--no-progress"]) == 2
+    assert run_main(tool.main, ["--ckpt", str(tmp_path / "none.pt"), "--pred-frame", "sensor", "--no-progress"]) == 2
 
 
 def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys):

@@ -24,6 +24,7 @@ from detbench.data.regions import detected_point_counts
 from detbench.data.transforms import ground_to_sensor
 from detbench.data.validate import validate_dataset
 from detbench.utils.io import read_json
+from detbench.utils.cli import run_main
 import tools.analyze
 import tools.eval
 import tools.export_openpcdet
@@ -358,7 +359,7 @@ def test_tools_on_an_unconverted_folder_name_the_convert_command(tmp_path, capsy
                                    "--no-progress"])
     pred = tmp_path / "pred"
     pred.mkdir()
-    assert tools.eval.main(["--data", str(src), "--height", "1.8", "--pred", str(pred), "--out",
+    assert run_main(tools.eval.main, ["--data", str(src), "--height", "1.8", "--pred", str(pred), "--out",
                                    str(tmp_path / "e"), "--no-progress"]) == 2
     assert expected in capsys.readouterr().err
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from detbench.utils.cli import run_main
 import tools.benchmark
 import tools.eval
 import tools.study
@@ -57,7 +58,8 @@ def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, capsys):
     # --stage proposals (in process, on the same checkpoint): the first stage alone of a two-stage
     # model; a one-stage model has no such stage and is refused before anything is written
     out_p = tmp_path / "e18_proposals"
-    rc = tools.eval.main(["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p), "--no-progress"])
+    rc = run_main(tools.eval.main, ["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p),
+                                    "--no-progress"])
     err = capsys.readouterr().err
     if model in ("pointrcnn", "ct3d"):
         assert rc == 0, err
