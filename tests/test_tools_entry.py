@@ -46,3 +46,14 @@ def test_a_tool_runs_as_a_file_from_another_folder(name, tmp_path):
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "usage:" in proc.stdout
+
+
+@pytest.mark.parametrize("name", TOOLS)
+def test_every_tool_answers_help_in_process(name, capsys):
+    """`main(["--help"])` of each tool: its options, exit status 0."""
+    import importlib
+
+    with pytest.raises(SystemExit) as exc:
+        importlib.import_module(f"tools.{name}").main(["--help"])
+    assert exc.value.code == 0
+    assert "usage:" in capsys.readouterr().out

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from detbench.benchmarks.detectors import idle_loaded_markdown, loaded_figures
 from detbench.utils.cli import run_main
-import tools.benchmark
 import tools.eval
 import tools.study
 
@@ -95,12 +95,11 @@ def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
 
 
 def test_benchmark_idle_and_loaded_table():
-    bench = tools.benchmark
     idle = {"model": "second", "device": "cpu", "latency_ms": {"total": 100.0, "points": 5.0}, "train_step_ms": 400.0}
     loaded = {"latency_ms": {"total": 150.0, "points": 5.0}, "train_step_ms": 800.0}
-    idle["loaded"] = bench._loaded_figures(idle, loaded, {"processes": 1})
+    idle["loaded"] = loaded_figures(idle, loaded, {"processes": 1})
     assert idle["loaded"]["ratio"] == {"total": 1.5, "train_step": 2.0}
-    md = "\n".join(bench._idle_loaded_markdown([idle]))
+    md = "\n".join(idle_loaded_markdown([idle]))
     assert "| second | cpu | 100.0 | 150.0 | 1.5 | 400.0 | 800.0 | 2.0 |" in md and "1 busy-loop process" in md
 
 
