@@ -35,20 +35,22 @@ from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
+    D = PointsBenchSettings()  # the defaults
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="runs/bench_points",
                     help="output folder for bench_points.json and bench_points.md (default: %(default)s)")
     ap.add_argument("--frames", type=int, default=1, help="scans per batch (default %(default)s)")
-    ap.add_argument("--points", type=int, default=16384, help="points per scan (default %(default)s, PointRCNN)")
-    ap.add_argument("--samples", type=int, default=4096, help="FPS samples per scan (default %(default)s)")
-    ap.add_argument("--channels", type=int, default=128, help="feature channels C for propagation and pooling")
-    ap.add_argument("--rois", type=int, default=100, help="RoIs per scan for RoI pooling (default %(default)s)")
+    ap.add_argument("--points", type=int, default=D.points, help="points per scan (default %(default)s, PointRCNN)")
+    ap.add_argument("--samples", type=int, default=D.samples, help="FPS samples per scan (default %(default)s)")
+    ap.add_argument("--channels", type=int, default=D.channels, help="feature channels C for propagation and pooling")
+    ap.add_argument("--rois", type=int, default=D.rois, help="RoIs per scan for RoI pooling (default %(default)s)")
     ap.add_argument("--source", choices=["synthetic", "sim", "auto"], default="synthetic",
                     help="scans: the built-in synthetic 1.8 m scan (default, quick), detbench.sim (slower to "
                          "start), or sim when importable")
-    ap.add_argument("--seed", type=int, default=0, help="random seed of the scans and the sampling")
-    ap.add_argument("--repeats", type=int, default=5, help="timed runs per case after one warm-up (default %(default)s)")
-    ap.add_argument("--threads", type=int, default=2, help="numba and torch CPU threads (default %(default)s)")
+    ap.add_argument("--seed", type=int, default=D.seed, help="random seed of the scans and the sampling")
+    ap.add_argument("--repeats", type=int, default=D.repeats,
+                    help="timed runs per case after one warm-up (default %(default)s)")
+    ap.add_argument("--threads", type=int, default=D.threads, help="numba and torch CPU threads (default %(default)s)")
     ap.add_argument("--device", default="cpu", help="torch device for the torch-path rows (default %(default)s)")
     ap.add_argument("--skip-torch", action="store_true", help="leave out the torch-path rows (slow on CPU)")
     return ap

@@ -38,6 +38,7 @@ from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
 # ----------------------------------------------------------------------------- main
 def main(argv=None) -> int:
+    D = SparseBenchSettings()  # the defaults
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="results/bench_sparse",
                     help="output folder for bench_sparse.json and bench_sparse.md (default: %(default)s)")
@@ -45,24 +46,25 @@ def main(argv=None) -> int:
                     help="number of 1.8 m scans batched together (batch size; default %(default)s)")
     ap.add_argument("--source", choices=["auto", "sim", "synthetic"], default="auto",
                     help="scan source: detbench.sim when importable (auto), force sim, or the built-in synthetic scan")
-    ap.add_argument("--seed", type=int, default=0, help="random seed of the scan and the weights")
-    ap.add_argument("--repeats", type=int, default=5, help="timed runs per case after one warm-up (default %(default)s)")
+    ap.add_argument("--seed", type=int, default=D.seed, help="random seed of the scan and the weights")
+    ap.add_argument("--repeats", type=int, default=D.repeats,
+                    help="timed runs per case after one warm-up (default %(default)s)")
     ap.add_argument("--threads", type=int, default=None,
                     help="torch CPU threads (default: detbench's, OMP_NUM_THREADS; see docs/architecture.md)")
-    ap.add_argument("--load", type=int, default=0, metavar="N",
+    ap.add_argument("--load", type=int, default=D.load, metavar="N",
                     help="also measure every case beside N busy-loop processes started for it (and stopped "
                          "after), reported next to the idle figures with the ratio (default %(default)s: idle only)")
     ap.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda (default %(default)s)")
-    ap.add_argument("--voxel-size", type=float, nargs=3, default=[0.1, 0.1, 0.15], metavar=("VX", "VY", "VZ"),
+    ap.add_argument("--voxel-size", type=float, nargs=3, default=D.voxel_size, metavar=("VX", "VY", "VZ"),
                     help="voxel size in metres (default: %(default)s, SECOND-like)")
-    ap.add_argument("--range", type=float, nargs=6, default=[0.0, -15.0, -1.0, 150.0, 15.0, 4.0],
+    ap.add_argument("--range", type=float, nargs=6, default=D.range,
                     metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                     help="point-cloud range in metres, ego frame (default: %(default)s)")
-    ap.add_argument("--max-points", type=int, default=5, help="hard voxelization: points per voxel (default %(default)s)")
-    ap.add_argument("--dense-crop-x", type=float, default=30.0,
+    ap.add_argument("--max-points", type=int, default=D.max_points, help="hard voxelization: points per voxel (default %(default)s)")
+    ap.add_argument("--dense-crop-x", type=float, default=D.dense_crop_x,
                     help="x extent in metres of the crop (from XMIN) for the dense conv3d comparison; 0 skips it "
                          "(default %(default)s)")
-    ap.add_argument("--dense-max-gb", type=float, default=2.0,
+    ap.add_argument("--dense-max-gb", type=float, default=D.dense_max_gb,
                     help="skip the dense comparison when its input + output tensors exceed this many GB")
     args = ap.parse_args(argv)
     for flag in ("scans", "repeats", "threads", "max_points"):

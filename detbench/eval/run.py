@@ -24,13 +24,14 @@ __all__ = ["CheckpointRun", "EvalSettings", "combine_report_files", "evaluation_
 
 @dataclass
 class EvalSettings:
-    """How predictions are matched and what the report holds (the options of tools/eval.py)."""
+    """How predictions are matched and what the report holds (the options of tools/eval.py, whose defaults
+    are its own)."""
 
-    iou_threshold: float = 0.7  # IoU (fraction) a prediction needs with a vehicle to count as a TP
-    score_threshold: float = 0.1  # predictions scoring below are dropped before matching
-    iou_kind: str = "3d"  # "3d" (rotated boxes) or "bev"
-    extras: bool = True  # also the BEV IoU and IoU 0.5 variants
-    bootstrap: int = 1000  # replicates of the bootstrap over scenes behind the 95 % intervals (0: none)
+    iou_threshold: float  # IoU (fraction) a prediction needs with a vehicle to count as a TP
+    score_threshold: float  # predictions scoring below are dropped before matching
+    iou_kind: str  # "3d" (rotated boxes) or "bev"
+    extras: bool  # also the BEV IoU and IoU 0.5 variants
+    bootstrap: int  # replicates of the bootstrap over scenes behind the 95 % intervals (0: none)
     progress: bool = True
 
 
