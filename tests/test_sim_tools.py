@@ -102,3 +102,13 @@ def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path):
     assert tools.analyze.main(["--data", str(root), "--split", "all", "--no-figures", "--no-progress",
                                       "--bootstrap", "0", "--out", str(out)]) == 0
     assert json.loads((out / "ability.json").read_text())["extras"]["source"]["calibration"] == "v1"
+
+
+def test_run_lidars_default_to_the_papers_heights_and_refuse_a_shared_height():
+    from detbench.sim.run import run_lidars
+
+    assert [lid.height for lid in run_lidars()] == [0.5, 1.0, 1.8]
+    noisy = run_lidars([1.8], range_noise=0.02, dropout=0.1)
+    assert noisy[0].range_noise_m == 0.02 and noisy[0].dropout == 0.1
+    with pytest.raises(ValueError, match="heights must differ"):
+        run_lidars([1.8, "h3-1.8"])

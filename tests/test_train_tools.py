@@ -173,3 +173,11 @@ def test_study_progress_time_left_counts_the_stage_starting_now(capsys):
     prog.finish("eval", "second", 10.0)
     prog.start("train second at 1.8 m")
     assert "about 2 min left" in capsys.readouterr().out.splitlines()[-1]  # 110 s, the last training included
+
+
+def test_train_option_overrides_follow_the_users_set_values(tmp_path):
+    from detbench.train.run import option_overrides
+
+    assert option_overrides(["train.lr=0.1"]) == ["train.lr=0.1"]
+    assert option_overrides(["a=1"], epochs=3, batch_size=2, workers=0, data=str(tmp_path)) == [
+        "a=1", "train.epochs=3", "train.batch_size=2", "train.workers=0", f"data.root={tmp_path.resolve()}"]
