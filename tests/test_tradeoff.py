@@ -4,7 +4,6 @@ import json
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +15,6 @@ from detbench.eval.tradeoff import (
 from detbench.utils.bench import median_p90
 import tools.tradeoff
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # ---- Pareto -------------------------------------------------------------------------------------
@@ -179,13 +177,7 @@ def test_markdown_marks_the_front_and_unmodelled_ranges(tmp_path):
 # ---- the sweep's points (tools/tradeoff.py) -------------------------------------------------------------
 @pytest.fixture(scope="module")
 def tradeoff_tool():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("detbench_tools_tradeoff_t", ROOT / "tools" / "tradeoff.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mod
-    spec.loader.exec_module(mod)
-    return mod
+    return tools.tradeoff
 
 
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
