@@ -117,31 +117,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: int = 4,
                                 progress: bool = True, stage: str = "refined"):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name).
-
-    `stage` 'proposals' asks a two-stage model for its first stage's boxes alone.
-    """
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
     import models
-    from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
-    from detbench.train.inference import predict_frames
+    from detbench.train.inference import checkpoint_predictions
 
     try:
         model, ck = models.load_from_checkpoint(ckpt, device)
     except CheckpointError as e:
         raise UserError(str(e)) from None
-    if stage != "refined":
-        if not hasattr(model, "set_output_stage"):
-            raise UserError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
-                            f"two-stage models (pointrcnn, ct3d)")
-        model.set_output_stage(stage)
-    try:
-        preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
-                               batch_size=batch_size, progress=progress)
-    except FloatingPointError as e:
-        raise UserError(f"{ckpt}: {e}") from None
-    except DatasetError as e:  # a frame of the split is malformed
-        raise UserError(str(e)) from None
+    preds = checkpoint_predictions(model, ck, dataset, device=device, batch_size=batch_size, progress=progress,
+                                   stage=stage, source=ckpt)
     return preds, ck["model_name"]
 
 

@@ -21,7 +21,8 @@ from detbench.data.batch import Sample, collate
 from detbench.train.inference import frame_sample
 from detbench.utils.bench import StageTimer, load_line, ratio, runtime_line
 
-__all__ = ["benchmark_markdown", "idle_loaded_markdown", "loaded_figures", "measure_detector", "peak_rss_mib", "train_step_ms"]
+__all__ = ["benchmark_markdown", "idle_loaded_markdown", "loaded_figures",
+           "measure_detector", "peak_rss_mib", "train_step_ms"]
 
 
 def peak_rss_mib() -> float:
@@ -116,7 +117,8 @@ def benchmark_markdown(meta: dict, results: list[dict]) -> str:
     for r in results:
         lat = r["latency_ms"]
         row = [r["model"], r["device"], f"{r['parameters'] / 1e6:.2f}", f"{r['weights_mb']:.2f}",
-               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}", *[f"{lat[s]:.1f}" if s in lat else "-" for s in stage_names],
+               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}",
+               *[f"{lat[s]:.1f}" if s in lat else "-" for s in stage_names],
                str(int(lat["points"]))]
         if has_acc:
             acc = r.get("accuracy") or {}

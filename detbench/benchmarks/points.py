@@ -97,8 +97,8 @@ def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSetting
         npoint = s.samples if level == 0 else npoint
         idx = farthest_point_sample(cur, npoint, cur_counts)
         centres = cur[idx]
-        add(f"  SA level: FPS {cur_counts[0]} -> {npoint}", timed(lambda: farthest_point_sample(cur, npoint, cur_counts),
-                                                               s.repeats, lambda: None))
+        add(f"  SA level: FPS {cur_counts[0]} -> {npoint}",
+            timed(lambda: farthest_point_sample(cur, npoint, cur_counts), s.repeats, lambda: None))
         for r, ns in zip(radii, nsamples):
             cc = [npoint] * frames
 
@@ -143,7 +143,8 @@ def points_bench_markdown(r: dict) -> str:
         f"- scans: {r['source']}",
         f"- batch: {r['frames']} scan(s) x {r['points_per_frame']} points; FPS samples {r['samples']}; "
         f"C = {r['channels']}; RoIs per scan {r['rois_per_frame']}",
-        f"- numba threads {r['numba_threads']}, torch threads {r['threads']}, device {r['device']}, torch {r['torch']}, "
+        f"- numba threads {r['numba_threads']}, torch threads {r['threads']}, device {r['device']}, "
+        f"torch {r['torch']}, "
         f"numba {r['numba']}, {r['cpus']} CPUs, OMP_WAIT_POLICY {r.get('omp_wait_policy')}",
         f"- times in milliseconds per call on the whole batch: median and best of {r['repeats']} runs after a warm-up",
         f"- load average (1 min) before / after: {r['load_average_1_5_15min_before'][0]} / "

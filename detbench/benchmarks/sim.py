@@ -105,7 +105,8 @@ def run_sim_bench(cfg: dict, lidars: list[LidarConfig], *, frames: int, frames_p
         r["loaded"]["wall_ratio"] = ratio(lr["wall_s"], r["wall_s"])
     pib = _pib_time(factory, lidars, min(frames, 100), fps) if mode != "counts" else None
     report = {
-        "frames": frames, "frames_per_scene": fps, "heights": heights if heights is not None else [lidar.height for lidar in lidars],
+        "frames": frames, "frames_per_scene": fps,
+        "heights": heights if heights is not None else [lidar.height for lidar in lidars],
         "preset": preset, "overrides": list(overrides), "seed": seed,
         "lidars": [l.to_dict() for l in lidars],
         "warmup_s (import + numba compile or cache load + 2 frames)": round(warmup + (t0 - started), 3),
@@ -140,7 +141,8 @@ def sim_bench_markdown(report: dict) -> str:
                   f"{r['points_per_lidar_frame']} |")
     if report["load"]:
         md += ["", f"Loaded: the same runs beside {load_line(report['load'])}.", "",
-               "| mode | idle wall (s) | loaded wall (s) | x idle | idle frames/s | loaded frames/s |", "|---|---|---|---|---|---|"]
+               "| mode | idle wall (s) | loaded wall (s) | x idle | idle frames/s | loaded frames/s |",
+               "|---|---|---|---|---|---|"]
         md += [f"| {'points' if r['with_points'] else 'counts only'} | {r['wall_s']} | {r['loaded']['wall_s']} | "
                f"{r['loaded']['wall_ratio']} | {r['frames_per_s']} | {r['loaded']['frames_per_s']} |" for r in runs]
     md += ["", f"Thread runtimes: {runtime_line(report['runtime'])}."]

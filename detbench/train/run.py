@@ -12,7 +12,7 @@ from detbench.data.regions import RANGE_NAMES
 from detbench.data.validate import check_frames
 from detbench.eval.evaluate import evaluate_predictions
 from detbench.train.dataset import TrainingSet
-from detbench.train.inference import predict_frames
+from detbench.train import inference
 from detbench.train.loop import TrainResult
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
@@ -61,7 +61,8 @@ def eval_frames(root: Path, height: float, ecfg):
 def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
     """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range."""
     def eval_fn(m, epoch):
-        preds = predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size, progress=False)
+        preds = inference.predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size,
+                                         progress=False)
         rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
                                    score_threshold=ecfg.score_threshold, extras=False, progress=False)
         res = {}
