@@ -6,12 +6,13 @@ import pytest
 
 from detbench.data import DatasetWriter, Frame, Sensor
 from detbench.studies.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
+import tools.analyze
 
 
 @pytest.fixture
-def analyze_main(load_tool):
+def analyze_main():
     """Run tools/analyze.py's main in this process (saves the interpreter and numba start-up)."""
-    return lambda argv: load_tool("analyze").main([str(a) for a in argv])
+    return lambda argv: tools.analyze.main([str(a) for a in argv])
 
 
 def car(x, y, heading=0.0, dz=1.5):

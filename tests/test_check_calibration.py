@@ -8,14 +8,15 @@ import pytest
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.studies import calibration as cc
 from detbench.studies.ability import PAPER_TABLES, decomposition, paper_decomposition
+import tools.check_calibration
 
 ALL, TOP3, TOP6 = (LEVELS.index(lv) for lv in ("all", "top3", "top6"))
 SMALL, MODERATE, LARGE = range(3)
 
 
 @pytest.fixture
-def tool(load_tool):
-    return load_tool("check_calibration")
+def tool():
+    return tools.check_calibration
 
 
 def test_the_papers_own_counts_pass():

@@ -14,6 +14,8 @@ from detbench.eval.external import (
     kitti_camera_to_lidar, load_predictions, parse_prediction_text, predictions_from_result_pkl,
     vertical_offset_check,
 )
+from detbench.utils.cli import run_main
+import tools.eval
 
 CARS = np.array([[12.0, 0.0, 0.8, 4.0, 2.0, 1.6, 0.1], [26.0, 3.5, 0.8, 4.4, 1.9, 1.6, -0.2],
                  [41.0, -3.5, 1.5, 9.0, 2.5, 3.0, 0.0], [70.0, 0.5, 0.9, 4.6, 2.0, 1.8, 3.0]], dtype=np.float32)
@@ -168,10 +170,10 @@ def test_frame_check_does_not_cry_wolf(dataset):
     assert not vertical_offset_check(ds, {ds.frame_ids[0]: lifted[ds.frame_ids[0]]})["likely_frame_mismatch"]
 
 
-def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, load_tool):
+def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys):
     """A model trained on sensor-frame data predicts boxes 1.8 m low: evaluated as ground-frame boxes it scores
     TP 0 / AP 0; the report and stderr say why, and --pred-frame sensor gives the right figures."""
-    tool = load_tool("eval")
+    tool = tools.eval
     for h, pitch in ((0.5, 0.0), (1.8, 2.5)):
         ds = Height3Dataset(dataset, h, "test")
         annos = [opc_entry(f, boxes_ground_to_sensor(CARS, h, pitch), [0.9, 0.8, 0.7, 0.6], ["Vehicle"] * 4)
@@ -180,7 +182,7 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, 
         pkl.write_bytes(pickle.dumps(annos))
         base = ["--data", str(dataset), "--height", str(h), "--pred", str(pkl), "--no-progress", "--no-extras"]
         out = tmp_path / f"wrong_{h}"
-        assert tool.main(base + ["--out", str(out)]) == 0
+        assert run_main(tool.main, base + ["--out", str(out)]) == 0
         captured = capsys.readouterr()
         assert "warning: likely frame mismatch" in captured.err and "--pred-frame sensor" in captured.err
         rep = json.loads((out / "report.json").read_text())
@@ -192,7 +194,7 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, 
             assert rep["frame_check"]["median_dz_m"] == pytest.approx(-h, abs=1e-4)
         assert "**Warning: likely frame mismatch" in (out / "report.md").read_text()
         out = tmp_path / f"right_{h}"
-        assert tool.main(base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
+        assert run_main(tool.main, base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
         captured = capsys.readouterr()
         assert "warning" not in captured.err and "moved from the LiDAR's own frame" in captured.out
         rep = json.loads((out / "report.json").read_text())
@@ -203,12 +205,12 @@ def test_eval_tool_warns_on_sensor_frame_predictions(dataset, tmp_path, capsys, 
         # and the reverse mistake: ground-frame boxes declared as sensor-frame
         pkl.write_bytes(pickle.dumps([opc_entry(f, CARS, [0.9, 0.8, 0.7, 0.6], ["Vehicle"] * 4)
                                       for f in ds.frame_ids]))
-        assert tool.main(base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
+        assert run_main(tool.main, base + ["--out", str(out), "--pred-frame", "sensor"]) == 0
         assert "pass --pred-frame ground" in capsys.readouterr().err
-    assert tool.main(["--ckpt", str(tmp_path / "none.pt"), "--pred-frame", "sensor", "--no-progress"]) == 2
+    assert run_main(tool.main, ["--ckpt", str(tmp_path / "none.pt"), "--pred-frame", "sensor", "--no-progress"]) == 2
 
 
-def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys, load_tool):
+def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys):
     ds = Height3Dataset(dataset, 0.5, "test")
     pred = tmp_path / "pred"
     pred.mkdir()
@@ -216,7 +218,7 @@ def test_eval_tool_reads_openpcdet_text_folder(dataset, tmp_path, capsys, load_t
         lines = [" ".join(f"{v:.6g}" for v in b) + f" Vehicle {0.9 - 0.1 * i:.2f}" for i, b in enumerate(CARS)]
         (pred / f"{f}.txt").write_text("\n".join(lines + ["8 2 0.9 0.6 0.6 1.8 0 Cyclist 0.99"]) + "\n")
     out = tmp_path / "out"
-    assert load_tool("eval").main(["--data", str(dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
+    assert tools.eval.main(["--data", str(dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
                                    "--no-progress", "--no-extras"]) == 0
     assert "Cyclist 0 kept / 2 dropped" in capsys.readouterr().out
     rep = json.loads((out / "report.json").read_text())

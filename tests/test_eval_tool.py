@@ -9,6 +9,9 @@ import pytest
 
 from detbench.eval import evaluate_predictions, parse_prediction_file, read_prediction_dir
 from detbench.eval.evaluate import format_prediction_lines
+from detbench.utils.cli import run_main
+import tools.bench_eval
+import tools.eval
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -78,34 +81,34 @@ def test_help_runs_as_script():
         assert opt in out.stdout
 
 
-def test_ckpt_errors_name_the_file(tmp_path, capsys, load_tool):
-    tool = load_tool("eval")
-    rc = tool.main(["--ckpt", str(tmp_path / "m.pt"), "--out", str(tmp_path / "o")])
+def test_ckpt_errors_name_the_file(tmp_path, capsys):
+    tool = tools.eval
+    rc = run_main(tool.main, ["--ckpt", str(tmp_path / "m.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "m.pt: checkpoint not found" in err
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint at all")
-    rc = tool.main(["--ckpt", str(tmp_path / "bad.pt"), "--out", str(tmp_path / "o")])
+    rc = run_main(tool.main, ["--ckpt", str(tmp_path / "bad.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "bad.pt: " in err and "tools/train.py" in err
-    rc = tool.main(["--data", str(tmp_path), "--height", "1.8", "--pred", str(tmp_path), "--test-height", "0.5",
+    rc = run_main(tool.main, ["--data", str(tmp_path), "--height", "1.8", "--pred", str(tmp_path), "--test-height", "0.5",
                     "--out", str(tmp_path / "o")])
     assert rc == 2 and "--test-height goes with --ckpt" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
-def test_argument_errors(tmp_path, capsys, load_tool):
-    tool = load_tool("eval")
-    assert tool.main(["--height", "1.8", "--pred", str(tmp_path), "--out", str(tmp_path)]) == 2
+def test_argument_errors(tmp_path, capsys):
+    tool = tools.eval
+    assert run_main(tool.main, ["--height", "1.8", "--pred", str(tmp_path), "--out", str(tmp_path)]) == 2
     assert "missing --data" in capsys.readouterr().err
-    assert tool.main(["--data", str(tmp_path), "--height", "1.8", "--out", str(tmp_path)]) == 2
+    assert run_main(tool.main, ["--data", str(tmp_path), "--height", "1.8", "--out", str(tmp_path)]) == 2
     assert "exactly one of --pred" in capsys.readouterr().err
-    assert tool.main(["--combine", str(tmp_path / "r.json")]) == 2
+    assert run_main(tool.main, ["--combine", str(tmp_path / "r.json")]) == 2
     assert "--out" in capsys.readouterr().err
-    assert tool.main(["--combine", str(tmp_path / "r.json"), "--out", str(tmp_path)]) == 2
+    assert run_main(tool.main, ["--combine", str(tmp_path / "r.json"), "--out", str(tmp_path)]) == 2
     assert "r.json: file not found" in capsys.readouterr().err
 
 
-def test_combine_cli(tmp_path, capsys, load_tool):
+def test_combine_cli(tmp_path, capsys):
     from detbench.eval import EvalFrame, evaluate
     from detbench.utils.io import atomic_write_json
 
@@ -116,9 +119,9 @@ def test_combine_cli(tmp_path, capsys, load_tool):
             rep = evaluate([EvalFrame([car], [3], [0], [car] * found, [0.9] * found)])
             paths.append(atomic_write_json(tmp_path / model / str(h) / "report.json",
                                            {"model": model, "height": h, "split": "test", **rep}))
-    tool = load_tool("eval")
+    tool = tools.eval
     out = tmp_path / "comb"
-    assert tool.main(["--combine", *map(str, paths), "--out", str(out)]) == 0
+    assert run_main(tool.main, ["--combine", *map(str, paths), "--out", str(out)]) == 0
     assert "models A, B; heights 0.5 m, 1.8 m" in capsys.readouterr().out
     for name in ("combined.json", "combined.md", "combined.csv", "fig8_by_height.png",
                  "fig9_recall_by_range.png", "fig10_recall_by_level.png"):
@@ -129,7 +132,7 @@ def test_combine_cli(tmp_path, capsys, load_tool):
     bad = json.loads(paths[0].read_text())
     bad["model"] = None
     (tmp_path / "bad.json").write_text(json.dumps(bad))
-    assert tool.main(["--combine", str(tmp_path / "bad.json"), "--out", str(out)]) == 2
+    assert run_main(tool.main, ["--combine", str(tmp_path / "bad.json"), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "bad.json: no 'model'" in err and "--model" in err
 
@@ -176,7 +179,7 @@ def test_evaluate_predictions_on_dataset(tiny_dataset):
         evaluate_predictions(ds, {"9999_999": preds[ids[0]]}, progress=False)
 
 
-def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
+def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
     from detbench.data import Height3Dataset
 
     test_ids = Height3Dataset(tiny_dataset, 1.8, "test").frame_ids
@@ -187,8 +190,8 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
                                              "70 0 0.8 4 2 1.6 0 0.7\n")
     (pred / f"{train_ids[0]}.txt").write_text("10 0 0.8 4 2 1.6 0 0.9\n")
     out = tmp_path / "out"
-    tool = load_tool("eval")
-    rc = tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--split", "test", "--pred", str(pred),
+    tool = tools.eval
+    rc = run_main(tool.main, ["--data", str(tiny_dataset), "--height", "1.8", "--split", "test", "--pred", str(pred),
                     "--out", str(out), "--model", "SECOND", "--no-progress"])
     stdout = capsys.readouterr().out
     assert rc == 0, stdout
@@ -208,22 +211,22 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys, load_tool):
 
     # a file for an unknown frame id, and a malformed line: errors naming the file (and line)
     (pred / "9999_999.txt").write_text("")
-    assert tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
+    assert run_main(tool.main, ["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
                       "--no-progress"]) == 2
     assert "9999_999.txt: unknown frame id" in capsys.readouterr().err
     (pred / "9999_999.txt").unlink()
     (pred / f"{test_ids[-1]}.txt").write_text("1 2 3\n")
-    assert tool.main(["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
+    assert run_main(tool.main, ["--data", str(tiny_dataset), "--height", "1.8", "--pred", str(pred), "--out", str(out),
                       "--no-progress"]) == 2
     assert f"{test_ids[-1]}.txt:1: expected 8 numbers" in capsys.readouterr().err
     # a height the dataset does not hold
-    assert tool.main(["--data", str(tiny_dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
+    assert run_main(tool.main, ["--data", str(tiny_dataset), "--height", "0.5", "--pred", str(pred), "--out", str(out),
                       "--no-progress"]) == 2
     assert "0.5" in capsys.readouterr().err
 
 
-def test_bench_eval_small_run(tmp_path, capsys, load_tool):
-    bench = load_tool("bench_eval")
+def test_bench_eval_small_run(tmp_path, capsys):
+    bench = tools.bench_eval
     assert bench.main(["--frames", "40", "--repeats", "1", "--out", str(tmp_path)]) == 0
     assert "median" in capsys.readouterr().out
     res = json.loads((tmp_path / "bench_eval.json").read_text())

@@ -7,7 +7,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # detbench's subpackages, lowest first; a module may import its own subpackage and lower ones
 LAYERS = {"runtime": 0, "utils": 0, "config": 0, "ops": 1, "sparse": 1, "data": 2, "sim": 3, "eval": 3, "train": 4,
-          "studies": 5}
+          "studies": 5, "benchmarks": 5}
 
 
 def _imports(path: Path) -> list[str]:

@@ -24,6 +24,11 @@ from detbench.data.regions import detected_point_counts
 from detbench.data.transforms import ground_to_sensor
 from detbench.data.validate import validate_dataset
 from detbench.utils.io import read_json
+from detbench.utils.cli import run_main
+import tools.analyze
+import tools.eval
+import tools.export_openpcdet
+import tools.simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 KITTI_EVAL = {"Car", "Pedestrian", "Cyclist", "Van", "Person_sitting"}
@@ -130,8 +135,8 @@ def hand_dataset(tmp_path_factory):
 
 # ----------------------------------------------------------------------------- export
 
-def test_export_is_read_by_openpcdets_logic(hand_dataset, tmp_path, capsys, load_tool):
-    tool = load_tool("export_openpcdet")
+def test_export_is_read_by_openpcdets_logic(hand_dataset, tmp_path, capsys):
+    tool = tools.export_openpcdet
     out = tmp_path / "opc"
     assert tool.main([str(hand_dataset), "--height", "1.8", "--out", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr().out
@@ -344,27 +349,27 @@ def test_import_wrong_labels_frame_is_one_clear_line(tmp_path):
     assert "pass --labels-frame ground" in r.stderr and "labels" in r.stderr
 
 
-def test_tools_on_an_unconverted_folder_name_the_convert_command(tmp_path, capsys, load_tool):
+def test_tools_on_an_unconverted_folder_name_the_convert_command(tmp_path, capsys):
     src = tmp_path / "mine"
     write_opc_folder(src, ground_frames(n=2), {"train": ["000000"], "val": ["000001"]})
     expected = f"convert it first: python -m detbench.data.convert --src HEIGHT={src}"
     rep = validate_dataset(src)
     assert not rep.ok and expected in rep.errors[0] and "writer did not finish" not in rep.errors[0]
     with pytest.raises(SystemExit, match="convert it first"):
-        load_tool("analyze").main(["--data", str(src), "--out", str(tmp_path / "a"), "--no-figures",
+        tools.analyze.main(["--data", str(src), "--out", str(tmp_path / "a"), "--no-figures",
                                    "--no-progress"])
     pred = tmp_path / "pred"
     pred.mkdir()
-    assert load_tool("eval").main(["--data", str(src), "--height", "1.8", "--pred", str(pred), "--out",
+    assert run_main(tools.eval.main, ["--data", str(src), "--height", "1.8", "--pred", str(pred), "--out",
                                    str(tmp_path / "e"), "--no-progress"]) == 2
     assert expected in capsys.readouterr().err
 
 
-def test_round_trip_through_openpcdet_on_simulated_data(tmp_path, load_tool):
+def test_round_trip_through_openpcdet_on_simulated_data(tmp_path):
     """simulate -> export (sensor frame, pitched 1.8 m LiDAR) -> convert back: same frames, boxes, points, LDR,
     split."""
     sim = tmp_path / "sim"
-    assert load_tool("simulate").main(["--out", str(sim), "--scenes", "3", "--frames-per-scene", "2", "--heights",
+    assert tools.simulate.main(["--out", str(sim), "--scenes", "3", "--frames-per-scene", "2", "--heights",
                                        "1.8", "--seed", "2", "--no-progress"]) == 0
     exp = tmp_path / "opc"
     m = export_openpcdet(sim, 1.8, exp, frame="sensor", progress=False)

@@ -28,6 +28,7 @@ from detbench.ops import (
     three_nn_interpolate,
     to_canonical,
 )
+import tools.bench_points
 
 BACKENDS = ["numba", "torch"]
 
@@ -491,10 +492,10 @@ def test_cuda_matches_cpu():
     assert all(torch.equal(x, y.cpu()) for x, y in zip(a, b))
 
 
-def test_bench_points_tool_writes_reports(tmp_path, capsys, load_tool):
+def test_bench_points_tool_writes_reports(tmp_path, capsys):
     import json
 
-    mod = load_tool("bench_points")
+    mod = tools.bench_points
     threads = (torch.get_num_threads(), numba.get_num_threads())
     try:  # main() sets both thread counts; give them back to the other tests
         assert mod.main(["--out", str(tmp_path), "--points", "600", "--samples", "128", "--rois", "4",

@@ -10,6 +10,7 @@ import pytest
 
 from detbench import runtime
 from detbench.utils.bench import BusyLoad, idle_and_loaded, load_line, ratio, runtime_line
+import tools.bench_sim
 
 KEYS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS",
         runtime.MARKER)
@@ -144,8 +145,8 @@ def test_idle_and_loaded_and_ratio():
 
 
 @linux_only
-def test_bench_sim_load_reports_idle_and_loaded(tmp_path, load_tool):
-    bench = load_tool("bench_sim")
+def test_bench_sim_load_reports_idle_and_loaded(tmp_path):
+    bench = tools.bench_sim
     assert bench.main(["--frames", "2", "--frames-per-scene", "2", "--heights", "1.0", "--mode", "counts",
                        "--load", "1", "--out", str(tmp_path), "--no-progress"]) == 0
     assert _busy_children() == []

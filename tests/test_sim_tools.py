@@ -5,6 +5,9 @@ import numpy as np
 import pytest
 
 from detbench.sim.dataset import plan_frames
+import tools.analyze
+import tools.bench_sim
+import tools.simulate
 
 
 def test_plan_frames():
@@ -17,10 +20,10 @@ def test_plan_frames():
         plan_frames(100, 2, 10, 200)
 
 
-def test_simulate_writes_a_readable_dataset(tmp_path, load_tool):
+def test_simulate_writes_a_readable_dataset(tmp_path):
     from detbench.data import Height3Dataset
 
-    sim = load_tool("simulate")
+    sim = tools.simulate
     out = tmp_path / "ds"
     assert sim.main(["--out", str(out), "--scenes", "3", "--frames-per-scene", "2", "--heights", "0.5", "1.8",
                      "--seed", "5", "--no-progress", "--set", "traffic.density_per_km_lane=14"]) == 0
@@ -42,16 +45,16 @@ def test_simulate_writes_a_readable_dataset(tmp_path, load_tool):
     np.testing.assert_allclose(g.boxes, first[1].boxes, atol=1e-3)
 
 
-def test_simulate_rejects_bad_input(tmp_path, load_tool):
-    sim = load_tool("simulate")
+def test_simulate_rejects_bad_input(tmp_path):
+    sim = tools.simulate
     with pytest.raises(SystemExit, match="density_per_km_lane"):
         sim.main(["--out", str(tmp_path / "x"), "--frames", "2", "--set", "traffic.density_per_km_lan=3"])
     with pytest.raises(SystemExit, match="heights must differ"):
         sim.main(["--out", str(tmp_path / "x"), "--frames", "2", "--lidars", "arcfox-as-hi", "avatr-3"])
 
 
-def test_bench_sim_small_run(tmp_path, load_tool):
-    bench = load_tool("bench_sim")
+def test_bench_sim_small_run(tmp_path):
+    bench = tools.bench_sim
     assert bench.main(["--frames", "3", "--frames-per-scene", "3", "--heights", "1.0", "--out", str(tmp_path),
                        "--no-progress"]) == 0
     rep = json.loads((tmp_path / "bench_sim.json").read_text())
@@ -91,7 +94,7 @@ def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
     assert sim_calibration(read_info(root).source) == "v2"
 
 
-def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path, load_tool):
+def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path):
     from detbench.data import read_info
     from detbench.sim import load_sim_config
     from detbench.sim.dataset import PREVIOUS_CALIBRATION, sim_calibration, simulate_dataset
@@ -113,6 +116,16 @@ def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path, load_to
     assert sim_calibration(old["source"]) == "v1" and sim_calibration({}) == "v1" and sim_calibration(None) == "v1"
     (root / "dataset.json").write_text(json.dumps(old))
     out = tmp_path / "ab"
-    assert load_tool("analyze").main(["--data", str(root), "--split", "all", "--no-figures", "--no-progress",
+    assert tools.analyze.main(["--data", str(root), "--split", "all", "--no-figures", "--no-progress",
                                       "--bootstrap", "0", "--out", str(out)]) == 0
     assert json.loads((out / "ability.json").read_text())["extras"]["source"]["calibration"] == "v1"
+
+
+def test_run_lidars_default_to_the_papers_heights_and_refuse_a_shared_height():
+    from detbench.sim.run import run_lidars
+
+    assert [lid.height for lid in run_lidars()] == [0.5, 1.0, 1.8]
+    noisy = run_lidars([1.8], range_noise=0.02, dropout=0.1)
+    assert noisy[0].range_noise_m == 0.02 and noisy[0].dropout == 0.1
+    with pytest.raises(ValueError, match="heights must differ"):
+        run_lidars([1.8, "h3-1.8"])

@@ -1,22 +1,19 @@
-"""tools/bench_sparse.py: command line and report files; the library parts it times (the fallback
-scan of detbench.sim.scans, the backbone topology of detbench.sparse.bench)."""
+"""tools/bench_sparse.py: command line and report files; the library parts it runs (the fallback scan of
+detbench.sim.scans, the backbone topology of detbench.sparse.bench, the report of detbench.benchmarks.sparse)."""
 import json
 
 import numpy as np
 import pytest
 import torch
 
+from detbench.benchmarks.sparse import sparse_bench_markdown
 from detbench.sim.scans import synthetic_scan
 from detbench.sparse import SparseConvTensor
 from detbench.sparse.bench import backbone
+from tools import bench_sparse as bench
 
 
-@pytest.fixture
-def bench(load_tool):
-    return load_tool("bench_sparse")
-
-
-def test_help_lists_options_with_units(capsys, bench):
+def test_help_lists_options_with_units(capsys):
     with pytest.raises(SystemExit) as exc:
         bench.main(["--help"])
     assert exc.value.code == 0
@@ -51,18 +48,18 @@ def test_backbone_shapes_and_rulebook_reuse():
     assert len([m for m in net.modules() if hasattr(m, "indice_key")]) == 12
 
 
-def test_markdown_report(bench):
+def test_markdown_report():
     r = {"source": "synthetic", "scans": 1, "points": [10], "voxel_size_m": [0.1, 0.1, 0.15],
          "range_m": [0, -15, -1, 150, 15, 4], "grid_xyz": [1500, 300, 33], "spatial_shape_zyx": [34, 300, 1500],
          "active_sites": 5, "device": "cpu", "threads": 2, "torch": "x", "repeats": 1, "flop_convention": "2/MAC",
          "spconv": "not installed",
          "cases": [{"case": "a", "ms": 1.234, "ms_best": 1.0, "gflops": 2.5, "sites": 5}]}
-    md = bench.markdown(r)
+    md = sparse_bench_markdown(r)
     assert "| a | 1.23 | 1.00 | 2.5 | sites=5 |" in md and "spconv: not installed" in md
 
 
 @pytest.mark.slow
-def test_full_run_writes_reports(tmp_path, bench):
+def test_full_run_writes_reports(tmp_path):
     assert bench.main(["--out", str(tmp_path), "--source", "synthetic", "--repeats", "1", "--threads", "1",
                        "--dense-crop-x", "5"]) == 0
     data = json.loads((tmp_path / "bench_sparse.json").read_text())
@@ -72,13 +69,13 @@ def test_full_run_writes_reports(tmp_path, bench):
     assert (tmp_path / "bench_sparse.md").read_text().startswith("# Sparse convolution benchmark")
 
 
-def test_markdown_report_idle_and_loaded(bench):
+def test_markdown_report_idle_and_loaded():
     r = {"source": "synthetic", "scans": 1, "points": [10], "voxel_size_m": [0.1, 0.1, 0.15],
          "range_m": [0, -15, -1, 150, 15, 4], "grid_xyz": [1500, 300, 33], "spatial_shape_zyx": [34, 300, 1500],
          "active_sites": 5, "device": "cpu", "threads": 2, "torch": "x", "repeats": 1, "flop_convention": "2/MAC",
          "spconv": "not installed", "load": {"processes": 1, "busy_cores_used": 0.9, "wall_s": 3.0},
          "cases": [{"case": "a", "ms": 1.0, "ms_best": 1.0, "loaded_ms": 2.5, "loaded_ms_best": 2.0,
                     "loaded_ratio": 2.5, "sites": 5}]}
-    md = bench.markdown(r)
+    md = sparse_bench_markdown(r)
     assert "| case | median ms | best ms | loaded median ms | x idle |" in md
     assert "| a | 1.00 | 1.00 | 2.50 | 2.50 |  | sites=5 |" in md and "1 busy-loop process" in md

@@ -27,6 +27,7 @@ from detbench.train.precision import (
     available_precisions, autocast_for, box_differences, compare_precision, precision_markdown, run_at_precision,
 )
 from test_models_contract import car_points
+import tools.precision
 
 
 def _car(x, y, heading=0.0):
@@ -220,7 +221,7 @@ def test_second_in_float16_on_cuda():
 
 
 # ---------------------------------------------------------------- the tool
-def test_precision_tool_writes_json_and_markdown(tmp_path, load_tool, capsys):
+def test_precision_tool_writes_json_and_markdown(tmp_path, capsys):
     from detbench.sim.dataset import simulate_dataset
     from detbench.train import CheckpointManager, TrainState
 
@@ -232,7 +233,7 @@ def test_precision_tool_writes_json_and_markdown(tmp_path, load_tool, capsys):
         data={"source": str(data), "height": 1.8})
     from detbench.utils.cli import run_main
 
-    code = run_main(load_tool("precision").main, ["--ckpt", str(path), "--split", "all", "--frames", "3",
+    code = run_main(tools.precision.main, ["--ckpt", str(path), "--split", "all", "--frames", "3",
                                                   "--no-progress", "--out", str(tmp_path / "p")])
     out = capsys.readouterr()
     assert code == 0, out.err
@@ -241,5 +242,5 @@ def test_precision_tool_writes_json_and_markdown(tmp_path, load_tool, capsys):
     assert "largest box difference" in out.out
     md = (tmp_path / "p" / "precision.md").read_text()
     assert "s/frame" in md and "(metres)" in md and "max heading (rad)" in md
-    code = run_main(load_tool("precision").main, ["--ckpt", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q")])
+    code = run_main(tools.precision.main, ["--ckpt", str(tmp_path / "nope.pt"), "--out", str(tmp_path / "q")])
     assert code == 2 and "nope.pt" in capsys.readouterr().err

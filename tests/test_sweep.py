@@ -13,6 +13,7 @@ from detbench.studies.placement import (
     scores_from_sums, smig,
 )
 from detbench.studies.sweep import HeightSweep
+import tools.sweep
 
 
 # ---------------------------------------------------------------------------- placement scores
@@ -139,16 +140,16 @@ def test_sweep_accumulates_counts_scores_and_intervals():
 
 
 # ---------------------------------------------------------------------------- the tool, tiny runs
-def _run(load_tool, tmp_path, *extra, name="out"):
-    tool = load_tool("sweep")
+def _run(tmp_path, *extra, name="out"):
+    tool = tools.sweep
     out = tmp_path / name
     assert tool.main(["--frames", "24", "--frames-per-scene", "4", "--seed", "0", "--preset", "dense",
                       "--bootstrap", "200", "--no-progress", "--out", str(out), *extra]) == 0
     return json.loads((out / "sweep.json").read_text()), out
 
 
-def test_sweep_tool_tiny_run_structure_and_physics(tmp_path, load_tool):
-    rep, out = _run(load_tool, tmp_path, "--heights", "0.5", "1.0", "2.2")
+def test_sweep_tool_tiny_run_structure_and_physics(tmp_path):
+    rep, out = _run(tmp_path, "--heights", "0.5", "1.0", "2.2")
     for f in ("sweep.md", "ldr_vs_height.png", "scores_vs_height.png", "ldr_distance_map.png"):
         assert (out / f).stat().st_size > 0
     assert rep["heights"] == ["0.5", "1.0", "2.2"] and rep["num_frames"] == 24 and rep["num_scenes"] == 6
@@ -176,18 +177,18 @@ def test_sweep_tool_tiny_run_structure_and_physics(tmp_path, load_tool):
     md = (out / "sweep.md").read_text()
     assert "the paper's Table IV, heights as rows" in md and "| 2.2 |" in md and "S-MIG" not in md.split("##")[0]
     # a height's counts do not depend on which other heights were swept with it
-    alone, _ = _run(load_tool, tmp_path, "--heights", "0.5", "--no-figures", "--no-smig", name="alone")
+    alone, _ = _run(tmp_path, "--heights", "0.5", "--no-figures", "--no-smig", name="alone")
     assert alone["ability"]["heights"]["0.5"] == ab["0.5"]
     assert "smig" not in alone["scores"]["heights"]["0.5"]["large"]
 
 
-def test_sweep_tool_sensor_settings_and_errors(tmp_path, load_tool):
-    rep, _ = _run(load_tool, tmp_path, "--heights", "1.0", "1.8", "--lidar", "paper", "--set", "sensor.channels=32",
+def test_sweep_tool_sensor_settings_and_errors(tmp_path):
+    rep, _ = _run(tmp_path, "--heights", "1.0", "1.8", "--lidar", "paper", "--set", "sensor.channels=32",
                   "--no-figures")
     fields = rep["ability"]["extras"]["source"]["sensor"]
     assert fields["preset"] == "paper" and fields["changes"] == {"channels": 32}
     assert fields["per_height"] == {"1.0": "h3-1.0", "1.8": "h3-1.8"}
-    tool = load_tool("sweep")
+    tool = tools.sweep
     with pytest.raises(SystemExit, match="did you mean sensor.channels"):
         tool.main(["--frames", "2", "--set", "sensor.chanels=3", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit, match="what the sweep varies"):
@@ -204,8 +205,8 @@ def test_sweep_tool_sensor_settings_and_errors(tmp_path, load_tool):
         tool.main(["--from-json", str(notsweep), "--out", str(tmp_path / "x")])
 
 
-def test_sweep_tool_correlates_from_json(tmp_path, load_tool):
-    rep, out = _run(load_tool, tmp_path, "--heights", "0.5", "1.0", "1.5", "2.2", "--no-figures")
+def test_sweep_tool_correlates_from_json(tmp_path):
+    rep, out = _run(tmp_path, "--heights", "0.5", "1.0", "1.5", "2.2", "--no-figures")
     paths = []
     for h in rep["heights"]:  # a "detector" whose recall is the large-range weighted LDR of the sweep
         v = rep["scores"]["heights"][h]["large"]["ldr_w"]["value"]
@@ -214,7 +215,7 @@ def test_sweep_tool_correlates_from_json(tmp_path, load_tool):
         p.write_text(json.dumps({"model": "fake", "height": float(h), "iou_threshold": 0.7, "score_threshold": 0.1,
                                  "num_frames": 3, "results": {r: {lv: cell for lv in LEVELS} for r in RANGE_NAMES}}))
         paths.append(str(p))
-    tool = load_tool("sweep")
+    tool = tools.sweep
     assert tool.main(["--from-json", str(out / "sweep.json"), "--out", str(out), "--no-figures",
                       "--detector-reports", *paths, "--correlation-replicates", "200"]) == 0
     corr = json.loads((out / "sweep.json").read_text())["correlation"]

@@ -17,6 +17,8 @@ from detbench.studies.tradeoff import (
 )
 from detbench.studies.tradeoff_points import KNOBS, fit_range, scale_widths, set_dotted, sweep_points
 from detbench.utils.bench import median_p90
+import tools.tradeoff
+
 
 
 # ---- Pareto -------------------------------------------------------------------------------------
@@ -258,14 +260,14 @@ def tiny_dataset(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_path, load_tool):
+def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_path):
     """`tools/tradeoff.py --preset smoke` on one model and the inference-only knobs: at least five points,
     each with latency, memory, AP@R40 per range and a Pareto flag; a rerun reuses every point."""
     out = tmp_path / "t"
     argv = ["--preset", "smoke", "--models", "second", "--knobs", "points", "precision", "threads", "curve",
             "--frames", "2", "--warmup", "1", "--curve-points", "3", "--data", str(tiny_dataset), "--out", str(out),
             "--no-progress"]
-    tool = load_tool("tradeoff")
+    tool = tools.tradeoff
     assert tool.main(argv) == 0
     res = json.loads((out / "tradeoff.json").read_text())
     pts = res["points"]

@@ -6,6 +6,11 @@ from pathlib import Path
 
 import pytest
 
+from detbench.benchmarks.detectors import idle_loaded_markdown, loaded_figures
+from detbench.utils.cli import run_main
+import tools.eval
+import tools.study
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -26,7 +31,7 @@ def run(args, cwd=ROOT):
 
 
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
-def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, load_tool, capsys):
+def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, capsys):
     out = tmp_path / "run"
     run(["tools/train.py", "--model", model, "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset),
          "--out", str(out), "--epochs", "1", "--no-progress", "--set", "train.tensorboard=false"])
@@ -53,7 +58,8 @@ def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, load_tool, ca
     # --stage proposals (in process, on the same checkpoint): the first stage alone of a two-stage
     # model; a one-stage model has no such stage and is refused before anything is written
     out_p = tmp_path / "e18_proposals"
-    rc = load_tool("eval").main(["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p), "--no-progress"])
+    rc = run_main(tools.eval.main, ["--ckpt", str(ckpt), "--stage", "proposals", "--out", str(out_p),
+                                    "--no-progress"])
     err = capsys.readouterr().err
     if model in ("pointrcnn", "ct3d"):
         assert rc == 0, err
@@ -88,13 +94,12 @@ def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
     assert "ms" in md and "MiB" in md
 
 
-def test_benchmark_idle_and_loaded_table(load_tool):
-    bench = load_tool("benchmark")
+def test_benchmark_idle_and_loaded_table():
     idle = {"model": "second", "device": "cpu", "latency_ms": {"total": 100.0, "points": 5.0}, "train_step_ms": 400.0}
     loaded = {"latency_ms": {"total": 150.0, "points": 5.0}, "train_step_ms": 800.0}
-    idle["loaded"] = bench._loaded_figures(idle, loaded, {"processes": 1})
+    idle["loaded"] = loaded_figures(idle, loaded, {"processes": 1})
     assert idle["loaded"]["ratio"] == {"total": 1.5, "train_step": 2.0}
-    md = "\n".join(bench._idle_loaded_markdown([idle]))
+    md = "\n".join(idle_loaded_markdown([idle]))
     assert "| second | cpu | 100.0 | 150.0 | 1.5 | 400.0 | 800.0 | 2.0 |" in md and "1 busy-loop process" in md
 
 
@@ -171,3 +176,11 @@ def test_study_progress_time_left_counts_the_stage_starting_now(capsys):
     prog.finish("eval", "second", 10.0)
     prog.start("train second at 1.8 m")
     assert "about 2 min left" in capsys.readouterr().out.splitlines()[-1]  # 110 s, the last training included
+
+
+def test_train_option_overrides_follow_the_users_set_values(tmp_path):
+    from detbench.train.run import option_overrides
+
+    assert option_overrides(["train.lr=0.1"]) == ["train.lr=0.1"]
+    assert option_overrides(["a=1"], epochs=3, batch_size=2, workers=0, data=str(tmp_path)) == [
+        "a=1", "train.epochs=3", "train.batch_size=2", "train.workers=0", f"data.root={tmp_path.resolve()}"]

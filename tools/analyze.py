@@ -16,13 +16,11 @@ IV-VI) and PNG figures (Fig. 5-7 and LDR against distance) into OUT.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown  # noqa: E402
 from detbench.studies.ability_run import AbilityOptions, run_ability, summary_lines  # noqa: E402

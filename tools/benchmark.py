@@ -22,27 +22,22 @@ Units: milliseconds per frame, MB = 10^6 bytes (checkpoint), MiB = 2^20 bytes (m
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import io
 import json
 import platform
-import resource
-import statistics
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(ROOT))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 import models  # noqa: E402
-from detbench import runtime  # noqa: E402
+from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,  # noqa: E402
+                                            peak_rss_mib)
 from detbench.train.run_config import preset_names  # noqa: E402
-from detbench.utils.bench import StageTimer, idle_and_loaded, load_line, ratio, runtime_line  # noqa: E402
+from detbench.utils.bench import idle_and_loaded  # noqa: E402
 from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
 
@@ -78,16 +73,15 @@ def worker(args) -> dict:
     import numpy as np
     import torch
 
-    from detbench.data.batch import collate
+    from detbench.data import Height3Dataset
     from detbench.sim.dataset import default_dataset
-    from detbench.train.inference import frame_sample
     from detbench.train.run_config import load_run_config
 
     if args.threads:
         torch.set_num_threads(args.threads)
     spec = json.loads(args.worker)
     name, device, ckpt = spec["model"], torch.device(spec["device"]), spec.get("ckpt")
-    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rss0 = peak_rss_mib()
     if ckpt:
         model, ck = models.load_from_checkpoint(ckpt, device)
         cfg_model = ck["config"]["model"]
@@ -95,82 +89,16 @@ def worker(args) -> dict:
         cfg = load_run_config(name, args.preset)
         root_for_sizes = default_dataset({**cfg["data"], "root": args.data} if args.data else
                                          load_run_config(name, "smoke")["data"], progress=False)
-        from detbench.data import Height3Dataset
-
         train = Height3Dataset(root_for_sizes, args.height, "train")
         boxes = np.concatenate([train[i].boxes for i in range(min(len(train), 20))])
         cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
         model = models.build_model(name, cfg_model).to(device).eval()
-    buf = io.BytesIO()  # the model's weights as torch.save writes them (no optimizer state)
-    torch.save(model.state_dict(), buf)
-    ckpt_bytes = buf.tell()
-    params = sum(p.numel() for p in model.parameters())
-    from detbench.data import Height3Dataset
-
     data_root = default_dataset({"root": args.data} if args.data else load_run_config(name, "smoke")["data"],
                                 progress=False)
     test = Height3Dataset(data_root, args.height, "test")
-    n = args.frames + args.warmup
-    samples = [frame_sample(test[i % len(test)], cfg_model["point_cloud_range"]) for i in range(n)]
-    stages = model.STAGES
-    timer = StageTimer(model, stages, device)
-    sync = timer.sync  # CUDA-synchronising on a GPU, a no-op on CPU
-    if device.type == "cuda":
-        torch.cuda.reset_peak_memory_stats(device)
-    rows = []
-    with torch.no_grad():
-        for i, s in enumerate(samples):
-            ms = timer.time_inference(model, collate([s]).to(device))
-            if i >= args.warmup:
-                rows.append({**ms, "points": int(len(s.points))})
-    med = {k: round(statistics.median(r[k] for r in rows), 2) for k in rows[0]}
-    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    result = {"model": name, "device": str(device), "checkpoint": ckpt, "parameters": params,
-              "weights_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
-              "latency_ms_min_total": round(min(r["total"] for r in rows), 2),
-              "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
-              "frames": len(rows), "threads": torch.get_num_threads()}
-    if device.type == "cuda":
-        result["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
-    if args.train_steps > 0:
-        result["train_step_ms"] = _train_steps(model, test, cfg_model["point_cloud_range"], args, device, sync)
-        result["train_batch"] = args.train_batch
-    result["runtime"] = runtime.describe()
-    return result
-
-
-def _train_steps(model, frames, point_cloud_range, args, device, sync) -> float:
-    """Median milliseconds of one training step (forward, loss, backward, AdamW step) over
-    --train-steps steps after one untimed step; batches of --train-batch frames with their
-    boxes cropped to the model's range. The model is trained in place (benchmark only)."""
-    import numpy as np
-    import torch
-
-    from detbench.data.augment import crop_to_range
-    from detbench.data.batch import Sample, collate
-
-    def sample(i):
-        f = frames[i % len(frames)]
-        pts, boxes, _ = crop_to_range(np.asarray(f.points, np.float32), np.asarray(f.boxes, np.float32),
-                                      point_cloud_range)
-        return Sample(np.ascontiguousarray(pts[:, :4]), boxes, f.frame_id)
-
-    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)
-    model.train()
-    times = []
-    for step in range(args.train_steps + 1):
-        batch = collate([sample(step * args.train_batch + k) for k in range(args.train_batch)]).to(device)
-        sync()
-        t0 = time.perf_counter()
-        loss, _ = model.loss(model(batch), batch)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        sync()
-        if step > 0:
-            times.append((time.perf_counter() - t0) * 1000)
-    model.eval()
-    return round(statistics.median(times), 2)
+    return measure_detector(model, name, test, cfg_model["point_cloud_range"], device, frames=args.frames,
+                            warmup=args.warmup, checkpoint=ckpt, rss_before_model=rss0,
+                            train_steps=args.train_steps, train_batch=args.train_batch)
 
 
 def main(argv=None) -> int:
@@ -222,7 +150,7 @@ def main(argv=None) -> int:
 
             res, loaded, load_info = idle_and_loaded(run_worker, args.load)
             if loaded is not None:
-                res["loaded"] = _loaded_figures(res, loaded, load_info)
+                res["loaded"] = loaded_figures(res, loaded, load_info)
             if report is not None:
                 res["accuracy"] = {r: {k: report["results"][r]["all"][k] for k in ("recall", "ap_r40")}
                                    for r in report["results"]}
@@ -240,72 +168,9 @@ def main(argv=None) -> int:
             "preset": args.preset, "study": args.study, "height": args.height}
     out = Path(args.out)
     atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
-    stage_names = []  # in the models' own stage order, post-processing last
-    for r in results:
-        stage_names += [k for k in r["latency_ms"] if k not in ("total", "points", "post") and k not in stage_names]
-    stage_names.append("post")
-    head = ["model", "device", "params (M)", "weights (MB)", "peak RSS (MiB)", "total (ms/frame)",
-            *[f"{s} (ms)" for s in stage_names], "points/frame"]
-    has_acc = any("accuracy" in r for r in results)
-    if has_acc:
-        head += ["AP@R40 small", "AP@R40 moderate", "AP@R40 large", "recall large"]
-    lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {meta['threads']} CPU threads"
-             f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
-             "Latency: median per frame after warm-up, batch of 1. Weights: the state_dict as torch.save writes it "
-             "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
-             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for r in results:
-        lat = r["latency_ms"]
-        row = [r["model"], r["device"], f"{r['parameters'] / 1e6:.2f}", f"{r['weights_mb']:.2f}",
-               f"{r['peak_rss_mib']:.0f}", f"{lat['total']:.1f}", *[f"{lat[s]:.1f}" if s in lat else "-" for s in stage_names],
-               str(int(lat["points"]))]
-        if has_acc:
-            acc = r.get("accuracy") or {}
-            fmt = (lambda v: "-" if v is None else f"{v:.3f}")
-            row += [fmt(acc.get(k, {}).get("ap_r40")) for k in ("small", "moderate", "large")]
-            row += [fmt(acc.get("large", {}).get("recall"))]
-        lines.append("| " + " | ".join(row) + " |")
-    if any("train_step_ms" in r or "loaded" in r for r in results):
-        lines += ["", *_idle_loaded_markdown(results)]
-    if results:
-        lines += ["", f"Thread runtimes: {runtime_line(results[0]['runtime'])}."]
-    atomic_write_text(out / "benchmark.md", "\n".join(lines) + "\n")
+    atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results))
     print(f"wrote {out / 'benchmark.json'}, {out / 'benchmark.md'}")
     return 0
-
-
-def _loaded_figures(idle: dict, loaded: dict, load_info: dict) -> dict:
-    """The loaded worker's latency (and training step) with each figure's loaded / idle ratio."""
-    out = {"load": load_info, "latency_ms": loaded["latency_ms"],
-           "ratio": {k: ratio(v, idle["latency_ms"].get(k)) for k, v in loaded["latency_ms"].items() if k != "points"}}
-    if "train_step_ms" in loaded:
-        out["train_step_ms"] = loaded["train_step_ms"]
-        out["ratio"]["train_step"] = ratio(loaded["train_step_ms"], idle["train_step_ms"])
-    return out
-
-
-def _idle_loaded_markdown(results: list[dict]) -> list[str]:
-    """Forward latency and training step, idle and (with --load) loaded with the ratio, per model."""
-    loaded = any("loaded" in r for r in results)
-    head = ["model", "device", "forward + post, idle (ms/frame)"]
-    head += ["loaded (ms/frame)", "x idle"] if loaded else []
-    head += ["training step, idle (ms)"] + (["loaded (ms)", "x idle"] if loaded else [])
-    lines = ["## Idle and loaded" if loaded else "## Training step", ""]
-    if loaded:
-        lines += [f"Loaded: the same measurement beside {load_line(results[0]['loaded']['load'])}. "
-                  "Training step: forward, loss, backward and AdamW step, median.", ""]
-    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    fmt = (lambda v: "-" if v is None else f"{v:.1f}")
-    for r in results:
-        lo = r.get("loaded", {})
-        row = [r["model"], r["device"], fmt(r["latency_ms"]["total"])]
-        if loaded:
-            row += [fmt(lo.get("latency_ms", {}).get("total")), str(lo.get("ratio", {}).get("total", "-"))]
-        row += [fmt(r.get("train_step_ms"))]
-        if loaded:
-            row += [fmt(lo.get("train_step_ms")), str(lo.get("ratio", {}).get("train_step", "-"))]
-        lines.append("| " + " | ".join(row) + " |")
-    return lines
 
 
 if __name__ == "__main__":

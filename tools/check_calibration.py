@@ -36,13 +36,11 @@ relative difference); times are seconds. With --strict the exit code is 1 when t
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.studies.calibration_check import CalibrationOptions, check_calibration  # noqa: E402
 from detbench.utils.cli import UserError  # noqa: E402

@@ -19,38 +19,29 @@ Combine several reports (models x heights) into one table and the paper's Fig. 8
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.config import shipped_default  # noqa: E402
-from detbench.eval.evaluate import (  # noqa: E402
-    evaluate_predictions,
-    format_prediction_lines,
+from detbench.eval.report import summary_lines  # noqa: E402
+from detbench.eval.run import (  # noqa: E402
+    CheckpointRun,
+    EvalSettings,
+    combine_report_files,
+    evaluation_report,
+    load_split,
+    read_saved_predictions,
+    report_title,
+    write_predictions,
+    write_report,
 )
-from detbench.eval.report import (  # noqa: E402
-    combine_reports,
-    combined_csv,
-    combined_markdown,
-    plot_by_height,
-    plot_by_level,
-    plot_by_range,
-    report_to_csv,
-    report_to_markdown,
-    summary_lines,
-)
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
+from detbench.utils.cli import UserError, check_out_dir, run_main, torch_device  # noqa: E402
 
 SPLITS = ("train", "test", "all")
-
-
-class ToolError(Exception):
-    """A user-facing error: printed as one message, exit status 2."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,54 +116,19 @@ def build_parser() -> argparse.ArgumentParser:
 # evaluate
 # --------------------------------------------------------------------------------------------
 
-def load_dataset(root: Path, height: float, split: str):
-    """(dataset of the split, frame ids of the other splits) of `Height3Dataset`."""
-    try:
-        from detbench.data import Height3Dataset, split_ids
-    except ImportError as e:
-        raise ToolError(f"the dataset reader detbench.data.Height3Dataset is not available ({e})") from None
-    if not Path(root).is_dir():
-        raise ToolError(f"{root}: dataset root not found; give --data the folder written by tools/simulate.py "
-                        f"or holding the Height3 data")
-    try:
-        dataset = Height3Dataset(root, height, split)
-        other: list[str] = []
-        if split != "all":
-            wanted = set(dataset.frame_ids)
-            other = [f for f in split_ids(root, "all") if f not in wanted]
-    except (FileNotFoundError, ValueError, KeyError) as e:
-        raise ToolError(str(e)) from None
-    return dataset, other
-
-
-def predictions_from_checkpoint(ckpt: Path, dataset, device: str = "cpu", batch_size: int = 4,
+def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: int = 4,
                                 progress: bool = True, stage: str = "refined"):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name).
-
-    `stage` 'proposals' asks a two-stage model for its first stage's boxes alone.
-    """
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
     import models
-    from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
-    from detbench.train.detector import TwoStageDetector
-    from detbench.train.inference import predict_frames
+    from detbench.train.inference import checkpoint_predictions
 
     try:
         model, ck = models.load_from_checkpoint(ckpt, device)
     except CheckpointError as e:
-        raise ToolError(str(e)) from None
-    if stage != "refined":
-        if not isinstance(model, TwoStageDetector):
-            raise ToolError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
-                            f"two-stage models (pointrcnn, ct3d)")
-        model.set_output_stage(stage)
-    try:
-        preds = predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
-                               batch_size=batch_size, progress=progress)
-    except FloatingPointError as e:
-        raise ToolError(f"{ckpt}: {e}") from None
-    except DatasetError as e:  # a frame of the split is malformed
-        raise ToolError(str(e)) from None
+        raise UserError(str(e)) from None
+    preds = checkpoint_predictions(model, ck, dataset, device=device, batch_size=batch_size, progress=progress,
+                                   stage=stage, source=ckpt)
     return preds, ck["model_name"]
 
 
@@ -183,12 +139,12 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
     try:
         ck = load_checkpoint(args.ckpt)
     except CheckpointError as e:
-        raise ToolError(str(e)) from None
+        raise UserError(str(e)) from None
     trained_h = float(ck["data"].get("height", float("nan")))
     if args.height is None:
         args.height = trained_h
     elif abs(args.height - trained_h) > 1e-6:
-        raise ToolError(f"--ckpt {args.ckpt} was trained at {trained_h:g} m, not --height {args.height:g}; to test "
+        raise UserError(f"--ckpt {args.ckpt} was trained at {trained_h:g} m, not --height {args.height:g}; to test "
                         f"it at another height keep --height {trained_h:g} (or leave it out) and add "
                         f"--test-height {args.height:g}")
     if args.data is None:
@@ -202,91 +158,53 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         args.out = run_dir_of_checkpoint(args.ckpt) / eval_dir_name(args.height, args.split, args.stage)
 
 
-def write_report(report: dict, out: Path, title: str) -> list[Path]:
-    """Write report.json, report.md and report.csv into `out`; returns the paths."""
-    paths = [out / "report.json", out / "report.md", out / "report.csv"]
-    atomic_write_json(paths[0], report)
-    atomic_write_text(paths[1], report_to_markdown(report, title=title))
-    atomic_write_text(paths[2], report_to_csv(report))
-    return paths
-
-
 def run_evaluate(args: argparse.Namespace) -> int:
     """Evaluate one prediction folder (or checkpoint) at one height and split; exit status."""
     if args.test_height is not None and args.ckpt is None:
-        raise ToolError("--test-height goes with --ckpt (test a model trained at one height on another)")
+        raise UserError("--test-height goes with --ckpt (test a model trained at one height on another)")
     if args.ckpt is not None:
         checkpoint_defaults(args)
     missing = [name for name, v in (("--data", args.data), ("--height", args.height), ("--out", args.out)) if v is None]
     # (with --ckpt these were filled from the checkpoint above)
     if missing:
-        raise ToolError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H "
+        raise UserError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H "
                         f"(--pred DIR | --ckpt FILE) --out DIR")
     if (args.pred is None) == (args.ckpt is None):
-        raise ToolError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
+        raise UserError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
     if args.pred is None and (args.pred_frame != "ground" or args.pred_classes is not None):
-        raise ToolError("--pred-frame and --pred-classes describe saved predictions; they go with --pred")
+        raise UserError("--pred-frame and --pred-classes describe saved predictions; they go with --pred")
+    check_out_dir(args.out)
+    device = torch_device(args.device) if args.ckpt is not None else None
     t0 = time.perf_counter()
-    dataset, other_ids = load_dataset(args.data, args.height, args.split)
+    dataset, other_ids = load_split(args.data, args.height, args.split)
     model = args.model
-    loaded = None
+    saved = checkpoint = None
     if args.pred is not None:
-        from detbench.eval.external import load_predictions
-
-        try:
-            loaded = load_predictions(args.pred, dataset, other_ids, pred_frame=args.pred_frame,
-                                      classes=args.pred_classes)
-        except (FileNotFoundError, ValueError) as e:
-            raise ToolError(str(e)) from None
-        preds, skipped = loaded.predictions, loaded.skipped
+        saved = read_saved_predictions(args.pred, dataset, other_ids, pred_frame=args.pred_frame,
+                                       classes=args.pred_classes)
+        preds, skipped = saved.predictions, saved.skipped
     else:
-        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, args.device, args.batch_size,
+        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, device, args.batch_size,
                                                         not args.no_progress, args.stage)
         skipped = []
         model = model or ckpt_model
-        pred_dir = args.out / "pred"
-        for fid, (boxes, scores) in preds.items():
-            atomic_write_text(pred_dir / f"{fid}.txt", format_prediction_lines(boxes, scores))
-    try:
-        report = evaluate_predictions(
-            dataset, preds, iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
-            iou_kind=args.iou_kind, extras=not args.no_extras, progress=not args.no_progress,
-            bootstrap=args.bootstrap)
-    except (ValueError, KeyError) as e:
-        raise ToolError(str(e)) from None
-    full = {
-        "model": model,
-        "height": float(args.height),
-        "split": args.split,
-        "data": str(args.data),
-        "predictions": str(args.pred if args.pred is not None else args.ckpt),
-        **report,
-    }
-    if args.ckpt is not None:
-        full["trained_height"] = args.trained_height
-        full["predictions_dir"] = str(args.out / "pred")
-        full["stage"] = args.stage
-    if args.pred is not None:
-        from detbench.eval.external import vertical_offset_check
-
-        full["prediction_files"] = len(preds)
-        full["files_of_other_splits_skipped"] = len(skipped)
-        full["prediction_input"] = loaded.info
-        full["frame_check"] = vertical_offset_check(dataset, preds, pred_frame=args.pred_frame,
-                                                    score_threshold=args.score_threshold)
-        if full["frame_check"]["warning"]:
-            full["warnings"] = [full["frame_check"]["warning"]]
-    title = f"Detection results{' of ' + model if model else ''} at {args.height:g} m ({args.split} split)"
-    if args.ckpt is not None and args.stage != "refined":
-        title += f", {args.stage} of the first stage alone"
+        checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage)
+        write_predictions(preds, checkpoint.predictions_dir)
+    settings = EvalSettings(iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
+                            iou_kind=args.iou_kind, extras=not args.no_extras, bootstrap=args.bootstrap,
+                            progress=not args.no_progress)
+    full = evaluation_report(dataset, preds, settings, model=model, height=args.height, split=args.split,
+                             data=args.data, source=args.pred if args.pred is not None else args.ckpt, saved=saved,
+                             pred_frame=args.pred_frame, checkpoint=checkpoint)
+    title = report_title(model, args.height, args.split, args.stage if args.ckpt is not None else "refined")
     paths = write_report(full, args.out, title)
     for line in summary_lines(full):
         print(line)
     if skipped:
         print(f"  skipped {len(skipped)} prediction file(s) of frames outside the {args.split!r} split")
     if args.pred is not None:
-        print(f"  {len(preds)} of {report['num_frames']} frames had predictions")
-        for note in loaded.notes:
+        print(f"  {len(preds)} of {full['num_frames']} frames had predictions")
+        for note in saved.notes:
             print(f"  {note}")
         for w in full.get("warnings", []):
             print(f"tools/eval.py: warning: {w}", file=sys.stderr)
@@ -302,48 +220,24 @@ def run_evaluate(args: argparse.Namespace) -> int:
 def run_combine(args: argparse.Namespace) -> int:
     """Merge finished report.json files into combined.md/.csv/.json and figures; exit status."""
     if args.out is None:
-        raise ToolError("--combine needs --out DIR for the combined table")
+        raise UserError("--combine needs --out DIR for the combined table")
     if any(v is not None for v in (args.data, args.height, args.pred, args.ckpt)):
-        raise ToolError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
-    reports, sources = [], []
-    for path in args.combine:
-        try:
-            reports.append(read_json(path))
-        except (FileNotFoundError, ValueError) as e:
-            raise ToolError(str(e)) from None
-        sources.append(str(path))
-    try:
-        comb = combine_reports(reports, sources)
-        md = combined_markdown(reports, sources=sources)
-        csv_text = combined_csv(reports, sources=sources)
-    except ValueError as e:
-        raise ToolError(str(e)) from None
-    comb["sources"] = sources
-    paths = [args.out / "combined.json", args.out / "combined.md", args.out / "combined.csv"]
-    atomic_write_json(paths[0], comb)
-    atomic_write_text(paths[1], md)
-    atomic_write_text(paths[2], csv_text)
-    if not args.no_figures:
-        paths.append(plot_by_height(reports, args.out / "fig8_by_height.png", range_name=args.range_name))
-        paths.append(plot_by_range(reports, args.out / "fig9_recall_by_range.png"))
-        paths.append(plot_by_level(reports, args.out / "fig10_recall_by_level.png", range_name=args.range_name))
-    print(f"combined {len(reports)} reports: models {', '.join(comb['models'])}; heights "
+        raise UserError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
+    check_out_dir(args.out)
+    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name)
+    print(f"combined {len(args.combine)} reports: models {', '.join(comb['models'])}; heights "
           f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the tool with `argv` (default: sys.argv); returns 0, or 2 after a printed error."""
+    """Run the tool with `argv` (default: sys.argv); 0, or a `UserError` (see detbench.utils.cli)."""
     args = build_parser().parse_args(argv)
-    try:
-        if args.combine:
-            return run_combine(args)
-        return run_evaluate(args)
-    except ToolError as e:
-        print(f"tools/eval.py: error: {e}", file=sys.stderr)
-        return 2
+    if args.combine:
+        return run_combine(args)
+    return run_evaluate(args)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

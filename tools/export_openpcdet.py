@@ -11,14 +11,12 @@ docs/data-format.md, "OpenPCDet's format and detbench's".
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench.
-if importlib.util.find_spec("detbench") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.data.errors import DatasetError  # noqa: E402
 from detbench.data.openpcdet import (  # noqa: E402

@@ -20,17 +20,16 @@ Units: metres, radians, seconds per frame; AP@R40 and recall are fractions in [0
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
 from detbench.config import shipped_default  # noqa: E402
-from detbench.train.precision import PRECISIONS, compare_precision, precision_markdown  # noqa: E402
+from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,  # noqa: E402
+                                      checkpoint_precision_report, precision_frames, precision_summary_lines)
 from detbench.utils.cli import UserError, run_main  # noqa: E402
 from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
 
@@ -62,7 +61,6 @@ def main(argv=None) -> int:
     import torch
 
     import models
-    from detbench.data import Height3Dataset
     from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
     from detbench.train.run_layout import precision_dir_name, run_dir_of_checkpoint
@@ -84,35 +82,20 @@ def main(argv=None) -> int:
     height = float(args.height if args.height is not None else ck["data"].get("height", float("nan")))
     root = args.data or Path(ck["data"]["source"])
     try:
-        dataset = Height3Dataset(root, height, args.split)
-    except (FileNotFoundError, ValueError, KeyError, DatasetError) as e:
-        raise UserError(f"{e} (give --data ROOT --height H of a dataset in the Height3 layout)") from None
-    n = len(dataset) if args.frames == 0 else min(args.frames, len(dataset))
-    if n == 0:
-        raise UserError(f"{root}: the {args.split!r} split at {height:g} m has no frames; try --split all")
-    frames = [dataset[i] for i in range(n)]
+        frames = precision_frames(root, height, args.split, args.frames)
+    except ValueError as e:
+        raise UserError(str(e)) from None
     try:
-        report = compare_precision(model, frames, ck["config"]["model"]["point_cloud_range"], args.precisions, device,
-                                   args.batch_size, score_threshold=args.score_threshold, match_iou=args.match_iou,
-                                   progress=not args.no_progress)
+        report = checkpoint_precision_report(model, ck, args.ckpt, frames, root=root, height=height, split=args.split,
+                                             precisions=args.precisions, device=device, batch_size=args.batch_size,
+                                             score_threshold=args.score_threshold, match_iou=args.match_iou,
+                                             progress=not args.no_progress)
     except DatasetError as e:
         raise UserError(str(e)) from None
-    report = {"checkpoint": str(args.ckpt), "model": ck["model_name"], "data": str(root), "height": height,
-              "split": args.split, "torch": torch.__version__, "threads": torch.get_num_threads(), **report}
     out = args.out or run_dir_of_checkpoint(args.ckpt) / precision_dir_name(height, args.split)
     atomic_write_json(out / "precision.json", report)
-    md = precision_markdown(report, f"{ck['model_name']} at {height:g} m: inference precision against float32")
-    atomic_write_text(out / "precision.md", md + f"\nCheckpoint: {args.ckpt}; torch {torch.__version__}, "
-                                                 f"{torch.get_num_threads()} threads.\n")
-    for name, e in report["precisions"].items():
-        line = (f"{name:9s} {e['seconds_per_frame']:.3f} s/frame, AP@R40 "
-                + " / ".join(f"{e['ap_r40'][r]:.3f}" if e["ap_r40"][r] is not None else "-" for r in e["ap_r40"])
-                + f", NaN/inf values {e['nonfinite_values']}")
-        if "boxes" in e:
-            b = e["boxes"]
-            line += (f", max |AP diff| {e['max_abs_ap_r40_diff']:.3f}" if e["max_abs_ap_r40_diff"] is not None else "")
-            line += (f", largest box difference {b['max_corner_diff_m']:.4f} m (corner) over {b['matched']} matched "
-                     f"detections, {b['unmatched_reference']} / {b['unmatched_other']} unmatched")
+    atomic_write_text(out / "precision.md", checkpoint_precision_markdown(report))
+    for line in precision_summary_lines(report):
         print(line)
     print(f"wrote {out / 'precision.json'}, {out / 'precision.md'}")
     return 0

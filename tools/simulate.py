@@ -15,22 +15,16 @@ OUT/simulate_run.md (the same for humans).
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import math
 import sys
 import time
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import numpy as np  # noqa: E402
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.config import ConfigError, shipped_default  # noqa: E402
-from detbench.data.frame import height_key  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text, recover_staged  # noqa: E402
+from detbench.utils.io import DiskFullError, recover_staged  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -75,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+    from detbench.sim import HighwaySimulator, load_sim_config
     from detbench.sim.dataset import plan_frames, write_simulation
+    from detbench.sim.run import RunSummary, run_lidars, simulation_source
 
     try:
         cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
@@ -84,77 +79,29 @@ def main(argv=None) -> int:
                                   int(cfg["scene"]["frames_per_scene"]))
         if args.lidars and args.heights:
             raise ValueError("give --heights or --lidars, not both")
-        names = args.lidars or (args.heights or [0.5, 1.0, 1.8])
-        changes = {}
-        if args.range_noise is not None:
-            changes["range_noise_m"] = args.range_noise
-        if args.dropout is not None:
-            changes["dropout"] = args.dropout
-        lidars = [lidar_preset(n, **changes) for n in names]
-        keys = [height_key(lid.height) for lid in lidars]
-        if len(set(keys)) != len(keys):
-            raise ValueError(f"LiDAR heights must differ (one points folder per height), got {keys} m")
+        lidars = run_lidars(args.lidars or args.heights, range_noise=args.range_noise, dropout=args.dropout)
         sim = HighwaySimulator(cfg, seed=args.seed)
     except (ConfigError, ValueError) as e:
         raise UserError(str(e)) from None
 
     out = Path(args.out)
-    from detbench.sim.dataset import sim_calibration
-
-    source = {"kind": "simulator", "preset": args.preset, "calibration": sim_calibration(cfg), "seed": args.seed,
-              "overrides": list(args.overrides),
-              "frames": frames, "frames_per_scene": fps, "lidars": [lid.to_dict() for lid in lidars], "config": cfg}
-    t0 = time.perf_counter()
-    n_points = np.zeros(len(lidars))
-    n_boxes = 0
-    n_detected = np.zeros(len(lidars))
-
-    def tally(step) -> None:
-        nonlocal n_boxes
-        n_boxes += step[0].num_boxes
-        for i, f in enumerate(step):
-            n_points[i] += f.points.shape[0]
-            n_detected[i] += int((f.hit_counts >= 1).sum())
-
-    def write_report(folder: Path) -> None:
-        """The summary, written into the finished dataset before it replaces OUT."""
-        seconds = time.perf_counter() - t0
-        scenes = math.ceil(frames / fps)
-        report = {
-            "out": str(out), "frames": frames, "scenes": scenes, "frames_per_scene": fps, "seed": args.seed,
-            "preset": args.preset, "overrides": list(args.overrides), "seconds": round(seconds, 2),
-            "frames_per_second": round(frames / max(seconds, 1e-9), 2),
-            "boxes_per_frame": round(n_boxes / max(frames, 1), 3),
-            "heights": {height_key(l.height): {
-                "lidar": l.to_dict(),
-                "points_per_frame": round(float(n_points[i]) / max(frames, 1), 1),
-                "hit_boxes_per_frame": round(float(n_detected[i]) / max(frames, 1), 3),
-            } for i, l in enumerate(lidars)},
-        }
-        atomic_write_json(folder / "simulate_run.json", report)
-        lines = [f"# Simulated dataset: {out}", "",
-                 f"{frames} frames in {scenes} scene(s) of {fps}, seed {args.seed}, preset `{args.preset}`"
-                 + (f", overrides {', '.join(args.overrides)}" if args.overrides else "") + ".",
-                 f"Wall time {seconds:.1f} s ({report['frames_per_second']} frames/s, all heights), "
-                 f"{report['boxes_per_frame']} vehicle boxes per frame.", "",
-                 "| height (m) | LiDAR | points per frame | boxes with >= 1 point per frame |", "|---|---|---|---|"]
-        for hk, h in report["heights"].items():
-            lines.append(f"| {hk} | {h['lidar']['name']} | {h['points_per_frame']} | {h['hit_boxes_per_frame']} |")
-        atomic_write_text(folder / "simulate_run.md", "\n".join(lines) + "\n")
-
+    source = simulation_source(cfg, lidars, preset=args.preset, seed=args.seed, overrides=args.overrides,
+                               frames=frames, frames_per_scene=fps)
+    summary = RunSummary(out, lidars, frames=frames, frames_per_scene=fps, seed=args.seed, preset=args.preset,
+                         overrides=args.overrides)
     for note in recover_staged(out):
         print(f"note: {note}", file=sys.stderr)
     try:
         write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
                          test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,
-                         on_step=tally, finish=write_report)
+                         on_step=summary.tally, finish=summary.write)
     except (FileExistsError, ValueError, TypeError) as e:
         raise UserError(str(e)) from None
     except DiskFullError as e:
         raise UserError(f"{e.path}: could not be written: {e.reason}; the new dataset was being built there, "
                         f"beside {out}, and that folder is removed, so {out} is unchanged; free some space in "
                         f"{out.parent} (or raise the limit), then run the same command again") from None
-    seconds = time.perf_counter() - t0
+    seconds = time.perf_counter() - summary.t0
     print(f"wrote {frames} frames x {len(lidars)} heights to {out} in {seconds:.1f} s "
           f"(summary: {out / 'simulate_run.md'})")
     return 0

@@ -24,13 +24,11 @@ correlations are fractions or coefficients in [-1, 1]; S-MIG in bits; times in s
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench import runtime  # noqa: E402,F401  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.studies.sweep_sim import (  # noqa: E402

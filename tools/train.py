@@ -18,25 +18,24 @@ OUT/tensorboard/, OUT/history.json, OUT/config.yaml and OUT/train_summary.{json,
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import sys
 import time
 from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench and models.
-if importlib.util.find_spec("detbench") is None or importlib.util.find_spec("models") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 import models  # noqa: E402
 from detbench.config import ConfigError  # noqa: E402
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint  # noqa: E402
+from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,  # noqa: E402
+                                option_overrides, write_summary)
 from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
 from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import DiskFullError, atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.io import DiskFullError  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,90 +67,16 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
-def collect_train_boxes(train_set, limit: int = 400) -> np.ndarray:
-    """LiDAR-detected boxes of up to `limit` evenly spaced training frames (for anchor sizes)."""
-    n = len(train_set)
-    idx = np.unique(np.linspace(0, n - 1, num=min(n, limit)).astype(int)) if n else []
-    boxes = [train_set.get(int(i), 0, augment=False).gt_boxes for i in idx]
-    return np.concatenate(boxes) if boxes else np.zeros((0, 7), np.float32)
-
-
 def run_config_from_args(args) -> dict:
     """The merged, checked run config (every section's keys and value kinds, before anything runs)."""
-    overrides = list(args.overrides)
-    for flag, key in ((args.epochs, "train.epochs"), (args.batch_size, "train.batch_size"),
-                      (args.workers, "train.workers")):
-        if flag is not None:
-            overrides.append(f"{key}={flag}")
-    if args.data:
-        overrides.append(f"data.root={Path(args.data).resolve()}")
+    overrides = option_overrides(args.overrides, epochs=args.epochs, batch_size=args.batch_size,
+                                 workers=args.workers, data=args.data)
     try:
         cfg = load_run_config(args.model, args.preset, args.config, overrides)
         models.get_model_class(cfg["model"]["name"])
     except (ConfigError, ValueError) as e:
         raise UserError(str(e)) from None
     return cfg
-
-
-def check_training_frames(frames) -> None:
-    """Read every training frame once now (about 1 ms a frame), so a bad file stops the run before it trains
-    instead of when the data loader reaches it mid-epoch."""
-    from detbench.data.validate import check_frames
-
-    check_frames(frames, fix=f"a training frame cannot be read: fix or re-create the file (python tools/validate.py "
-                             f"{frames.root} lists every problem), or remove its id from "
-                             f"{frames.root / 'ImageSets' / 'train.txt'}")
-
-
-def eval_frames(root: Path, height: float, ecfg):
-    """The frames evaluated after each epoch, each read once now, so a bad file stops the run before it trains."""
-    from detbench.data import Height3Dataset
-    from detbench.data.validate import check_frames
-
-    test_set = Height3Dataset(root, height, ecfg.split)
-    n = len(test_set)
-    if ecfg.max_frames and ecfg.max_frames < n:
-        return [test_set[int(i)] for i in np.linspace(0, n - 1, ecfg.max_frames).astype(int)]
-    check_frames(test_set)
-    return test_set
-
-
-def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
-    """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range."""
-    from detbench.data.regions import RANGE_NAMES
-    from detbench.eval.evaluate import evaluate_predictions
-    from detbench.train.inference import predict_frames
-
-    def eval_fn(m, epoch):
-        preds = predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size, progress=False)
-        rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
-                                   score_threshold=ecfg.score_threshold, extras=False, progress=False)
-        res = {}
-        for r in RANGE_NAMES:
-            cell = rep["results"][r]["all"]
-            res[f"ap_r40_{r}"] = cell["ap_r40"] if cell["ap_r40"] is not None else float("nan")
-            res[f"recall_{r}"] = cell["recall"] if cell["recall"] is not None else float("nan")
-        return res
-
-    return eval_fn
-
-
-def write_summary(out: Path, args, model_name: str, root: Path, result, seconds: float,
-                  init: dict | None = None) -> None:
-    """OUT/train_summary.json and .md."""
-    last = result.history[-1] if result.history else {}
-    summary = {"model": model_name, "height": float(args.height), "preset": args.preset, "data": str(root),
-               "epochs_completed": result.epochs_completed, "global_step": result.global_step,
-               "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
-               "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
-               "init_from": init, "last_epoch": last}
-    atomic_write_json(out / "train_summary.json", summary)
-    lines = [f"# Training summary: {model_name} at {args.height:g} m ({args.preset} preset)", "",
-             "| item | value |", "| --- | --- |"]
-    lines += [f"| {k} | {v} |" for k, v in summary.items() if k != "last_epoch"]
-    lines += [f"| last epoch: {k} | {v:.4g} |" if isinstance(v, float) else f"| last epoch: {k} | {v} |"
-              for k, v in last.items()]
-    atomic_write_text(out / "train_summary.md", "\n".join(lines) + "\n")
 
 
 def main(argv=None) -> int:
@@ -211,7 +136,7 @@ def main(argv=None) -> int:
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:
-        write_summary(out, args, model_name, root, result, seconds, init)
+        write_summary(out, model_name, args.height, args.preset, root, result, seconds, init)
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
             print(f"interrupted: resume with the same command and --resume")

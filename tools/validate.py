@@ -8,13 +8,10 @@ the dataset is clean, 1 when problems were found.
 """
 from __future__ import annotations
 
-import importlib.util
 import sys
-from pathlib import Path
 
-# Not installed (run from a checkout): the repository root holds detbench.
-if importlib.util.find_spec("detbench") is None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
+    import _checkout  # noqa: F401
 
 from detbench.data.validate import main  # noqa: E402
 

@@ -17,7 +17,10 @@ from tqdm import tqdm
 
 from detbench.data.augment import crop_to_range
 from detbench.data.batch import Sample, collate
+from detbench.data.errors import DatasetError
 from detbench.data.frame import Frame
+from detbench.train.detector import TwoStageDetector
+from detbench.utils.cli import UserError
 
 
 def frame_sample(frame: Frame, point_cloud_range: Sequence[float]) -> Sample:
@@ -81,3 +84,23 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
                                    f"frames (e.g. {', '.join(bad[:3])}); its weights are broken or the run "
                                    f"diverged: use an earlier checkpoint, or train again with a lower train.lr")
     return out
+
+
+def checkpoint_predictions(model: nn.Module, ck: dict, dataset, *, device="cpu", batch_size: int = 4,
+                           progress: bool = True, stage: str = "refined", source=None) -> dict:
+    """`predict_frames` of a model loaded from a checkpoint (`ck`, its dict) over `dataset`, with the
+    checkpoint's point-cloud range. `stage` "proposals" asks a two-stage model for its first stage's boxes
+    alone. A user's problem (a one-stage model asked for proposals, outputs that went NaN, a malformed
+    frame) is a UserError; `source` (the checkpoint's path) prefixes the NaN message."""
+    if stage != "refined":
+        if not isinstance(model, TwoStageDetector):
+            raise UserError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
+                            f"two-stage models (pointrcnn, ct3d)")
+        model.set_output_stage(stage)
+    try:
+        return predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
+                              batch_size=batch_size, progress=progress)
+    except FloatingPointError as e:
+        raise UserError(f"{source}: {e}") from None
+    except DatasetError as e:  # a frame of the split is malformed
+        raise UserError(str(e)) from None

@@ -40,14 +40,17 @@ from torch import nn
 from tqdm import tqdm
 
 from detbench.config import shipped_default
+from detbench.data import Height3Dataset
 from detbench.data.batch import collate
+from detbench.data.errors import DatasetError
 from detbench.data.regions import RANGE_NAMES, detected_point_counts
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.ops import boxes_iou_bev, boxes_to_corners_3d, normalize_heading
 from detbench.train.inference import count_nonfinite, frame_sample
 
 __all__ = ["PRECISIONS", "PrecisionRun", "available_precisions", "autocast_for", "box_differences",
-           "compare_precision", "precision_markdown", "run_at_precision"]
+           "checkpoint_precision_markdown", "checkpoint_precision_report", "compare_precision", "precision_frames",
+           "precision_markdown", "precision_summary_lines", "run_at_precision"]
 
 PRECISIONS: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 REFERENCE = "float32"
@@ -304,3 +307,51 @@ def precision_markdown(report: dict, title: str = "Inference precision against f
                                          f"{e['nonfinite_values']} ({e['nonfinite_frames']})",
                                          str(e["nonfinite_detections"]), *aps, *tail]) + " |")
     return "\n".join(lines) + "\n"
+
+
+def precision_frames(root, height: float, split: str, limit: int = 0) -> list:
+    """The first `limit` frames (0: all) of `split` at `height` in the dataset at `root`; ValueError (naming
+    the dataset) when it cannot be read or the split is empty."""
+    try:
+        dataset = Height3Dataset(root, height, split)
+    except (FileNotFoundError, ValueError, KeyError, DatasetError) as e:
+        raise ValueError(f"{e} (give --data ROOT --height H of a dataset in the Height3 layout)") from None
+    n = len(dataset) if limit == 0 else min(limit, len(dataset))
+    if n == 0:
+        raise ValueError(f"{root}: the {split!r} split at {height:g} m has no frames; try --split all")
+    return [dataset[i] for i in range(n)]
+
+
+def checkpoint_precision_report(model: nn.Module, ck: dict, checkpoint, frames: Sequence, *, root, height: float,
+                                split: str, precisions: Sequence[str] | None, device: torch.device,
+                                batch_size: int = 4, score_threshold: float = 0.1, match_iou: float = 0.5,
+                                progress: bool = True) -> dict:
+    """`compare_precision` of a loaded checkpoint (`model`, its dict `ck`) on `frames`, headed by where the
+    checkpoint and the frames come from (the report of precision.json)."""
+    report = compare_precision(model, frames, ck["config"]["model"]["point_cloud_range"], precisions, device,
+                               batch_size, score_threshold=score_threshold, match_iou=match_iou, progress=progress)
+    return {"checkpoint": str(checkpoint), "model": ck["model_name"], "data": str(root), "height": height,
+            "split": split, "torch": torch.__version__, "threads": torch.get_num_threads(), **report}
+
+
+def checkpoint_precision_markdown(report: dict) -> str:
+    """precision.md of a `checkpoint_precision_report`."""
+    md = precision_markdown(report, f"{report['model']} at {report['height']:g} m: inference precision against "
+                                    f"float32")
+    return md + f"\nCheckpoint: {report['checkpoint']}; torch {report['torch']}, {report['threads']} threads.\n"
+
+
+def precision_summary_lines(report: dict) -> list[str]:
+    """One line per precision: speed, AP@R40 per range, non-finite values and box differences."""
+    lines = []
+    for name, e in report["precisions"].items():
+        line = (f"{name:9s} {e['seconds_per_frame']:.3f} s/frame, AP@R40 "
+                + " / ".join(f"{e['ap_r40'][r]:.3f}" if e["ap_r40"][r] is not None else "-" for r in e["ap_r40"])
+                + f", NaN/inf values {e['nonfinite_values']}")
+        if "boxes" in e:
+            b = e["boxes"]
+            line += (f", max |AP diff| {e['max_abs_ap_r40_diff']:.3f}" if e["max_abs_ap_r40_diff"] is not None else "")
+            line += (f", largest box difference {b['max_corner_diff_m']:.4f} m (corner) over {b['matched']} matched "
+                     f"detections, {b['unmatched_reference']} / {b['unmatched_other']} unmatched")
+        lines.append(line)
+    return lines

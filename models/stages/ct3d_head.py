@@ -22,7 +22,6 @@ from typing import NamedTuple
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from detbench.ops import cylinder_query
 

@@ -6,6 +6,7 @@ status and stderr, as on the command line). Helpers: faultkit.py.
 """
 from __future__ import annotations
 
+import importlib
 import shutil
 from pathlib import Path
 
@@ -41,14 +42,14 @@ def trained_run(fault_data, tmp_path_factory) -> Path:
 
 
 @pytest.fixture
-def tool(load_tool, capsys):
+def tool(capsys):
     """`tool("train", *argv) -> (exit status, output)`: a tool's main in-process, ended as on the command
     line; the output is stdout and stderr together."""
     from detbench.utils.cli import run_main
 
     def call(name: str, *argv) -> tuple[int, str]:
         capsys.readouterr()
-        code = run_main(load_tool(name).main, [str(a) for a in argv])
+        code = run_main(importlib.import_module(f"tools.{name}").main, [str(a) for a in argv])
         captured = capsys.readouterr()
         return code, captured.out + captured.err
 

@@ -51,7 +51,8 @@ elif hook == "save":
 
     torch.save = save
 sys.argv = ["tools/train.py", *sys.argv[3:]]
-runpy.run_path("tools/train.py", run_name="__main__")
+sys.path.insert(0, ".")  # the repository root (the working directory): tools.train
+runpy.run_module("tools.train", run_name="__main__", alter_sys=True)
 '''
 
 

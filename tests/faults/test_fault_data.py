@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from faultkit import snapshot
+import tools.train
 
 
 def test_empty_points_file_is_named_by_every_reader(data_copy, tool, tmp_path):
@@ -114,11 +115,12 @@ def test_big_seeds_give_their_own_data_and_are_recorded(seed, tmp_path):
 
 
 @pytest.mark.parametrize("damage", ["empty", "nan", "label"])
-def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, load_tool, capsys, tmp_path):
+def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, capsys, tmp_path, monkeypatch):
     """Without ground-truth sampling (whose database reads every training frame), a bad training frame was
     found only when the data loader reached it mid-epoch. Here the anchor-size sampling reads only the first
     training frame, as it reads at most 400 of a larger dataset, so only the pre-check can find the last one."""
     from faultkit import train_argv
+    from detbench.train.run import collect_train_boxes
     from detbench.utils.cli import run_main
 
     train_ids = (data_copy / "ImageSets" / "train.txt").read_text().split()
@@ -136,9 +138,8 @@ def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, l
         label.write_text(label.read_text() + "1 2 3\n")
         named = f"{label}:{len(label.read_text().splitlines())}: 3 columns, expected 8"
     before = snapshot(data_copy)
-    train = load_tool("train")
-    real = train.collect_train_boxes
-    train.collect_train_boxes = lambda ts, limit=400: real(ts, limit=1)
+    train = tools.train
+    monkeypatch.setattr(train, "collect_train_boxes", lambda ts, limit=400: collect_train_boxes(ts, limit=1))
     out = tmp_path / "run"
     capsys.readouterr()
     code = run_main(train.main, train_argv(data_copy, out, "--set", "augment.gt_sampling.enabled=false"))

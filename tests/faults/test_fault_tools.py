@@ -7,6 +7,7 @@ import sys
 import pytest
 
 
+
 def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
     out = tmp_path / "study"
     out.mkdir()

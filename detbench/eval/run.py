@@ -1,0 +1,152 @@
+"""One evaluation as tools/eval.py runs it: the split's frames, the predictions (saved, or produced by the
+caller from a checkpoint), the report with where its inputs came from, and its files; and the merge of
+finished reports into one table with the paper's Fig. 8-10.
+
+A problem the user can fix (a missing dataset or report, a malformed prediction file) is a `UserError`
+naming the file and the fix.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from detbench.data import Height3Dataset, split_ids
+from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
+from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
+from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, plot_by_height, plot_by_level,
+                                  plot_by_range, report_to_csv, report_to_markdown)
+from detbench.utils.cli import UserError
+from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+
+__all__ = ["CheckpointRun", "EvalSettings", "combine_report_files", "evaluation_report", "load_split",
+           "read_saved_predictions", "report_title", "write_predictions", "write_report"]
+
+
+@dataclass
+class EvalSettings:
+    """How predictions are matched and what the report holds (the options of tools/eval.py, whose defaults
+    are its own)."""
+
+    iou_threshold: float  # IoU (fraction) a prediction needs with a vehicle to count as a TP
+    score_threshold: float  # predictions scoring below are dropped before matching
+    iou_kind: str  # "3d" (rotated boxes) or "bev"
+    extras: bool  # also the BEV IoU and IoU 0.5 variants
+    bootstrap: int  # replicates of the bootstrap over scenes behind the 95 % intervals (0: none)
+    progress: bool = True
+
+
+@dataclass
+class CheckpointRun:
+    """Where a checkpoint's predictions came from, for the report."""
+
+    trained_height: float
+    predictions_dir: Path
+    stage: str = "refined"  # or "proposals": a two-stage model's first stage alone
+
+
+def load_split(root: Path, height: float, split: str) -> tuple[Height3Dataset, list[str]]:
+    """(the dataset of `split` at `height`, frame ids of the other splits)."""
+    if not Path(root).is_dir():
+        raise UserError(f"{root}: dataset root not found; give --data the folder written by tools/simulate.py "
+                        f"or holding the Height3 data")
+    try:
+        dataset = Height3Dataset(root, height, split)
+        other: list[str] = []
+        if split != "all":
+            wanted = set(dataset.frame_ids)
+            other = [f for f in split_ids(root, "all") if f not in wanted]
+    except (FileNotFoundError, ValueError, KeyError) as e:
+        raise UserError(str(e)) from None
+    return dataset, other
+
+
+def read_saved_predictions(path: Path, dataset, other_ids, *, pred_frame: str = "ground",
+                           classes=None) -> LoadedPredictions:
+    """`load_predictions` with a file problem as a UserError."""
+    try:
+        return load_predictions(path, dataset, other_ids, pred_frame=pred_frame, classes=classes)
+    except (FileNotFoundError, ValueError) as e:
+        raise UserError(str(e)) from None
+
+
+def write_predictions(preds: dict, pred_dir: Path) -> None:
+    """One `<frame_id>.txt` per frame in the format tools/eval.py --pred reads."""
+    for fid, (boxes, scores) in preds.items():
+        atomic_write_text(Path(pred_dir) / f"{fid}.txt", format_prediction_lines(boxes, scores))
+
+
+def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: str | None, height: float,
+                      split: str, data, source, saved: LoadedPredictions | None = None, pred_frame: str = "ground",
+                      checkpoint: CheckpointRun | None = None) -> dict:
+    """The report of `preds` on `dataset`, headed by what was evaluated: `source` is the prediction file or
+    folder (`saved`, read in `pred_frame`) or the checkpoint (`checkpoint`)."""
+    try:
+        report = evaluate_predictions(
+            dataset, preds, iou_threshold=settings.iou_threshold, score_threshold=settings.score_threshold,
+            iou_kind=settings.iou_kind, extras=settings.extras, progress=settings.progress,
+            bootstrap=settings.bootstrap)
+    except (ValueError, KeyError) as e:
+        raise UserError(str(e)) from None
+    full = {"model": model, "height": float(height), "split": split, "data": str(data), "predictions": str(source),
+            **report}
+    if checkpoint is not None:
+        full["trained_height"] = checkpoint.trained_height
+        full["predictions_dir"] = str(checkpoint.predictions_dir)
+        full["stage"] = checkpoint.stage
+    if saved is not None:
+        full["prediction_files"] = len(preds)
+        full["files_of_other_splits_skipped"] = len(saved.skipped)
+        full["prediction_input"] = saved.info
+        full["frame_check"] = vertical_offset_check(dataset, preds, pred_frame=pred_frame,
+                                                    score_threshold=settings.score_threshold)
+        if full["frame_check"]["warning"]:
+            full["warnings"] = [full["frame_check"]["warning"]]
+    return full
+
+
+def report_title(model: str | None, height: float, split: str, stage: str = "refined") -> str:
+    """The heading of report.md."""
+    title = f"Detection results{' of ' + model if model else ''} at {height:g} m ({split} split)"
+    if stage != "refined":
+        title += f", {stage} of the first stage alone"
+    return title
+
+
+def write_report(report: dict, out: Path, title: str) -> list[Path]:
+    """Write report.json, report.md and report.csv into `out`; returns the paths."""
+    out = Path(out)
+    paths = [out / "report.json", out / "report.md", out / "report.csv"]
+    atomic_write_json(paths[0], report)
+    atomic_write_text(paths[1], report_to_markdown(report, title=title))
+    atomic_write_text(paths[2], report_to_csv(report))
+    return paths
+
+
+def combine_report_files(report_paths, out: Path, *, figures: bool = True,
+                         range_name: str = "large") -> tuple[dict, list[Path]]:
+    """Merge finished report.json files into out/combined.json, .md, .csv and (with `figures`) the paper's
+    Fig. 8-10, the by-height and by-level ones at `range_name`; (the combined dict, the written paths)."""
+    out = Path(out)
+    reports, sources = [], []
+    for path in report_paths:
+        try:
+            reports.append(read_json(path))
+        except (FileNotFoundError, ValueError) as e:
+            raise UserError(str(e)) from None
+        sources.append(str(path))
+    try:
+        comb = combine_reports(reports, sources)
+        md = combined_markdown(reports, sources=sources)
+        csv_text = combined_csv(reports, sources=sources)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    comb["sources"] = sources
+    paths = [out / "combined.json", out / "combined.md", out / "combined.csv"]
+    atomic_write_json(paths[0], comb)
+    atomic_write_text(paths[1], md)
+    atomic_write_text(paths[2], csv_text)
+    if figures:
+        paths.append(plot_by_height(reports, out / "fig8_by_height.png", range_name=range_name))
+        paths.append(plot_by_range(reports, out / "fig9_recall_by_range.png"))
+        paths.append(plot_by_level(reports, out / "fig10_recall_by_level.png", range_name=range_name))
+    return comb, paths

@@ -1,0 +1,93 @@
+"""What a training command does around the loop (tools/train.py): the config overrides its options make,
+the frames read once before training so a bad file stops the run before it starts, the boxes that size
+the anchors, the evaluation after each epoch, and the summary files of the run."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from detbench.data import Height3Dataset
+from detbench.data.regions import RANGE_NAMES
+from detbench.data.validate import check_frames
+from detbench.eval.evaluate import evaluate_predictions
+from detbench.train.dataset import TrainingSet
+from detbench.train import inference
+from detbench.train.loop import TrainResult
+from detbench.utils.io import atomic_write_json, atomic_write_text
+
+__all__ = ["check_training_frames", "collect_train_boxes", "eval_frames", "make_eval_fn", "option_overrides",
+           "write_summary"]
+
+
+def option_overrides(overrides, *, epochs: int | None = None, batch_size: int | None = None,
+                     workers: int | None = None, data: str | None = None) -> list[str]:
+    """`overrides` (KEY=VALUE) followed by the ones the command's shortcut options stand for."""
+    out = list(overrides)
+    for value, key in ((epochs, "train.epochs"), (batch_size, "train.batch_size"), (workers, "train.workers")):
+        if value is not None:
+            out.append(f"{key}={value}")
+    if data:
+        out.append(f"data.root={Path(data).resolve()}")
+    return out
+
+
+def collect_train_boxes(train_set: TrainingSet, limit: int = 400) -> np.ndarray:
+    """LiDAR-detected boxes of up to `limit` evenly spaced training frames (for anchor sizes)."""
+    n = len(train_set)
+    idx = np.unique(np.linspace(0, n - 1, num=min(n, limit)).astype(int)) if n else []
+    boxes = [train_set.get(int(i), 0, augment=False).gt_boxes for i in idx]
+    return np.concatenate(boxes) if boxes else np.zeros((0, 7), np.float32)
+
+
+def check_training_frames(frames) -> None:
+    """Read every training frame once now (about 1 ms a frame), so a bad file stops the run before it trains
+    instead of when the data loader reaches it mid-epoch."""
+    check_frames(frames, fix=f"a training frame cannot be read: fix or re-create the file (python tools/validate.py "
+                             f"{frames.root} lists every problem), or remove its id from "
+                             f"{frames.root / 'ImageSets' / 'train.txt'}")
+
+
+def eval_frames(root: Path, height: float, ecfg):
+    """The frames evaluated after each epoch, each read once now, so a bad file stops the run before it trains."""
+    test_set = Height3Dataset(root, height, ecfg.split)
+    n = len(test_set)
+    if ecfg.max_frames and ecfg.max_frames < n:
+        return [test_set[int(i)] for i in np.linspace(0, n - 1, ecfg.max_frames).astype(int)]
+    check_frames(test_set)
+    return test_set
+
+
+def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
+    """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range."""
+    def eval_fn(m, epoch):
+        preds = inference.predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size,
+                                         progress=False)
+        rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
+                                   score_threshold=ecfg.score_threshold, extras=False, progress=False)
+        res = {}
+        for r in RANGE_NAMES:
+            cell = rep["results"][r]["all"]
+            res[f"ap_r40_{r}"] = cell["ap_r40"] if cell["ap_r40"] is not None else float("nan")
+            res[f"recall_{r}"] = cell["recall"] if cell["recall"] is not None else float("nan")
+        return res
+
+    return eval_fn
+
+
+def write_summary(out: Path, model_name: str, height: float, preset: str, root: Path, result: TrainResult,
+                  seconds: float, init: dict | None = None) -> None:
+    """OUT/train_summary.json and .md of a run of `model_name` at `height` metres with `preset`."""
+    last = result.history[-1] if result.history else {}
+    summary = {"model": model_name, "height": float(height), "preset": preset, "data": str(root),
+               "epochs_completed": result.epochs_completed, "global_step": result.global_step,
+               "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
+               "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
+               "init_from": init, "last_epoch": last}
+    atomic_write_json(out / "train_summary.json", summary)
+    lines = [f"# Training summary: {model_name} at {height:g} m ({preset} preset)", "",
+             "| item | value |", "| --- | --- |"]
+    lines += [f"| {k} | {v} |" for k, v in summary.items() if k != "last_epoch"]
+    lines += [f"| last epoch: {k} | {v:.4g} |" if isinstance(v, float) else f"| last epoch: {k} | {v} |"
+              for k, v in last.items()]
+    atomic_write_text(out / "train_summary.md", "\n".join(lines) + "\n")
