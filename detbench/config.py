@@ -27,7 +27,8 @@ import copy
 import difflib
 import functools
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from collections.abc import Iterable, Mapping
+from typing import Any
 
 import yaml
 

@@ -139,7 +139,7 @@ def main(argv=None) -> int:
         write_summary(out, model_name, args.height, args.preset, root, result, seconds, init)
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
-            print(f"interrupted: resume with the same command and --resume")
+            print("interrupted: resume with the same command and --resume")
     cleanup(info)
     return 130 if result.interrupted else 0
 

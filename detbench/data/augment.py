@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -60,14 +61,14 @@ class AugmentConfig:
     gt_sampling: GTSamplingConfig
 
     @classmethod
-    def none(cls) -> "AugmentConfig":
+    def none(cls) -> AugmentConfig:
         """Every augmentation off (the other settings at their defaults)."""
         cfg = cls.from_dict({})
         return replace(cfg, flip=False, rotation=False, scaling=False,
                        gt_sampling=replace(cfg.gt_sampling, enabled=False))
 
     @classmethod
-    def from_dict(cls, cfg: Mapping | None, where: str = "augment") -> "AugmentConfig":
+    def from_dict(cls, cfg: Mapping | None, where: str = "augment") -> AugmentConfig:
         """Parse the `augment` config section (see the module doc); missing keys take the defaults.
 
         Raises ConfigError naming `where` and the closest known key for unknown keys and for

@@ -21,7 +21,8 @@ Shapes and units (ego ground frame, metres, radians; docs/architecture.md, Conve
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -45,13 +46,13 @@ class Detections(NamedTuple):
     labels: torch.Tensor  # (K,) int64 class index
 
     @staticmethod
-    def empty(device: torch.device | str = "cpu") -> "Detections":
+    def empty(device: torch.device | str = "cpu") -> Detections:
         """No detections: (0, 7), (0,), (0,) tensors on `device`."""
         return Detections(torch.zeros((0, 7), dtype=torch.float32, device=device),
                           torch.zeros((0,), dtype=torch.float32, device=device),
                           torch.zeros((0,), dtype=torch.int64, device=device))
 
-    def to(self, device: torch.device | str) -> "Detections":
+    def to(self, device: torch.device | str) -> Detections:
         """The same detections on `device`."""
         return Detections(self.boxes.to(device), self.scores.to(device), self.labels.to(device))
 
@@ -75,14 +76,14 @@ class Batch:
     def device(self) -> torch.device:
         return self.points.device
 
-    def to(self, device: torch.device | str, non_blocking: bool = False) -> "Batch":
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> Batch:
         """A copy with every tensor on `device` (frame ids shared)."""
         return Batch(self.points.to(device, non_blocking=non_blocking),
                      self.gt_boxes.to(device, non_blocking=non_blocking),
                      self.gt_mask.to(device, non_blocking=non_blocking),
                      list(self.frame_ids), self.batch_size)
 
-    def pin_memory(self) -> "Batch":
+    def pin_memory(self) -> Batch:
         """Page-locked copy (DataLoader(pin_memory=True) calls this for faster CUDA copies)."""
         return Batch(self.points.pin_memory(), self.gt_boxes.pin_memory(), self.gt_mask.pin_memory(),
                      list(self.frame_ids), self.batch_size)

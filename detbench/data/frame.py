@@ -79,7 +79,7 @@ class Sensor:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Sensor":
+    def from_dict(cls, d: dict) -> Sensor:
         known = {"name", "height", "pitch_deg", "vfov_deg", "hfov_deg", "channels", "h_samples", "max_range"}
         unknown = set(d) - known
         if unknown:
@@ -114,7 +114,7 @@ class Frame:
     def num_boxes(self) -> int:
         return int(self.boxes.shape[0])
 
-    def check(self, where: str = "") -> "Frame":
+    def check(self, where: str = "") -> Frame:
         """Raise ValueError naming `where` (a file or frame id) if any array is malformed."""
         where = where or f"frame {self.frame_id}"
         p, b = self.points, self.boxes

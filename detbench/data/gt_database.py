@@ -35,7 +35,8 @@ import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -72,7 +73,7 @@ class GTSamplingConfig:
     database_dir: str | None
 
     @classmethod
-    def from_dict(cls, cfg: Mapping | None, where: str = "augment.gt_sampling") -> "GTSamplingConfig":
+    def from_dict(cls, cfg: Mapping | None, where: str = "augment.gt_sampling") -> GTSamplingConfig:
         """Parse the `gt_sampling` section; missing keys take GT_SAMPLING_DEFAULTS."""
         cfg = dict(cfg or {})
         validate(cfg, GT_SAMPLING_DEFAULTS, where=where)

@@ -36,7 +36,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -513,7 +513,7 @@ def export_markdown(m: dict) -> str:
     """The manifest of an export as Markdown: what is where, in which frame, and the commands."""
     c = m["commands"]
     lines = [
-        f"# OpenPCDet custom dataset exported by detbench",
+        "# OpenPCDet custom dataset exported by detbench",
         "",
         f"Source: `{m['source']['root']}`, the {m['source']['height']} m LiDAR. Frame of points and labels: "
         f"**{m['frame']}** - {m['frame_description']}. Sensor: {m['sensor']['height_m']:g} m, pitch "

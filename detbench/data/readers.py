@@ -36,7 +36,7 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM) -> np.ndarray
     """
     path = Path(path)
     if not path.is_file():
-        raise MissingFileError(f"points file not found; re-create the frame or remove its id from ImageSets",
+        raise MissingFileError("points file not found; re-create the frame or remove its id from ImageSets",
                                path=path)
     ext = path.suffix.lower()
     if ext == ".npy":

@@ -101,7 +101,7 @@ class DatasetWriter:
         self._stage: ExitStack | None = None  # holds the staged folder while one replaces `root`
 
     # ------------------------------------------------------------------ context manager
-    def __enter__(self) -> "DatasetWriter":
+    def __enter__(self) -> DatasetWriter:
         self.open()
         return self
 
@@ -118,7 +118,7 @@ class DatasetWriter:
             stage, self._stage = self._stage, None
             stage.__exit__(exc_type, exc, tb)
 
-    def open(self) -> "DatasetWriter":
+    def open(self) -> DatasetWriter:
         """Create the folders (called by `with`). A new or empty `root` is written in place; a dataset in
         it is replaced only with `overwrite` (FileExistsError otherwise, naming the folder and the fix),
         by a folder built beside it and swapped in by `close`."""

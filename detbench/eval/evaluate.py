@@ -28,7 +28,8 @@ import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, NamedTuple, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -285,7 +286,7 @@ class EvalConfig:
     max_frames: int  # 0 = all
 
     @classmethod
-    def from_dict(cls, d: Mapping | None, where: str = "eval") -> "EvalConfig":
+    def from_dict(cls, d: Mapping | None, where: str = "eval") -> EvalConfig:
         """Parse the section (missing keys: EVAL_DEFAULTS); ConfigError naming the key on a bad value."""
         v = section_with_defaults(d, EVAL_DEFAULTS, where)
         if v["split"] not in SPLIT_CHOICES:

@@ -16,7 +16,8 @@ import csv
 import io
 import math
 from pathlib import Path
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from detbench.data.frame import height_key
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_LABELS, RANGE_NAMES

@@ -19,7 +19,8 @@ The small `check_boxes` / `check_points` helpers validate shapes for every op in
 from __future__ import annotations
 
 import math
-from typing import Any, NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch

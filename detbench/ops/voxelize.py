@@ -18,7 +18,8 @@ input order; the first ``max_voxels`` voxels so ordered are kept.
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch

@@ -104,7 +104,7 @@ class LidarConfig:
     def num_rays(self) -> int:
         return self.channels * self.h_samples
 
-    def replace(self, **changes) -> "LidarConfig":
+    def replace(self, **changes) -> LidarConfig:
         """A copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
 

@@ -70,7 +70,7 @@ class Road:
         self.theta, self.x, self.y = theta, x, y
 
     @classmethod
-    def straight(cls, layout: RoadLayout, s_start: float = -1000.0, length: float = 10000.0) -> "Road":
+    def straight(cls, layout: RoadLayout, s_start: float = -1000.0, length: float = 10000.0) -> Road:
         """A straight road along +x from s_start (the world x equals s)."""
         n = int(math.ceil(length)) + 1
         road = cls(layout, s_start, np.zeros(n), 1.0)
@@ -80,7 +80,7 @@ class Road:
     @classmethod
     def random(cls, layout: RoadLayout, rng: np.random.Generator, s_start: float, length: float,
                curve_fraction: float, radius_m: tuple[float, float], curve_length_m: tuple[float, float],
-               straight_length_m: tuple[float, float], transition_m: float, step: float = 1.0) -> "Road":
+               straight_length_m: tuple[float, float], transition_m: float, step: float = 1.0) -> Road:
         """A road of `length` metres: straights and arcs, joined by linear-curvature transitions.
 
         Each section after a straight is an arc with probability `curve_fraction` (radius

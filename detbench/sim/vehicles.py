@@ -170,7 +170,7 @@ class VehicleCatalog:
     def sample_type(self, rng: np.random.Generator) -> str:
         return self.names[int(rng.choice(len(self.names), p=self.probs))]
 
-    def deck(self, rng: np.random.Generator) -> "TypeDeck | None":
+    def deck(self, rng: np.random.Generator) -> TypeDeck | None:
         """A stratified type deck for one scene (None when `mix_deck_size` is 0)."""
         return TypeDeck(self.names, self.probs, self.deck_size, rng) if self.deck_size > 0 else None
 

@@ -21,7 +21,7 @@ import itertools
 import math
 import numbers
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -109,7 +109,7 @@ class RuleBook:
         """Hashable description of the convolution geometry (for indice_key checks)."""
         return (self.kernel_size, self.stride, self.padding, self.dilation, self.subm)
 
-    def inverse(self) -> "RuleBook":
+    def inverse(self) -> RuleBook:
         """Rule book of the inverse convolution: output sites become input sites and back.
 
         The inverse of a strided convolution maps its output sites back onto exactly its

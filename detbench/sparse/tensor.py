@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 
@@ -72,7 +72,7 @@ class SparseConvTensor:
     def num_channels(self) -> int:
         return int(self.features.shape[1])
 
-    def replace_feature(self, features: torch.Tensor) -> "SparseConvTensor":
+    def replace_feature(self, features: torch.Tensor) -> SparseConvTensor:
         """New tensor with the same sites and rule-book cache and new (N, C') features."""
         if features.dim() != 2 or features.shape[0] != self.features.shape[0]:
             raise ValueError(f"replacement features must be ({self.features.shape[0]}, C), got {tuple(features.shape)}")
@@ -101,7 +101,7 @@ class SparseConvTensor:
         return out
 
     @classmethod
-    def from_dense(cls, x: torch.Tensor, channels_first: bool = True) -> "SparseConvTensor":
+    def from_dense(cls, x: torch.Tensor, channels_first: bool = True) -> SparseConvTensor:
         """Sparse tensor of the sites of ``x`` (B, C, *spatial) where any channel is non-zero."""
         if not channels_first:
             x = x.permute(0, x.dim() - 1, *range(1, x.dim() - 1))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.utils.figures import save_figure

@@ -6,7 +6,8 @@ and a child process that needs it imports it by the module name it is given (`re
 from __future__ import annotations
 
 import importlib
-from typing import Any, Mapping, Protocol
+from collections.abc import Mapping
+from typing import Any, Protocol
 
 
 class ModelRegistry(Protocol):

@@ -16,7 +16,7 @@ sampled scenes support; one that spans 0 is not.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -177,8 +177,8 @@ def detector_summary(reports: Sequence[dict], range_name: str = "large", level: 
 
 def detector_summary_lines(reports: Sequence[dict], range_name: str = "large", level: str = "all") -> list[str]:
     s = detector_summary(reports, range_name, level)
-    lines = [f"| Height | Finds the most LiDAR-detected vehicles | Recall (95 % interval) | AP@R40 (95 % interval) "
-             f"| Lead in recall over the next model (paired) | Every model: recall / AP@R40 |",
+    lines = ["| Height | Finds the most LiDAR-detected vehicles | Recall (95 % interval) | AP@R40 (95 % interval) "
+             "| Lead in recall over the next model (paired) | Every model: recall / AP@R40 |",
              "|---|---|---|---|---|---|"]
     for h, c in s.items():
         if not c["ranking"]:

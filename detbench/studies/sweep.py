@@ -20,7 +20,7 @@ instant at every height (`add(frames, counts)`, the same traffic at every height
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -26,7 +26,7 @@ import math
 import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 from detbench.data.regions import RANGE_NAMES, range_extent_label
 from detbench.utils.figures import save_figure

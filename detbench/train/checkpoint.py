@@ -25,7 +25,8 @@ import re
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import nn
@@ -61,7 +62,7 @@ class TrainState:
         return {k: int(v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> "TrainState":
+    def from_dict(cls, d: Mapping) -> TrainState:
         return cls(**{k: int(d[k]) for k in ("epoch", "step_in_epoch", "global_step", "seed")})
 
 

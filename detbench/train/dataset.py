@@ -17,7 +17,7 @@ from __future__ import annotations
 import os
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from torch.utils.data import Dataset
@@ -75,7 +75,7 @@ class TrainingSet(Dataset):
     @classmethod
     def from_dataset(cls, root: str | os.PathLike, height: float, point_cloud_range: Sequence[float], *,
                      augment: AugmentConfig | None = None, seed: int = 0, split: str = "train",
-                     database_dir: str | os.PathLike | None = None, progress: bool = True) -> "TrainingSet":
+                     database_dir: str | os.PathLike | None = None, progress: bool = True) -> TrainingSet:
         """`Height3Dataset(root, height, split)` with the ground-truth database built (once) if sampling is on.
 
         The database comes from the *train* split only; it lives in `database_dir`, else

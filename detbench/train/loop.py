@@ -39,7 +39,8 @@ import time
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from typing import Any
 
 import torch
 from torch import nn
@@ -100,7 +101,7 @@ class TrainConfig:
     max_nonfinite_steps: int  # skipped non-finite steps in a row that stop the run
 
     @classmethod
-    def from_dict(cls, d: Mapping | None, where: str = "train") -> "TrainConfig":
+    def from_dict(cls, d: Mapping | None, where: str = "train") -> TrainConfig:
         """Parse the `train` section (missing keys: TRAIN_DEFAULTS); ConfigError on unknown keys or bad values."""
         v = section_with_defaults(d, TRAIN_DEFAULTS, where)
         cfg = cls(**{f.name: _as_field_type(f.type, v[f.name], f"{where}.{f.name}") for f in fields(cls)})
@@ -190,7 +191,7 @@ class _StopRequest:
             tqdm.write(f"\n{signal.Signals(signum).name} received: finishing this step and saving a checkpoint "
                        f"(press Ctrl-C again to abort without saving)")
 
-    def __enter__(self) -> "_StopRequest":
+    def __enter__(self) -> _StopRequest:
         if threading.current_thread() is threading.main_thread():
             for s in (signal.SIGINT, signal.SIGTERM):
                 self._old[s] = signal.signal(s, self._handler)

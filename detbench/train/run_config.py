@@ -18,7 +18,7 @@ config leaves them out.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 from detbench.config import (
     CONFIG_DIR, ConfigError, apply_overrides, deep_merge, get, load_config, model_name_of, validate,

@@ -8,7 +8,8 @@ import statistics
 import subprocess
 import sys
 import time
-from typing import Callable, TypeVar
+from collections.abc import Callable
+from typing import TypeVar
 
 T = TypeVar("T")
 
@@ -69,7 +70,7 @@ class BusyLoad:
         self.procs: list[subprocess.Popen] = []
         self._info: dict = {"processes": self.processes}
 
-    def __enter__(self) -> "BusyLoad":
+    def __enter__(self) -> BusyLoad:
         self._info["load_average_1min_before"] = _load_average()
         try:
             for _ in range(self.processes):

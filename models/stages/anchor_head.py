@@ -13,7 +13,8 @@ Pieces, each usable alone (torchvision-style):
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn as nn

@@ -8,7 +8,7 @@ and `sum(num_upsample_filters)` channels. Every convolution is followed by Batch
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn as nn

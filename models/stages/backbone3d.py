@@ -16,7 +16,7 @@ ReLU, as in the reference implementation. Submanifold layers of one stage share 
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch.nn as nn
 

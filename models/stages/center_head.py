@@ -26,7 +26,8 @@ One class (Vehicle, label 0): the Batch carries no class labels.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn as nn

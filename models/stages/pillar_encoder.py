@@ -18,7 +18,7 @@ sites (batch, y, x) int32 on the grid (Y, X), features (V, C) with C = the last 
 """
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn as nn

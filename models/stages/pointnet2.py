@@ -14,7 +14,8 @@ stage. Every level keeps a fixed number of points per frame, so counts stay unif
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn as nn

@@ -18,7 +18,8 @@ detectors' reference code. The grid (Y, X) must divide by 16 (checked by the mod
 """
 from __future__ import annotations
 
-from typing import NamedTuple, Sequence
+from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn as nn
