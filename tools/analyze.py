@@ -20,12 +20,12 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown  # noqa: E402
-from detbench.studies.ability_run import AbilityOptions, run_ability, summary_lines  # noqa: E402
-from detbench.utils.cli import run_main  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown
+from detbench.studies.ability_run import AbilityOptions, run_ability, summary_lines
+from detbench.utils.cli import run_main
+from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

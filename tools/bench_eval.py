@@ -20,10 +20,10 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before numba starts)
-from detbench.utils.cli import check_out_dir, require, run_main  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before numba starts)
+from detbench.utils.cli import check_out_dir, require, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -24,16 +24,16 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-import torch  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
+import torch
 
-from detbench.benchmarks.sparse import SparseBenchSettings, run_sparse_bench, sparse_bench_markdown  # noqa: E402
-from detbench.ops.voxelize import voxel_grid_size  # noqa: E402
-from detbench.sim.scans import load_scans  # noqa: E402
-from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.benchmarks.sparse import SparseBenchSettings, run_sparse_bench, sparse_bench_markdown
+from detbench.ops.voxelize import voxel_grid_size
+from detbench.sim.scans import load_scans
+from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
+from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
 # ----------------------------------------------------------------------------- main

@@ -30,16 +30,16 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-import models  # noqa: E402
-from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
+import models
+from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,
                                             peak_rss_mib)
-from detbench.train.run_config import preset_names  # noqa: E402
-from detbench.utils.bench import idle_and_loaded  # noqa: E402
-from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json  # noqa: E402
+from detbench.train.run_config import preset_names
+from detbench.utils.bench import idle_and_loaded
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main
+from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -40,11 +40,11 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.studies.calibration_check import CalibrationOptions, check_calibration  # noqa: E402
-from detbench.utils.cli import UserError  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.studies.calibration_check import CalibrationOptions, check_calibration
+from detbench.utils.cli import UserError
+from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

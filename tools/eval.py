@@ -24,11 +24,11 @@ import time
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.config import shipped_default  # noqa: E402
-from detbench.eval.report import summary_lines  # noqa: E402
-from detbench.eval.run import (  # noqa: E402
+from detbench.config import shipped_default
+from detbench.eval.report import summary_lines
+from detbench.eval.run import (
     CheckpointRun,
     EvalSettings,
     combine_report_files,
@@ -39,7 +39,7 @@ from detbench.eval.run import (  # noqa: E402
     write_predictions,
     write_report,
 )
-from detbench.utils.cli import UserError, check_out_dir, run_main, torch_device  # noqa: E402
+from detbench.utils.cli import UserError, check_out_dir, run_main, torch_device
 
 SPLITS = ("train", "test", "all")
 

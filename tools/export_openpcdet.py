@@ -16,14 +16,14 @@ import time
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.data.errors import DatasetError  # noqa: E402
-from detbench.data.openpcdet import (  # noqa: E402
+from detbench.data.errors import DatasetError
+from detbench.data.openpcdet import (
     CLASS_MAP_PRESETS, DEFAULT_EXPORT_CLASS_MAP, EXPORT_MANIFEST, EXPORT_MARKDOWN, class_count_lines,
     export_openpcdet, parse_class_map,
 )
-from detbench.utils.cli import UserError, run_main  # noqa: E402
+from detbench.utils.cli import UserError, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:

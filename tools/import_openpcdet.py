@@ -13,10 +13,10 @@ from __future__ import annotations
 import sys
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.data.convert import main  # noqa: E402
-from detbench.utils.cli import run_main  # noqa: E402
+from detbench.data.convert import main
+from detbench.utils.cli import run_main
 
 if __name__ == "__main__":
     sys.exit(run_main(main))

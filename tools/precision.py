@@ -24,14 +24,14 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-from detbench.config import shipped_default  # noqa: E402
-from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
+from detbench.config import shipped_default
+from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,
                                       checkpoint_precision_report, precision_frames, precision_summary_lines)
-from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.cli import UserError, run_main
+from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -20,11 +20,11 @@ import time
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.config import ConfigError, shipped_default  # noqa: E402
-from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import DiskFullError, recover_staged  # noqa: E402
+from detbench.config import ConfigError, shipped_default
+from detbench.utils.cli import UserError, run_main
+from detbench.utils.io import DiskFullError, recover_staged
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -28,13 +28,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-import models  # noqa: E402
-from detbench.studies.study import StudyOptions, run_study  # noqa: E402
-from detbench.train.run_config import preset_names  # noqa: E402
-from detbench.utils.cli import run_main  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
+import models
+from detbench.studies.study import StudyOptions, run_study
+from detbench.train.run_config import preset_names
+from detbench.utils.cli import run_main
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -28,14 +28,14 @@ import sys
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench import runtime  # noqa: E402,F401  (first detbench import: thread-runtime defaults before numba starts)
-from detbench.studies.sweep_sim import (  # noqa: E402
+from detbench import runtime  # noqa: F401  (first detbench import: thread-runtime defaults before numba starts)
+from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
-from detbench.utils.cli import run_main  # noqa: E402
-from detbench.utils.io import atomic_write_json, atomic_write_text  # noqa: E402
+from detbench.utils.cli import run_main
+from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

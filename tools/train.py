@@ -23,19 +23,19 @@ import time
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
-    import _checkout  # noqa: F401
+    import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-import detbench  # noqa: E402,F401  (first: sets the thread runtimes' defaults before torch starts)
-import torch  # noqa: E402
+import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
+import torch
 
-import models  # noqa: E402
-from detbench.config import ConfigError  # noqa: E402
-from detbench.train.checkpoint import CheckpointError, init_from_checkpoint  # noqa: E402
-from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,  # noqa: E402
+import models
+from detbench.config import ConfigError
+from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
+from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,
                                 option_overrides, write_summary)
-from detbench.train.run_config import load_run_config, preset_names  # noqa: E402
-from detbench.utils.cli import UserError, run_main  # noqa: E402
-from detbench.utils.io import DiskFullError  # noqa: E402
+from detbench.train.run_config import load_run_config, preset_names
+from detbench.utils.cli import UserError, run_main
+from detbench.utils.io import DiskFullError
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -214,7 +214,7 @@ def run_sparse_bench(scans: list[np.ndarray], source: str, s: SparseBenchSetting
 
         # spconv (optional; never installed by this benchmark).
         try:
-            import spconv.pytorch as spconv  # noqa: F401
+            import spconv.pytorch as spconv
 
             meta["spconv"] = _bench_spconv(spconv, feats, coords, spatial, n_scans, s, sync, n_sites, rb_s, add)
         except ImportError:

@@ -45,7 +45,7 @@ from detbench.data.layout import (
     DATASET_FOLDER, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo, SceneRule,
     assign_splits, check_frame_id, imageset_path, label_path, points_path,
 )
-from detbench.data.openpcdet import (  # noqa: F401  (road_surface_z: re-exported, it used to live here)
+from detbench.data.openpcdet import (
     DEFAULT_IMPORT_CLASS_MAP, ClassMap, class_count_lines, count_classes, frame_tolerance, guess_points_frame,
     label_bottom_z, level_road_z, parse_class_map, road_surface_z,
 )
