@@ -90,7 +90,8 @@ def resolve_config_path(name: str | Path, relative_to: Path | None = None) -> Pa
             return c.resolve()
     known = sorted(x.stem for x in CONFIG_DIR.glob("*.yaml")) if CONFIG_DIR.is_dir() else []
     hint = f"; configs shipped: {', '.join(known)}" if known else ""
-    raise ConfigError(f"config {str(name)!r} not found (looked in {', '.join(str(c.parent) for c in candidates[:3])}){hint}")
+    raise ConfigError(f"config {str(name)!r} not found "
+                      f"(looked in {', '.join(str(c.parent) for c in candidates[:3])}){hint}")
 
 
 def load_config(path: str | Path, _seen: tuple[Path, ...] = ()) -> dict:

@@ -53,8 +53,8 @@ class PillarNet(nn.Module):
         self.grid.check_divisible(SparseResNet2d.stride16, f"PillarNet ({CONFIG_FILE}: model.voxel_size / "
                                                            f"point_cloud_range)")
         self.vfe = DynamicPillarEncoder(self.grid, _key(enc, "pillar_channels", "model.encoder"))
-        self.backbone = SparseResNet2d(self.vfe.out_channels, self.vfe.spatial_shape, _key(enc, "channels", "model.encoder"),
-                                       _key(enc, "blocks", "model.encoder"))
+        self.backbone = SparseResNet2d(self.vfe.out_channels, self.vfe.spatial_shape,
+                                       _key(enc, "channels", "model.encoder"), _key(enc, "blocks", "model.encoder"))
         self.neck = SpatialSemanticNeck(self.backbone.channels8, self.backbone.channels16,
                                         **{k: _key(neck, k, "model.neck") for k in
                                            ("semantic_channels", "semantic_blocks", "up_channels", "out_channels",

@@ -60,7 +60,8 @@ def main(argv=None) -> int:
     ap.add_argument("--range", type=float, nargs=6, default=D.range,
                     metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                     help="point-cloud range in metres, ego frame (default: %(default)s)")
-    ap.add_argument("--max-points", type=int, default=D.max_points, help="hard voxelization: points per voxel (default %(default)s)")
+    ap.add_argument("--max-points", type=int, default=D.max_points,
+                    help="hard voxelization: points per voxel (default %(default)s)")
     ap.add_argument("--dense-crop-x", type=float, default=D.dense_crop_x,
                     help="x extent in metres of the crop (from XMIN) for the dense conv3d comparison; 0 skips it "
                          "(default %(default)s)")

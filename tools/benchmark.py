@@ -51,7 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--study", default=None, metavar="DIR",
                     help="a tools/study.py output: use its trained checkpoints and join their reports")
     ap.add_argument("--height", type=float, default=1.8, help="LiDAR height of the frames (and of --study runs)")
-    ap.add_argument("--data", default=None, metavar="ROOT", help="dataset for the frames (default: simulated smoke set)")
+    ap.add_argument("--data", default=None, metavar="ROOT",
+                    help="dataset for the frames (default: simulated smoke set)")
     ap.add_argument("--frames", type=int, default=10, help="timed frames (default 10)")
     ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
@@ -141,7 +142,7 @@ def main(argv=None) -> int:
             if args.train_steps > 0:
                 cmd += ["--train-steps", str(args.train_steps), "--train-batch", str(args.train_batch)]
 
-            def run_worker():
+            def run_worker(cmd=cmd, name=name, dev=dev):
                 proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
                 if proc.returncode != 0:
                     msg = f"benchmark of {name} on {dev} failed:\n{proc.stderr[-3000:]}"

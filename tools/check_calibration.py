@@ -70,7 +70,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="allowed |second-in-lane LDR - paper| (default 0.07)")
     ap.add_argument("--pair-tolerance", type=float, default=0.03,
                     help="allowed |LDR(0.5 m) - LDR(1.0 m)| in each cell (default 0.03)")
-    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default paper, calibration v2; "
+    ap.add_argument("--preset", default="paper",
+                    help="simulator preset from configs/sim.yaml (default paper, calibration v2; "
                          "v1 is calibration v1); the report names the preset's calibration")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable")

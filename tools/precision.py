@@ -7,7 +7,8 @@ per precision: AP@R40 and recall per range (3D IoU 0.7, level All) and their dif
 float32, the largest difference between the boxes the two runs give for the same vehicle
 (corner displacement, centre, size, heading, score), detections found by only one run, the
 NaN / inf values in the raw outputs, and seconds per frame. The computation is
-`detbench.train.precision.compare_precision` (docs/results.md, "Numerical stability and inference at reduced precision").
+`detbench.train.precision.compare_precision` (docs/results.md, "Numerical stability and
+inference at reduced precision").
 
 Examples:
   python tools/precision.py --ckpt runs/second_h1.8/checkpoints/epoch_020.pt
@@ -36,11 +37,15 @@ from detbench.utils.io import atomic_write_json, atomic_write_text
 
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="tools/precision.py", description=__doc__.split("\n\n")[0],
-                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--ckpt", type=Path, required=True, help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt)")
+                                 epilog=__doc__.split("\n\n", 1)[1],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ckpt", type=Path, required=True,
+                    help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt)")
     ap.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
-    ap.add_argument("--height", type=float, default=None, help="LiDAR height of the frames, metres (default: the training height)")
-    ap.add_argument("--split", default="test", choices=("train", "test", "all"), help="split whose frames are used (default test)")
+    ap.add_argument("--height", type=float, default=None,
+                    help="LiDAR height of the frames, metres (default: the training height)")
+    ap.add_argument("--split", default="test", choices=("train", "test", "all"),
+                    help="split whose frames are used (default test)")
     ap.add_argument("--frames", type=int, default=40, help="use the first N frames of the split; 0 = all (default 40)")
     ap.add_argument("--precisions", nargs="+", default=None, choices=list(PRECISIONS),
                     help="precisions to compare (float32 is always the reference; default: bfloat16 on cpu, "

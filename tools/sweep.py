@@ -42,7 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
     doc = __doc__.split("\n\n")
     ap = argparse.ArgumentParser(description=doc[0], epilog="\n\n".join(doc[1:]),
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=8000, help="instants to simulate (each at every height; default 8000)")
+    ap.add_argument("--frames", type=int, default=8000,
+                    help="instants to simulate (each at every height; default 8000)")
     ap.add_argument("--frames-per-scene", type=int, default=None,
                     help="frames per scene at 2 Hz (default: the simulator preset's, 200 as in the paper); scenes are "
                          "the units of the bootstrap")

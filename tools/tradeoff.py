@@ -111,7 +111,8 @@ def main(argv=None) -> int:
     per_model = {n: sum(p["model"] == n for p in result["points"]) for n in names}
     print(f"tradeoff done in {(time.perf_counter() - sw.t0) / 60:.1f} min: points per model "
           + ", ".join(f"{k} {v}" for k, v in per_model.items())
-          + (f"; {len(skipped)} task(s) skipped" if skipped else "") + (f"; {len(sw.failed)} failed" if sw.failed else ""))
+          + (f"; {len(skipped)} task(s) skipped" if skipped else "")
+          + (f"; {len(sw.failed)} failed" if sw.failed else ""))
     print(f"wrote {sw.out / 'tradeoff.json'}, {sw.out / 'tradeoff.md'}" + (", tradeoff.png" if result["points"] else "")
           + (", learning_curve.png" if result["curves"] else ""))
     return 0

@@ -122,7 +122,10 @@ def benchmark_markdown(meta: dict, results: list[dict]) -> str:
                str(int(lat["points"]))]
         if has_acc:
             acc = r.get("accuracy") or {}
-            fmt = (lambda v: "-" if v is None else f"{v:.3f}")
+
+            def fmt(v):
+                return "-" if v is None else f"{v:.3f}"
+
             row += [fmt(acc.get(k, {}).get("ap_r40")) for k in ("small", "moderate", "large")]
             row += [fmt(acc.get("large", {}).get("recall"))]
         lines.append("| " + " | ".join(row) + " |")
@@ -154,7 +157,10 @@ def idle_loaded_markdown(results: list[dict]) -> list[str]:
         lines += [f"Loaded: the same measurement beside {load_line(results[0]['loaded']['load'])}. "
                   "Training step: forward, loss, backward and AdamW step, median.", ""]
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    fmt = (lambda v: "-" if v is None else f"{v:.1f}")
+
+    def fmt(v):
+        return "-" if v is None else f"{v:.1f}"
+
     for r in results:
         lo = r.get("loaded", {})
         row = [r["model"], r["device"], fmt(r["latency_ms"]["total"])]

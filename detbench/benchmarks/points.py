@@ -78,7 +78,9 @@ def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSetting
         return row
 
     # Farthest point sampling: the figure with a target.
-    fps = lambda: farthest_point_sample(xyz, s.samples, counts)  # noqa: E731
+    def fps():
+        return farthest_point_sample(xyz, s.samples, counts)
+
     row = add(f"farthest_point_sample {s.points} -> {s.samples} (numba, CPU)", timed(fps, s.repeats, lambda: None))
     results["fps_ms"] = row["ms"]
     results["fps_ms_per_frame"] = round(row["ms"] / frames, 3)
@@ -98,11 +100,12 @@ def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSetting
         idx = farthest_point_sample(cur, npoint, cur_counts)
         centres = cur[idx]
         add(f"  SA level: FPS {cur_counts[0]} -> {npoint}",
-            timed(lambda: farthest_point_sample(cur, npoint, cur_counts), s.repeats, lambda: None))
+            timed(lambda cur=cur, npoint=npoint, cur_counts=cur_counts: farthest_point_sample(cur, npoint, cur_counts),
+                  s.repeats, lambda: None))
         for r, ns in zip(radii, nsamples):
             cc = [npoint] * frames
 
-            def step(r=r, ns=ns, cc=cc):
+            def step(r=r, ns=ns, cc=cc, cur=cur, centres=centres, cur_counts=cur_counts):
                 bq = ball_query(cur, centres, r, ns, cur_counts, cc)
                 return group_neighbours(cur, centres, bq.index), bq
 
@@ -119,14 +122,18 @@ def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSetting
         src, tgt = level_xyz[lvl], level_xyz[lvl - 1]
         feats = torch.randn(src.shape[0], s.channels)
         add(f"  FP level: three_nn_interpolate {level_counts[lvl][0]} -> {level_counts[lvl - 1][0]}, C={s.channels}",
-            timed(lambda: three_nn_interpolate(tgt, src, feats, level_counts[lvl - 1], level_counts[lvl]),
+            timed(lambda tgt=tgt, src=src, feats=feats, lvl=lvl:
+                  three_nn_interpolate(tgt, src, feats, level_counts[lvl - 1], level_counts[lvl]),
                   s.repeats, lambda: None))
 
     # RoI point pooling.
     if s.rois:
         rois = torch.from_numpy(np.concatenate([car_rois(rng, s.rois) for _ in range(frames)]))
         feats = torch.randn(xyz.shape[0], s.channels)
-        pool = lambda: roi_point_pool(xyz, rois, 512, 1.0, feats, counts, [s.rois] * frames)  # noqa: E731
+
+        def pool():
+            return roi_point_pool(xyz, rois, 512, 1.0, feats, counts, [s.rois] * frames)
+
         out = pool()
         add(f"roi_point_pool {s.rois} RoIs x 512 points, C={s.channels} (numba, CPU)",
             timed(pool, s.repeats, lambda: None), empty_rois=int(out.empty.sum()),

@@ -41,7 +41,7 @@ def _measure(sim_factory, lidars, frames, fps, with_points, progress):
     wall = time.perf_counter() - t0
     stages = {k: sim.timings.get(k, 0.0) for k, _ in STAGES}
     other = max(wall - sum(stages.values()), 0.0)
-    all_rays = frames * sum(l.num_rays for l in lidars)
+    all_rays = frames * sum(lidar.num_rays for lidar in lidars)
     return {
         "with_points": with_points,
         "frames": frames,
@@ -108,7 +108,7 @@ def run_sim_bench(cfg: dict, lidars: list[LidarConfig], *, frames: int, frames_p
         "frames": frames, "frames_per_scene": fps,
         "heights": heights if heights is not None else [lidar.height for lidar in lidars],
         "preset": preset, "overrides": list(overrides), "seed": seed,
-        "lidars": [l.to_dict() for l in lidars],
+        "lidars": [lidar.to_dict() for lidar in lidars],
         "warmup_s (import + numba compile or cache load + 2 frames)": round(warmup + (t0 - started), 3),
         "machine": {"cpus": os.cpu_count(), "numba_threads": numba.get_num_threads(),
                     "threading_layer": numba.threading_layer(), "python": platform.python_version(),

@@ -97,7 +97,7 @@ def run_sparse_bench(scans: list[np.ndarray], source: str, s: SparseBenchSetting
                            for h in hv]).float().to(device)
         n_sites = int(coords.shape[0])
         meta["active_sites"] = n_sites
-        x4 = SparseConvTensor(feats, coords, spatial, n_scans)
+        SparseConvTensor(feats, coords, spatial, n_scans)  # checks the sites once; the timed calls skip the check
 
         # Rule books.
         rb_s = build_subm_rulebook(coords, spatial, 3, batch_size=n_scans)
@@ -114,16 +114,17 @@ def run_sparse_bench(scans: list[np.ndarray], source: str, s: SparseBenchSetting
             for c in (16, 32):
                 f = torch.randn(n_sites, c, device=device)
                 w = torch.randn(c, c, 3, 3, 3, device=device) * 0.05
-                t = timed(lambda: sparse_conv(f, w, rb_s), s.repeats, sync)
+                t = timed(lambda f=f, w=w: sparse_conv(f, w, rb_s), s.repeats, sync)
                 add(f"SubMConv3d {c}->{c} k3 (rule book cached)", t, sites=n_sites, pairs=rb_s.num_pairs,
                     gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
                 layer = SubMConv3d(c, c, 3, bias=False).to(device)
-                t = timed(lambda: layer(SparseConvTensor(f, coords, spatial, n_scans, check=False)), s.repeats, sync)
+                t = timed(lambda layer=layer, f=f: layer(SparseConvTensor(f, coords, spatial, n_scans, check=False)),
+                          s.repeats, sync)
                 add(f"SubMConv3d {c}->{c} k3 (incl. rule book build)", t, sites=n_sites,
                     gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
                 steps.update()
                 table = rb_s.neighbour_table()
-                t = timed(lambda: implicit_gemm(f, w, table), s.repeats, sync)
+                t = timed(lambda f=f, w=w, table=table: implicit_gemm(f, w, table), s.repeats, sync)
                 add(f"  alternative: implicit GEMM {c}->{c} (not used)", t, sites=n_sites,
                     gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
                 steps.update()
@@ -184,7 +185,6 @@ def run_sparse_bench(scans: list[np.ndarray], source: str, s: SparseBenchSetting
         steps.update()
 
         # Dense conv3d on a crop x in [XMIN, XMIN + crop) against the sparse conv on the crop's sites.
-        dense_row = None
         if s.dense_crop_x > 0:
             nx = min(spatial[2], int(round(s.dense_crop_x / s.voxel_size[0])))
             crop_shape = [spatial[0], spatial[1], nx]
@@ -203,10 +203,10 @@ def run_sparse_bench(scans: list[np.ndarray], source: str, s: SparseBenchSetting
                     td = timed(lambda: F.conv3d(dense_in, w, None, 1, 1), max(1, s.repeats // 2), sync)
                     ts = timed(lambda: sparse_conv(f, w, rb_crop), s.repeats, sync)
                 dense_macs = n_scans * math.prod(crop_shape) * 27 * 16 * 16
-                dense_row = add(f"dense conv3d 16->16 k3 on crop {crop_shape} (x < {nx * s.voxel_size[0]:.0f} m)", td,
-                                grid_sites=n_scans * math.prod(crop_shape),
-                                gflops_total=2.0 * dense_macs / (td["ms"] * 1e-3) / 1e9,
-                                gflops=gflops(rb_crop.num_pairs, 16, 16, td["ms"]))
+                add(f"dense conv3d 16->16 k3 on crop {crop_shape} (x < {nx * s.voxel_size[0]:.0f} m)", td,
+                    grid_sites=n_scans * math.prod(crop_shape),
+                    gflops_total=2.0 * dense_macs / (td["ms"] * 1e-3) / 1e9,
+                    gflops=gflops(rb_crop.num_pairs, 16, 16, td["ms"]))
                 add(f"  sparse SubMConv3d 16->16 on the same crop ({int(cc.shape[0])} sites)", ts,
                     sites=int(cc.shape[0]), pairs=rb_crop.num_pairs, gflops=gflops(rb_crop.num_pairs, 16, 16, ts["ms"]))
                 del dense_in
@@ -253,11 +253,12 @@ def _bench_spconv(spconv, feats, coords, spatial, batch_size: int, s: SparseBenc
             layer = spconv.SubMConv3d(c, c, 3, bias=False, indice_key="s").to(feats.device)
             x = spconv.SparseConvTensor(f, coords, spatial, batch_size)
             layer(x)  # builds and caches the pairs under "s"
-            t = timed(lambda: layer(x), s.repeats, sync)
+            t = timed(lambda layer=layer, x=x: layer(x), s.repeats, sync)
             row = add(f"spconv SubMConv3d {c}->{c} k3 (pairs cached)", t, sites=n_sites,
                       gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
             out[f"subm{c}_ms"] = row["ms"]
-            t = timed(lambda: layer(spconv.SparseConvTensor(f, coords, spatial, batch_size)), s.repeats, sync)
+            t = timed(lambda layer=layer, f=f: layer(spconv.SparseConvTensor(f, coords, spatial, batch_size)),
+                      s.repeats, sync)
             row = add(f"spconv SubMConv3d {c}->{c} k3 (incl. pair build)", t, sites=n_sites,
                       gflops=gflops(rb_s.num_pairs, c, c, t["ms"]))
             out[f"subm{c}_incl_pairs_ms"] = row["ms"]

@@ -119,7 +119,8 @@ class Frame:
         where = where or f"frame {self.frame_id}"
         p, b = self.points, self.boxes
         if not isinstance(p, np.ndarray) or p.ndim != 2 or p.shape[1] != POINT_DIM:
-            raise ValueError(f"{where}: points must be an (N, {POINT_DIM}) array, got shape {getattr(p, 'shape', None)}")
+            raise ValueError(f"{where}: points must be an (N, {POINT_DIM}) array, "
+                             f"got shape {getattr(p, 'shape', None)}")
         if p.dtype != np.float32:
             raise ValueError(f"{where}: points must be float32, got {p.dtype}")
         if not np.isfinite(p).all():

@@ -245,7 +245,8 @@ def load_gt_database(out_dir: str | os.PathLike) -> GTDatabase:
     if not isinstance(index, dict) or index.get("format") != DB_FORMAT:
         raise ValueError(f"{index_path}: not a detbench ground-truth database index (format != {DB_FORMAT!r}); {fix}")
     if index.get("version") != DB_VERSION:
-        raise ValueError(f"{index_path}: database version {index.get('version')!r}, this code reads {DB_VERSION}; {fix}")
+        raise ValueError(f"{index_path}: database version {index.get('version')!r}, "
+                         f"this code reads {DB_VERSION}; {fix}")
     arrays_path = out_dir / ARRAYS_FILE
     try:
         with np.load(arrays_path, allow_pickle=False) as z:
@@ -259,7 +260,8 @@ def load_gt_database(out_dir: str | os.PathLike) -> GTDatabase:
     if (len(records) != k or arrays["offsets"].shape != (k + 1,) or arrays["num_points"].shape != (k,)
             or arrays["points"].ndim != 2 or arrays["points"].shape[1] != 4
             or int(arrays["offsets"][-1]) != arrays["points"].shape[0]):
-        raise ValueError(f"{out_dir}: {INDEX_FILE} and {ARRAYS_FILE} disagree on the number of objects or points; {fix}")
+        raise ValueError(f"{out_dir}: {INDEX_FILE} and {ARRAYS_FILE} disagree on the number of objects "
+                         f"or points; {fix}")
     info = {key: v for key, v in index.items() if key != "objects"}
     return GTDatabase(arrays["points"].astype(np.float32, copy=False), arrays["offsets"].astype(np.int64),
                       arrays["boxes"].astype(np.float32, copy=False), arrays["num_points"].astype(np.int64),

@@ -275,7 +275,8 @@ def openpcdet_folder_hint(root: str | os.PathLike) -> str:
     root = Path(root)
     msg = (f"{root} is an OpenPCDet custom folder (points/<id>.npy and labels/<id>.txt of one LiDAR), not a "
            f"detbench dataset; convert it first: python -m detbench.data.convert --src HEIGHT={root} "
-           f"--out {root.resolve().parent / (root.resolve().name + '_detbench')} (HEIGHT: that LiDAR's mounting height in metres, e.g. 1.8; "
+           f"--out {root.resolve().parent / (root.resolve().name + '_detbench')} "
+           f"(HEIGHT: that LiDAR's mounting height in metres, e.g. 1.8; "
            f"one --src per height), then give the tool the --out folder")
     manifest = root / "detbench_export.json"
     if manifest.is_file():

@@ -469,17 +469,19 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
         atomic_write_text(dst / EXPORT_SCRIPT, _create_infos_script(out, commands))
         notes = []
         if frame == "sensor" and any(p for (_, p) in sensors_used):
-            notes.append(f"the sensor is pitched {s_p:g} deg: labels are upright boxes about the exact centre in its frame "
-                         f"(their tilt by the pitch is dropped), and the road rises with x in this frame, beyond the "
-                         f"6 m z range far ahead; --frame ground avoids both")
+            notes.append(f"the sensor is pitched {s_p:g} deg: labels are upright boxes about the exact centre "
+                         f"in its frame (their tilt by the pitch is dropped), and the road rises with x in this frame, "
+                         f"beyond the 6 m z range far ahead; --frame ground avoids both")
         n_empty = sum(len(v) for v in empty.values())
         if n_empty:
-            notes.append(f"{n_empty} frame(s) without boxes after the class map were left out (OpenPCDet's info generation "
-                         f"cannot read an empty label file); OpenPCDet neither trains nor evaluates on them, and its "
-                         f"predictions will lack them (detbench counts no false positives there)")
+            notes.append(f"{n_empty} frame(s) without boxes after the class map were left out "
+                         f"(OpenPCDet's info generation cannot read an empty label file); OpenPCDet neither trains "
+                         f"nor evaluates on them, and its predictions will lack them (detbench counts no false "
+                         f"positives there)")
         for split, name in OPENPCDET_SPLITS.items():
             if not written[split]:
-                notes.append(f"ImageSets/{name}.txt lists no frames: the detbench {split} split has no frame with boxes")
+                notes.append(f"ImageSets/{name}.txt lists no frames: "
+                             f"the detbench {split} split has no frame with boxes")
         manifest = {
             "format": "openpcdet-custom",
             "written_by": "detbench tools/export_openpcdet.py",
@@ -489,7 +491,8 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
                                   "the LiDAR's own frame (origin at the sensor; m): ground z = sensor z + height "
                                   "(pitch undone)"),
             "sensor": {"height_m": s_h, "pitch_deg": s_p,
-                       "per_frame": [{"height_m": h, "pitch_deg": p, "frames": n} for (h, p), n in sensors_used.items()]},
+                       "per_frame": [{"height_m": h, "pitch_deg": p, "frames": n}
+                                     for (h, p), n in sensors_used.items()]},
             "class_map": cmap.spec,
             "classes": out_classes,
             "class_counts": counts,

@@ -119,7 +119,7 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
 
         iterator = tqdm(ids, desc="validate", unit="frame")
     for fid in iterator:
-        for k, ds in datasets.items():
+        for ds in datasets.values():
             e = frame_error(ds, fid)
             if e is None:
                 continue

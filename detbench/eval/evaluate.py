@@ -755,7 +755,8 @@ def format_prediction_lines(boxes: np.ndarray, scores: np.ndarray, class_name: s
 
 
 __all__ = [
-    "EvalConfig", "EVAL_DEFAULTS", "EvalFrame", "Predictions", "evaluate", "evaluate_predictions", "eval_frame_from_frame",
+    "EvalConfig", "EVAL_DEFAULTS", "EvalFrame", "Predictions", "evaluate", "evaluate_predictions",
+    "eval_frame_from_frame",
     "ap_r40", "ap_r40_ranked", "extra_key", "parse_prediction_file", "read_prediction_dir",
     "format_prediction_lines", "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS",
     "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",

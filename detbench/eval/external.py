@@ -224,9 +224,9 @@ def _layout_help(fields: list[str]) -> str:
 def kitti_camera_to_lidar(values: np.ndarray) -> np.ndarray:
     """(M, 7) h w l x y z rotation_y of OpenPCDet's calibration-free KITTI layout -> LiDAR boxes (M, 7)."""
     v = np.asarray(values, dtype=np.float64).reshape(-1, 7)
-    h, w, l, cx, cy, cz, ry = (v[:, i] for i in range(7))
+    h, w, length, cx, cy, cz, ry = (v[:, i] for i in range(7))
     heading = wrap_heading(-ry - np.pi / 2)
-    return np.stack([cz, -cx, -cy + h / 2, l, w, h, heading], axis=1)
+    return np.stack([cz, -cx, -cy + h / 2, length, w, h, heading], axis=1)
 
 
 def parse_prediction_text(path: str | Path) -> tuple[ExternalPredictions, str | None]:

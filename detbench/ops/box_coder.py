@@ -55,7 +55,8 @@ def check_boxes(boxes: Any, func: str, name: str = "boxes", min_cols: int = 7):
     """
     if not is_torch(boxes):
         boxes = np.asarray(boxes)
-        if boxes.dtype == object or not (np.issubdtype(boxes.dtype, np.floating) or np.issubdtype(boxes.dtype, np.integer)):
+        if boxes.dtype == object or not (np.issubdtype(boxes.dtype, np.floating)
+                                         or np.issubdtype(boxes.dtype, np.integer)):
             raise ValueError(
                 f"{func}: `{name}` must be a numeric array of boxes (M, 7) "
                 f"(x, y, z, dx, dy, dz, heading), got dtype {boxes.dtype}"

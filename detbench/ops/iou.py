@@ -65,7 +65,8 @@ MODE_IOU_BEV = 1
 MODE_IOU_3D = 2
 
 _CAP = 16  # vertex buffer size; a rectangle clipped by 4 half-planes has at most 8 vertices
-_PARALLEL_MIN_PAIRS = 1 << 20  # pairs; smaller matrices run serially: ~1-70 ns a pair, and threads cost ~10 ms when the cores are busy
+# pairs; smaller matrices run serially: ~1-70 ns a pair, and threads cost ~10 ms when the cores are busy
+_PARALLEL_MIN_PAIRS = 1 << 20
 _TORCH_CHUNK_PAIRS = 1 << 18  # pairs per torch chunk (about 60 MB of float64 temporaries)
 
 
@@ -377,7 +378,8 @@ def _torch_matrix(a: torch.Tensor, b: torch.Tensor, mode: int) -> torch.Tensor:
     rows = max(1, _TORCH_CHUNK_PAIRS // m)
     pairs = []
     for start in range(0, n, rows):
-        d2 = (ad[start:start + rows, None, 0] - bd[None, :, 0]) ** 2 + (ad[start:start + rows, None, 1] - bd[None, :, 1]) ** 2
+        d2 = ((ad[start:start + rows, None, 0] - bd[None, :, 0]) ** 2
+              + (ad[start:start + rows, None, 1] - bd[None, :, 1]) ** 2)
         near = d2 <= ((ra[start:start + rows, None] + rb[None, :]) ** 2) * (1.0 + 1e-6)
         idx = near.nonzero()
         idx[:, 0] += start

@@ -120,7 +120,8 @@ def nms_bev(boxes, scores, iou_threshold: float, max_keep: int | None = None):
     boxes, scores, thr, mk = _check_args(boxes, scores, iou_threshold, max_keep, func)
     if is_torch(boxes):
         if boxes.device.type == "cpu":
-            kept = _nms_numpy(boxes.detach().to(torch.float64).numpy(), scores.detach().to(torch.float64).numpy(), thr, mk)
+            kept = _nms_numpy(boxes.detach().to(torch.float64).numpy(), scores.detach().to(torch.float64).numpy(),
+                              thr, mk)
             return torch.from_numpy(kept)
         return _nms_torch(boxes, scores, thr, mk)
     return _nms_numpy(boxes, scores, thr, mk)

@@ -286,7 +286,8 @@ def points_in_boxes(points, boxes, bottom_lift: float = 0.0):
     boxes = check_boxes(boxes, func)
     points, boxes = _to_common(points, boxes)
     if is_torch(points) and points.device.type == "cpu":
-        counts, box_index = _points_in_boxes_numpy(_cpu_points(points), boxes.detach().to(torch.float64).numpy(), lift, func)
+        counts, box_index = _points_in_boxes_numpy(_cpu_points(points), boxes.detach().to(torch.float64).numpy(),
+                                                   lift, func)
         return torch.from_numpy(counts), torch.from_numpy(box_index)
     if is_torch(points):
         return _points_in_boxes_torch(points, boxes, lift)
@@ -346,7 +347,8 @@ def points_in_boxes_mask(points, boxes, bottom_lift: float = 0.0):
     boxes = check_boxes(boxes, func)
     points, boxes = _to_common(points, boxes)
     if is_torch(points) and points.device.type == "cpu":
-        return torch.from_numpy(points_in_boxes_mask(_cpu_points(points), boxes.detach().to(torch.float64).numpy(), lift))
+        return torch.from_numpy(points_in_boxes_mask(_cpu_points(points), boxes.detach().to(torch.float64).numpy(),
+                                                     lift))
     if is_torch(points):
         return _points_in_boxes_mask_torch(points, boxes, lift)
     pts = _numpy_points(points)

@@ -150,7 +150,8 @@ def _roi_torch(p: torch.Tensor, table: torch.Tensor, pc: np.ndarray, rc: np.ndar
             inside = (x >= t[:, 8]) & (x <= t[:, 9]) & (y >= t[:, 10]) & (y <= t[:, 11])
             inside &= (z >= t[:, 6]) & (z <= t[:, 7])
             rx, ry = x - t[:, 0], y - t[:, 1]
-            inside &= ((rx * t[:, 2] + ry * t[:, 3]).abs() <= t[:, 4]) & ((-rx * t[:, 3] + ry * t[:, 2]).abs() <= t[:, 5])
+            inside &= (((rx * t[:, 2] + ry * t[:, 3]).abs() <= t[:, 4])
+                       & ((-rx * t[:, 3] + ry * t[:, 2]).abs() <= t[:, 5]))
             cs = torch.cumsum(inside, dim=1)
             k = cs[:, -1]
             rank = torch.where(k[:, None] > ns, torch.div(slot[None] * k[:, None], ns, rounding_mode="floor"),

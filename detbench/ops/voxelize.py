@@ -40,7 +40,8 @@ class HardVoxels(NamedTuple):
 
 
 # ----------------------------------------------------------------------------- checks
-def _geometry(voxel_size: Sequence[float], point_cloud_range: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _geometry(voxel_size: Sequence[float],
+              point_cloud_range: Sequence[float]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validated (lo (3,) float64, size (3,) float64, grid (3,) int64 as X, Y, Z)."""
     vs = np.asarray(voxel_size, dtype=np.float64).reshape(-1)
     pcr = np.asarray(point_cloud_range, dtype=np.float64).reshape(-1)
@@ -232,7 +233,8 @@ def voxelize(points, voxel_size: Sequence[float], point_cloud_range: Sequence[fl
     """
     lo, vs, grid = _geometry(voxel_size, point_cloud_range)
     if int(max_points_per_voxel) < 1 or int(max_voxels) < 0:
-        raise ValueError(f"need max_points_per_voxel >= 1 and max_voxels >= 0, got {max_points_per_voxel}, {max_voxels}")
+        raise ValueError(f"need max_points_per_voxel >= 1 and max_voxels >= 0, "
+                         f"got {max_points_per_voxel}, {max_voxels}")
     _check_points(points)
     p, mv = int(max_points_per_voxel), int(max_voxels)
     if isinstance(points, torch.Tensor):

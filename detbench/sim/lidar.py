@@ -195,9 +195,9 @@ def lidar_preset(name_or_height: str | float, **changes) -> LidarConfig:
     Names: "h3-1.8", "h3-1.0", "h3-0.5" (the paper's Table II) and the Table I models
     (see `PRESETS`; spelling and case are forgiven, e.g. "Leading Ideal L8").
     A number (or a numeric string) is a height: the paper's own heights 0.5, 1.0 and 1.8 m
-    give exactly their Table II sensors (so 1.8 is +-12.5 deg in the sensor, pitched down 2.5 deg: -15..10 deg to the road);
-    any other height takes the paper's 1.0 m specification (level, -12.5..12.5 deg,
-    180 deg, 128 x 480, 150 m) at that height, named "h3-<height>".
+    give exactly their Table II sensors (so 1.8 is +-12.5 deg in the sensor, pitched down
+    2.5 deg: -15..10 deg to the road); any other height takes the paper's 1.0 m specification
+    (level, -12.5..12.5 deg, 180 deg, 128 x 480, 150 m) at that height, named "h3-<height>".
     `changes` override fields, e.g. `lidar_preset(1.8, range_noise_m=0.02)`.
     """
     if isinstance(name_or_height, str):

@@ -456,7 +456,8 @@ def point_in_box(x, y, z, table, m):
 
 # ---------------------------------------------------------------------------- driver
 def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_points: bool = True,
-               bottom_lift: float = DETECTED_BOTTOM_LIFT, ground_reflectivity: float = 0.3, timings: dict | None = None) -> CastResult:
+               bottom_lift: float = DETECTED_BOTTOM_LIFT, ground_reflectivity: float = 0.3,
+               timings: dict | None = None) -> CastResult:
     """Cast one LiDAR over a scene; see the module doc for the stages.
 
     key: 64-bit seed of this sweep's noise/drop-off (same key, same bytes).

@@ -122,7 +122,10 @@ class Road:
         u = (s - self.s_start) / self.step
         i = np.clip(np.floor(u).astype(np.int64), 0, self.kappa.size - 2)
         f = u - i
-        lerp = lambda a: a[i] * (1.0 - f) + a[i + 1] * f  # noqa: E731
+
+        def lerp(a):
+            return a[i] * (1.0 - f) + a[i + 1] * f
+
         return lerp(self.x), lerp(self.y), lerp(self.theta), lerp(self.kappa)
 
     def to_world(self, s, d) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

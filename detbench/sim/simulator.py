@@ -227,7 +227,7 @@ class HighwaySimulator:
         if int(num_frames) != num_frames or num_frames < 0:
             raise ValueError(f"num_frames must be a non-negative integer, got {num_frames!r}")
         lidars = list(lidars)
-        if not lidars or not all(isinstance(l, LidarConfig) for l in lidars):
+        if not lidars or not all(isinstance(lidar, LidarConfig) for lidar in lidars):
             raise ValueError("lidars must be a non-empty list of LidarConfig (see detbench.sim.lidar_preset)")
         fps = int(frames_per_scene if frames_per_scene is not None else self.config["scene"]["frames_per_scene"])
         if fps < 1:
@@ -251,7 +251,7 @@ class HighwaySimulator:
         substeps = max(1, int(round(dt_frame / float(sc["sim_dt_s"]))))
         dt = dt_frame / substeps
         duration = float(sc["warmup_s"]) + fps * dt_frame
-        max_range = max(l.max_range for l in lidars)
+        max_range = max(lidar.max_range for lidar in lidars)
         behind = float(tr["window_behind_m"]) + 50.0
         # the fastest anyone can go: the ego's factor or 1.3 (largest individual factor) plus the platoon boost,
         # in the fastest lane
@@ -269,7 +269,7 @@ class HighwaySimulator:
         x_lo, x_hi = (float(u) for u in out["region_x_m"])
         x_hi = max(x_hi, max_range + 10.0)
         y_max = float(out["region_abs_y_m"])
-        keys = [l.key() for l in lidars]
+        keys = [lidar.key() for lidar in lidars]
         for index in range(n_frames):
             if index > 0:
                 t0 = time.perf_counter()

@@ -466,7 +466,8 @@ class Traffic:
             f = float(np.clip(rng.normal(1.0, self.speed_spread), 0.7, 1.3))
         v0 = self.speed_limit * vt.speed_factor * f
         T = float(rng.uniform(*(self.ego_headway if ego else self.idm.time_headway)))
-        lat = 0.0 if ego else float(np.clip(rng.normal(0.0, self.lat_jitter), -2 * self.lat_jitter, 2 * self.lat_jitter))
+        lat = 0.0 if ego else float(np.clip(rng.normal(0.0, self.lat_jitter),
+                                            -2 * self.lat_jitter, 2 * self.lat_jitter))
         lo, hi = self._lane_range(type_name)
         cw.add(shape, x, lane, v0 * self.lane_factor[lane], v0, T, lat, lo, hi, self.lc_enabled and vt.lane_change,
                self._new_track())

@@ -67,7 +67,8 @@ def _wheels(length, width, radius, wheel_w, axles_x) -> list[list[float]]:
     out = []
     for ax, alen in axles_x:
         for side in (-1.0, 1.0):
-            out.append(_box(ax - alen / 2, ax + alen / 2, side * y - wheel_w / 2, side * y + wheel_w / 2, 0.0, 2 * radius))
+            out.append(_box(ax - alen / 2, ax + alen / 2, side * y - wheel_w / 2, side * y + wheel_w / 2,
+                            0.0, 2 * radius))
     return out
 
 
@@ -79,7 +80,10 @@ def build_parts(shape: str, length: float, width: float, height: float, rng: np.
     wheels reach it, which all shapes have).
     """
     L, W, H = length, width, height
-    u = lambda a, b: float(rng.uniform(a, b))  # noqa: E731
+
+    def u(a, b):
+        return float(rng.uniform(a, b))
+
     parts: list[list[float]] = []
     if shape in ("sedan", "taxi", "suv"):
         suv = shape == "suv"
@@ -99,7 +103,8 @@ def build_parts(shape: str, length: float, width: float, height: float, rng: np.
             sx = cab_x + u(-0.1, 0.1) * cab_len
             parts.append(_box(sx - 0.15, sx + 0.15, -0.3, 0.3, roof, H))
         over = L * 0.2
-        parts += _wheels(L, W, radius, 0.22, ((L / 2 - over, 2 * radius * 0.9), (-L / 2 + over * 1.05, 2 * radius * 0.9)))
+        parts += _wheels(L, W, radius, 0.22,
+                         ((L / 2 - over, 2 * radius * 0.9), (-L / 2 + over * 1.05, 2 * radius * 0.9)))
     elif shape == "van":
         clear = u(0.17, 0.22)
         bonnet_len = L * u(0.14, 0.2)
@@ -107,7 +112,8 @@ def build_parts(shape: str, length: float, width: float, height: float, rng: np.
         radius = u(0.34, 0.37)
         parts.append(_box(L / 2 - bonnet_len, L / 2, -W / 2, W / 2, clear, bonnet_h))
         parts.append(_box(-L / 2, L / 2 - bonnet_len, -W / 2, W / 2, clear, H))
-        parts += _wheels(L, W, radius, 0.24, ((L / 2 - L * 0.17, 2 * radius * 0.9), (-L / 2 + L * 0.2, 2 * radius * 0.9)))
+        parts += _wheels(L, W, radius, 0.24,
+                         ((L / 2 - L * 0.17, 2 * radius * 0.9), (-L / 2 + L * 0.2, 2 * radius * 0.9)))
     elif shape == "truck":
         cab_len = u(2.0, 2.4)
         cab_h = min(H, u(2.9, 3.4))
@@ -144,7 +150,8 @@ class VehicleCatalog:
         for name, t in types.items():
             shape = t.get("shape", name)
             if shape not in SHAPES:
-                raise ValueError(f"vehicles.types.{name}.shape: unknown shape {shape!r}; use one of {', '.join(SHAPES)}")
+                raise ValueError(f"vehicles.types.{name}.shape: unknown shape {shape!r}; "
+                                 f"use one of {', '.join(SHAPES)}")
             dims = {}
             for k in ("length_m", "width_m", "height_m"):
                 v = t[k]

@@ -24,6 +24,7 @@ from .tensor import SparseConvTensor
 
 __all__ = [
     "SparseConvTensor", "SubMConv3d", "SparseConv3d", "SparseInverseConv3d", "SubMConv2d", "SparseConv2d",
-    "SparseInverseConv2d", "SparseSequential", "SafeBatchNorm1d", "batch_norm_few_rows", "SparseModule", "SparseConvolution", "ToDense", "RuleBook",
+    "SparseInverseConv2d", "SparseSequential", "SafeBatchNorm1d", "batch_norm_few_rows", "SparseModule",
+    "SparseConvolution", "ToDense", "RuleBook",
     "build_subm_rulebook", "build_conv_rulebook", "conv_output_shape", "sparse_conv",
 ]

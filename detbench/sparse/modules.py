@@ -64,11 +64,13 @@ class SparseConvolution(SparseModule):
         self.indice_key = indice_key
         if self.subm:
             if any(s != 1 for s in self.stride):
-                raise ValueError(f"SubMConv{ndim}d needs stride 1, got {self.stride}; use SparseConv{ndim}d to downsample")
+                raise ValueError(f"SubMConv{ndim}d needs stride 1, got {self.stride}; "
+                                 f"use SparseConv{ndim}d to downsample")
             implied = tuple(d * (k - 1) // 2 for k, d in zip(self.kernel_size, self.dilation))
             if padding is not None and _tuple(padding, ndim, "padding") != implied:
                 raise ValueError(f"SubMConv{ndim}d keeps the input grid, so its padding is dilation * (kernel - 1) / 2 "
-                                 f"= {implied}; got padding={padding} (pass padding={implied[0] if len(set(implied)) == 1 else implied} or omit it)")
+                                 f"= {implied}; got padding={padding} "
+                                 f"(pass padding={implied[0] if len(set(implied)) == 1 else implied} or omit it)")
             self.padding = implied
         else:
             self.padding = _tuple(0 if padding is None else padding, ndim, "padding")

@@ -137,7 +137,8 @@ class RuleBook:
         return table
 
 
-def linear_keys(indices: torch.Tensor, spatial_shape: Sequence[int], shift: Sequence[int] | None = None) -> torch.Tensor:
+def linear_keys(indices: torch.Tensor, spatial_shape: Sequence[int],
+                shift: Sequence[int] | None = None) -> torch.Tensor:
     """Batch-major int64 keys of sites.
 
     Args:
@@ -320,8 +321,9 @@ def conv_output_shape(spatial_shape: Sequence[int], kernel_size, stride=1, paddi
     pd, dl = _tuple(padding, ndim, "padding"), _tuple(dilation, ndim, "dilation")
     out = tuple((int(i) + 2 * p - d * (k - 1) - 1) // s + 1 for i, k, s, p, d in zip(spatial_shape, ks, st, pd, dl))
     if any(o < 1 for o in out):
-        raise ValueError(f"convolution with kernel_size={ks}, stride={st}, padding={pd}, dilation={dl} on spatial_shape "
-                         f"{tuple(spatial_shape)} gives an empty output grid {out}; reduce the kernel or add padding")
+        raise ValueError(f"convolution with kernel_size={ks}, stride={st}, padding={pd}, dilation={dl} "
+                         f"on spatial_shape {tuple(spatial_shape)} gives an empty output grid {out}; "
+                         f"reduce the kernel or add padding")
     return out
 
 

@@ -123,9 +123,9 @@ class AbilityStudy:
     """
 
     def __init__(self, thresholds: Sequence[int] = DEFAULT_THRESHOLDS, distance_bin: float = DEFAULT_BIN_M,
-                 bottom_lift: float = DETECTED_BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH, keep_example: bool = True,
-                 example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP, bootstrap_seed: int = 0,
-                 difference_pairs: str = "all"):
+                 bottom_lift: float = DETECTED_BOTTOM_LIFT, lane_width: float = DEFAULT_LANE_WIDTH,
+                 keep_example: bool = True, example_frame_id: str | None = None, bootstrap: int = DEFAULT_BOOTSTRAP,
+                 bootstrap_seed: int = 0, difference_pairs: str = "all"):
         th = [int(t) for t in thresholds]
         if not th or th[0] != DETECTED_MIN_POINTS or any(t < 1 for t in th) or len(set(th)) != len(th):
             raise ValueError(f"thresholds must start with 1 (the paper's rule) and hold distinct integers >= 1, "
@@ -342,7 +342,8 @@ class AbilityStudy:
             "vehicles_per_frame": per_frame,
             "frames_per_height": {hk: self._frames[hk] for hk in heights},
             "example_frame": None if self.example is None else self.example.frame_id,
-            "paper_table_iv": {r: {"total": tot, "heights": {h: {"detected": d, "ldr": l} for h, (d, l) in hs.items()}}
+            "paper_table_iv": {r: {"total": tot,
+                                   "heights": {h: {"detected": d, "ldr": rate} for h, (d, rate) in hs.items()}}
                                for r, (tot, hs) in PAPER_TABLE_IV.items()},
         }
         extras["decomposition"] = decomposition(self._table(0))
@@ -562,7 +563,7 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
                 u = unc["heights"][h][r]["all"]
                 std = "-" if u["scene_std"] is None else f"{u['scene_std']:.3f}"
                 vals.append(f"{_fmt_ldr(report['heights'][h][r]['all']['ldr'])} {ci(u['ci95'])} / {std}")
-            for k, d in unc["differences"].items():
+            for d in unc["differences"].values():
                 dd = d[r]["all"]
                 vals.append("-" if dd["diff"] is None else f"{dd['diff']:+.3f} {ci(dd['ci95'])}")
             out.append(f"| {r.capitalize()} | " + " | ".join(vals) + " |")
@@ -607,7 +608,7 @@ def ability_markdown(report: dict, title: str = "LiDAR detection ability") -> st
     return "\n".join(out)
 
 
-__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "decomposition", "paper_decomposition", "stacked_masks", "frame_lanes",
-           "ldr",
+__all__ = ["AbilityStudy", "ExampleFrames", "ability_markdown", "decomposition", "paper_decomposition", "stacked_masks",
+           "frame_lanes", "ldr",
            "CELLS", "DEFAULT_BOOTSTRAP", "DEFAULT_THRESHOLDS", "PAPER_TABLE_IV", "PAPER_TABLE_V", "PAPER_TABLE_VI",
            "PAPER_TABLES"]

@@ -186,7 +186,8 @@ def check_calibration(args: CalibrationOptions) -> tuple[dict, str, bool]:
                              "worst_seed_deviation": cc.cell_grid(judged["worst_seed_deviation"])}
         md.append(f"| pooled | all seeds ({pooled_frames}) | {_f(pooled['worst_abs_deviation'])} | "
                   f"{100 * pooled['worst_total_ratio_error']:.0f} % | {_f(pooled['worst_second_deviation'])} | "
-                  + " / ".join("yes" if pooled[k] else "no" for k in cc.CRITERIA) + f" | {'yes' if pooled['ok'] else 'no'} |")
+                  + " / ".join("yes" if pooled[k] else "no" for k in cc.CRITERIA)
+                  + f" | {'yes' if pooled['ok'] else 'no'} |")
         v = judged["verdict"]
         print("verdict: " + ", ".join(f"{k}={v[k]}" for k in v), flush=True)
         md += ["", f"## Verdict over {len(args.seeds)} seeds: {'met' if v['ok'] else 'NOT met'}", "",
@@ -196,14 +197,16 @@ def check_calibration(args: CalibrationOptions) -> tuple[dict, str, bool]:
                f"- pooled vehicles per frame within +-{100 * args.total_tolerance:.0f} %: "
                f"{'yes' if v['totals_pooled'] else 'no'}",
                f"- pooled second-in-lane LDR within +-{args.second_tolerance}: {'yes' if v['second_pooled'] else 'no'}",
-               f"- 1.8 m above both lower heights (pooled / every seed): {'yes' if v['high_above_low_pooled'] else 'no'}"
+               f"- 1.8 m above both lower heights (pooled / every seed): "
+               f"{'yes' if v['high_above_low_pooled'] else 'no'}"
                f" / {'yes' if v['high_above_low_every_seed'] else 'no'}",
                f"- 0.5 m and 1.0 m within {args.pair_tolerance} (pooled / every seed): "
                f"{'yes' if v['low_pair_close_pooled'] else 'no'} / {'yes' if v['low_pair_close_every_seed'] else 'no'}"]
     else:
         report["pooled"] = {"seeds": list(args.seeds), "frames": pooled_frames, **cc.jsonable(pooled),
                             "intervals_95": intervals}
-    md += ["", f"## The 27 cells ({'pooled over ' + str(len(args.seeds)) + ' seeds' if len(args.seeds) > 1 else 'one seed'}"
+    md += ["", f"## The 27 cells "
+               f"({'pooled over ' + str(len(args.seeds)) + ' seeds' if len(args.seeds) > 1 else 'one seed'}"
                f", 95 % bootstrap intervals over scenes)", ""]
     md += _cell_tables(pooled, judged, intervals, None if judged is None else judged["worst_seed_deviation"])
     md += ["## Decomposition (second-in-lane = Top6 - Top3, judged; beyond-Top6 = All - Top6, reported)", ""]

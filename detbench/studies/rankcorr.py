@@ -370,7 +370,8 @@ def correlation_markdown(corr: dict, primary: str | None = None) -> str:
         for r in mine:
             p = "-" if r["p_spearman"] is None else f"{r['p_spearman']:.3f}"
             lines.append(f"| {r['metric']} | {r['range_name']} | {r['level']} | {r['n']} | "
-                         f"{_fmt(r['spearman'])}{_ci(r['spearman_ci95'])} | {_fmt(r['kendall'])}{_ci(r['kendall_ci95'])}"
+                         f"{_fmt(r['spearman'])}{_ci(r['spearman_ci95'])} | "
+                         f"{_fmt(r['kendall'])}{_ci(r['kendall_ci95'])}"
                          f" | {p} | {r['best_by_score']} / {r['best_observed']} m | {r['verdict']} |")
         lines.append("")
     lines += ["### Where the scores fail", ""] + [f"- {s}" for s in corr["statements"]] + [""]

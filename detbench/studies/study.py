@@ -35,8 +35,8 @@ PRESET_CAVEATS = {
              "Its detectors have not learned; their recall and AP (near 0) say nothing about the models or the "
              "heights. Run `--preset quick` for figures that do.*",
     "quick": "*Preset `quick` trains narrow models for a few minutes each on a small simulated dataset: the "
-             "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful within the "
-             "intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
+             "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful "
+             "within the intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
              "80 epochs). The ability figures are at the paper's scale.*",
     "cpu": "*Preset `cpu` trains each detector about 10 minutes on 2 CPU cores: absolute figures are below the "
            "paper's scale; differences between heights and models hold within the intervals shown.*",
@@ -351,7 +351,8 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
              *detector_summary_lines(report_dicts), "",
              *unlearned_lines(report_dicts),
              *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
-                f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""] if left_out else []),
+                f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""]
+               if left_out else []),
              PRESET_CAVEATS.get(args.preset, ""), "",
              "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
              "`python tools/study.py --preset paper --device cuda`.", "",

@@ -171,7 +171,8 @@ class HeightSweep:
         tot_d, det_d = dist.sum(axis=0)[:, 0, :], dist.sum(axis=0)[:, 1, :]
         for j, hk in enumerate(heights):
             dist_out[hk] = {"total": [int(v) for v in tot_d[j]], "detected": [int(v) for v in det_d[j]],
-                            "ldr": [None if t == 0 else round(float(d) / float(t), 6) for d, t in zip(det_d[j], tot_d[j])],
+                            "ldr": [None if t == 0 else round(float(d) / float(t), 6)
+                                    for d, t in zip(det_d[j], tot_d[j])],
                             "ci95": [percentile_interval(bdist[:, j, b], confidence) if ok else None
                                      for b in range(self.num_bins)]}
 
@@ -333,7 +334,8 @@ def sweep_markdown(report: dict, title: str = "Height sweep") -> str:
             for s in names_here:
                 c = sc["heights"][hk][r][s]
                 if s == "smig":
-                    cells.append(f"{_f(c['value'], 0)} ({_f(c['fraction'], 3)} of {sc['occupancy']['total_bits'][r]:.0f})")
+                    cells.append(f"{_f(c['value'], 0)} "
+                                 f"({_f(c['fraction'], 3)} of {sc['occupancy']['total_bits'][r]:.0f})")
                 elif s == "points":
                     cells.append(f"{_f(c['value'], 0)}{_ci(c['ci95'], 0)}")
                 else:

@@ -58,7 +58,8 @@ def plot_ldr_vs_height(report: dict, path: str | os.PathLike) -> Path:
     src = ab["extras"].get("source") or {}
     sensor = (src.get("sensor") or {}).get("preset", "")
     fig.suptitle(f"LiDAR detection rate against mounting height ({report['num_frames']} frames, "
-                 f"{report['num_scenes']} scenes, same traffic at every height{', sensor ' + sensor if sensor else ''}; "
+                 f"{report['num_scenes']} scenes, same traffic at every height"
+                 f"{', sensor ' + sensor if sensor else ''}; "
                  f"bands: 95 % bootstrap over scenes)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)

@@ -163,8 +163,9 @@ def run_sweep(args: SweepOptions) -> dict:
     coverage = None
     t1 = time.perf_counter()
     if not args.no_smig:
-        coverage = {height_key(l.height): ray_coverage(l.ray_directions().reshape(-1, 3), l.height, l.max_range, grid)
-                    for l in lidars}
+        coverage = {height_key(lidar.height): ray_coverage(lidar.ray_directions().reshape(-1, 3), lidar.height,
+                                                        lidar.max_range, grid)
+                    for lidar in lidars}
     t_cov = time.perf_counter() - t1
     t2 = time.perf_counter()
     described = base.to_dict()
@@ -179,7 +180,7 @@ def run_sweep(args: SweepOptions) -> dict:
                                         f"{base.hfov_deg:g} deg, {base.max_range:g} m"
                                         + ("; Table II's pitched sensor at 1.8 m" if args.lidar == PAPER_SENSORS
                                            else ""),
-                         "per_height": {height_key(l.height): l.name for l in lidars}},
+                         "per_height": {height_key(lidar.height): lidar.name for lidar in lidars}},
               "counting": "simulator hit counts (no points), the 0.05 m lift rule"}
     report = sweep.report(coverage=coverage, source=source)
     t_rep = time.perf_counter() - t2

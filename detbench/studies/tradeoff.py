@@ -328,7 +328,8 @@ def tradeoff_markdown(result: Mapping) -> str:
                       + " | ".join(f"AP@R40 {r}" for r in RANGE_NAMES) + " |", "|---|---|---|---|---|---|---|"]
             for e in c.get("points", []):
                 lines.append(f"| {e['checkpoint']} | {_f(e.get('epochs_done'), '.2f')} | "
-                             f"{_f(e.get('train_wall_s', 0) / 60, '.2f')} | {_f(e.get('train_cpu_s', 0) / 60, '.2f')} | "
+                             f"{_f(e.get('train_wall_s', 0) / 60, '.2f')} | "
+                             f"{_f(e.get('train_cpu_s', 0) / 60, '.2f')} | "
                              + " | ".join(_f(((e.get('accuracy') or {}).get(r) or {}).get('ap_r40'))
                                           for r in RANGE_NAMES) + " |")
             lines.append("")

@@ -127,7 +127,9 @@ def fit_range(model: str, model_cfg: dict, x_max: float, y_half: float, *, regis
     vs = model_cfg.get("voxel_size")
     if not vs:  # a point-based model: no grid to fit
         cand = [pcr[0], -round(y_half, 6), pcr[2], round(x_max, 6), round(y_half, 6), pcr[5]]
-        return cand if _builds(registry, model, {**model_cfg, "point_cloud_range": cand}) else _no_fit(model, x_max, y_half)
+        if _builds(registry, model, {**model_cfg, "point_cloud_range": cand}):
+            return cand
+        return _no_fit(model, x_max, y_half)
     for k in range(8):
         sx, sy = float(vs[0]) * 2 ** k, float(vs[1]) * 2 ** k
         x1 = pcr[0] + math.ceil((x_max - pcr[0]) / sx - 1e-6) * sx

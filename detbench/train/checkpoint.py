@@ -73,7 +73,8 @@ def unwrap_model(model: nn.Module) -> nn.Module:
 
 def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, state: TrainState, config: Mapping,
                     data: Mapping, model_name: str, optimizer: torch.optim.Optimizer | None = None,
-                    scheduler: Any | None = None, scaler: Any | None = None, rng: Sequence[Mapping] | None = None) -> Path:
+                    scheduler: Any | None = None, scaler: Any | None = None,
+                    rng: Sequence[Mapping] | None = None) -> Path:
     """Write a checkpoint atomically (temporary file + fsync + rename). Returns `path`.
 
     `rng` is one `capture_rng_state()` dict per rank (rank order); everything stored is a

@@ -21,9 +21,9 @@ autocast on CUDA), and reports for each precision:
 
 The model runs with `torch.autocast(device, dtype)` around its forward pass and its
 post-processing; parameters stay float32. (It lives in detbench.train beside `predict_frames`,
-whose frame preparation and NaN count it shares: detbench.eval sits below the training layer.) Results are plain dicts (JSON-ready), one schema
-for the tool (tools/precision.py), the tests and the trade study. `precision_markdown(report)`
-renders one.
+whose frame preparation and NaN count it shares: detbench.eval sits below the training layer.)
+Results are plain dicts (JSON-ready), one schema for the tool (tools/precision.py), the tests
+and the trade study. `precision_markdown(report)` renders one.
 """
 from __future__ import annotations
 
@@ -286,8 +286,8 @@ def precision_markdown(report: dict, title: str = "Inference precision against f
              f"{report['num_frames']} frames on {report['device']}; AP@R40 / recall at 3D IoU "
              f"{report['iou_threshold']:g}, level All, score >= {report['score_threshold']:g}; boxes matched to the "
              f"float32 run's at BEV IoU >= {report['match_iou']:g}. Differences are the precision's value minus "
-             f"float32's. Corner: the largest displacement of any of a matched box's 8 corners (metres), boxes compared as "
-             f"solids (a direction flip, heading turned by pi, is counted apart).", "",
+             f"float32's. Corner: the largest displacement of any of a matched box's 8 corners (metres), "
+             f"boxes compared as solids (a direction flip, heading turned by pi, is counted apart).", "",
              "| precision | s/frame | detections | NaN/inf values (frames) | dropped non-finite boxes | "
              + " | ".join(f"AP@R40 {r} (diff)" for r in RANGE_NAMES)
              + " | matched | unmatched f32 / this | direction flips | max corner (m) | p99 corner (m) | "

@@ -37,7 +37,8 @@ def gflops(pairs: int, cin: int, cout: int, ms: float) -> float:
 
 # A busy loop that ends by itself when its parent dies (it is re-parented): no process is left
 # spinning if the benchmark is killed before its clean-up runs.
-_BUSY_LOOP = "import os, sys\nparent = int(sys.argv[1])\nwhile os.getppid() == parent:\n    for _ in range(100000): pass\n"
+_BUSY_LOOP = ("import os, sys\nparent = int(sys.argv[1])\nwhile os.getppid() == parent:\n"
+              "    for _ in range(100000): pass\n")
 
 
 def _cpu_seconds(pid: int) -> float | None:
@@ -143,10 +144,12 @@ def load_line(info: dict) -> str:
 
 def runtime_line(desc: dict) -> str:
     """One Markdown phrase for `detbench.runtime.describe()`: the variables set and by whom, thread counts."""
-    env = ", ".join(f"{k}={v['value']} ({v['set_by']})" for k, v in desc.get("env", {}).items() if v["value"] is not None)
+    env = ", ".join(f"{k}={v['value']} ({v['set_by']})" for k, v in desc.get("env", {}).items()
+                    if v["value"] is not None)
     parts = [env or "no runtime variables set", f"torch threads {desc.get('torch_threads')}"]
     if "numba_threads" in desc:
-        parts.append(f"numba threads {desc['numba_threads']} ({desc.get('numba_threading_layer') or 'layer not started'})")
+        parts.append(f"numba threads {desc['numba_threads']} "
+                     f"({desc.get('numba_threading_layer') or 'layer not started'})")
     return "; ".join(parts)
 
 

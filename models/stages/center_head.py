@@ -264,7 +264,8 @@ class CenterHead(nn.Module):
         self.register_buffer("code_weights", torch.tensor(cw, dtype=torch.float32), persistent=False)
         unknown = set(loss_weights or {}) - set(DEFAULT_LOSS_WEIGHTS)
         if unknown:
-            raise ValueError(f"CenterHead: unknown loss_weights {sorted(unknown)}; known: {sorted(DEFAULT_LOSS_WEIGHTS)}")
+            raise ValueError(f"CenterHead: unknown loss_weights {sorted(unknown)}; "
+                             f"known: {sorted(DEFAULT_LOSS_WEIGHTS)}")
         self.loss_weights = {**DEFAULT_LOSS_WEIGHTS, **(loss_weights or {})}
         unknown = set(post or {}) - set(DEFAULT_POST)
         if unknown:

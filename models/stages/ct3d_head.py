@@ -154,7 +154,8 @@ class ChannelWiseDecoderLayer(nn.Module):
         super().__init__()
         self.attn = ChannelWiseAttention(d_model, heads)
         self.norm1, self.norm2 = nn.LayerNorm(d_model), nn.LayerNorm(d_model)
-        self.ff = nn.Sequential(nn.Linear(d_model, ff), nn.ReLU(inplace=True), nn.Dropout(dropout), nn.Linear(ff, d_model))
+        self.ff = nn.Sequential(nn.Linear(d_model, ff), nn.ReLU(inplace=True), nn.Dropout(dropout),
+                                nn.Linear(ff, d_model))
         self.drop = nn.Dropout(dropout)
 
     def forward(self, query: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
