@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install detbench (editable) and what it needs. Usage: bash tools/install.sh [--dev]
-#   --dev   also install what the test suite needs (pytest).
+#   --dev   also install what the test suite and the CI need (pytest, ruff).
 # torch is installed first only when it is not importable, so a user who already has a
 # CUDA build keeps it; on a fresh machine `pip install torch==2.13.0` takes the platform's
 # default wheel (a CPU build where one is provided locally, the CUDA build from PyPI on Linux).
