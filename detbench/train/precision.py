@@ -324,7 +324,7 @@ def precision_frames(root, height: float, split: str, limit: int = 0) -> list:
 
 def checkpoint_precision_report(model: nn.Module, ck: dict, checkpoint, frames: Sequence, *, root, height: float,
                                 split: str, precisions: Sequence[str] | None, device: torch.device,
-                                batch_size: int = 4, score_threshold: float = 0.1, match_iou: float = 0.5,
+                                batch_size: int = 4, score_threshold: float | None = None, match_iou: float = 0.5,
                                 progress: bool = True) -> dict:
     """`compare_precision` of a loaded checkpoint (`model`, its dict `ck`) on `frames`, headed by where the
     checkpoint and the frames come from (the report of precision.json)."""
