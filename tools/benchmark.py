@@ -38,13 +38,12 @@ from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, m
                                             peak_rss_mib)
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
-from detbench.utils.cli import EXIT_USER_ERROR, UserError, run_main
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, doc_parser, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = doc_parser(__doc__)
     ap.add_argument("--models", nargs="+", default=None, help="detectors (default: all registered)")
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
                     help="model size to build when no checkpoint is given (default cpu)")

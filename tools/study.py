@@ -34,12 +34,11 @@ import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before
 import models
 from detbench.studies.study import StudyOptions, run_study
 from detbench.train.run_config import preset_names
-from detbench.utils.cli import run_main
+from detbench.utils.cli import doc_parser, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = doc_parser(__doc__)
     ap.add_argument("--preset", default="quick", choices=preset_names(),
                     help="quick (real figures for SECOND, PillarNet and CT3D: the whole study in about 30 min on 2 CPU "
                          "cores), "

@@ -55,12 +55,11 @@ import models
 from detbench.studies.tradeoff_points import KNOBS
 from detbench.studies.tradeoff_sweep import TradeoffOptions, plan_lines, prepare_sweep, run_tradeoff
 from detbench.train.run_config import preset_names
-from detbench.utils.cli import run_main
+from detbench.utils.cli import doc_parser, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = doc_parser(__doc__)
     ap.add_argument("--preset", default="smoke", choices=preset_names(),
                     help="the point every knob starts from (models trained at that preset's size and schedule); "
                          "default smoke")

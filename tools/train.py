@@ -34,13 +34,12 @@ from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,
                                 option_overrides, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
-from detbench.utils.cli import UserError, run_main
+from detbench.utils.cli import UserError, doc_parser, run_main
 from detbench.utils.io import DiskFullError
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = doc_parser(__doc__)
     ap.add_argument("--model", default="second", help=f"detector: {', '.join(sorted(models.REGISTRY))} "
                                                       f"(default second)")
     ap.add_argument("--height", type=float, required=True, help="LiDAR mounting height in metres, e.g. 1.8")

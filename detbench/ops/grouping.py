@@ -18,16 +18,8 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from detbench.ops.point_batch import (
-    EMPTY_INDEX,
-    TORCH_CHUNK_ELEMS,
-    check_counts,
-    check_same_frames,
-    check_xyz,
-    num_chunks,
-    pick_backend,
-    xyz_float64,
-)
+from detbench.ops.point_batch import (EMPTY_INDEX, TORCH_CHUNK_ELEMS, check_counts, check_same_frames, check_xyz,
+                                      num_chunks, pick_backend, xyz_float64)
 
 __all__ = ["BallQuery", "ball_query", "group_points", "group_neighbours"]
 

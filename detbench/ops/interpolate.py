@@ -17,17 +17,8 @@ import torch
 from numba import njit, prange
 
 from detbench.ops.grouping import group_points
-from detbench.ops.point_batch import (
-    EMPTY_INDEX,
-    TORCH_CHUNK_ELEMS,
-    check_counts,
-    check_same_frames,
-    check_xyz,
-    frame_offsets,
-    num_chunks,
-    pick_backend,
-    xyz_float64,
-)
+from detbench.ops.point_batch import (EMPTY_INDEX, TORCH_CHUNK_ELEMS, check_counts, check_same_frames, check_xyz,
+                                      frame_offsets, num_chunks, pick_backend, xyz_float64)
 
 __all__ = ["three_nn", "three_interpolate", "three_nn_interpolate"]
 

@@ -20,18 +20,8 @@ import torch
 from numba import njit, prange
 
 from detbench.ops.grouping import group_points
-from detbench.ops.point_batch import (
-    EMPTY_INDEX,
-    TORCH_CHUNK_ELEMS,
-    check_counts,
-    check_same_frames,
-    check_xyz,
-    frame_offsets,
-    num_chunks,
-    pick_backend,
-    to_tensor,
-    xyz_float64,
-)
+from detbench.ops.point_batch import (EMPTY_INDEX, TORCH_CHUNK_ELEMS, check_counts, check_same_frames, check_xyz,
+                                      frame_offsets, num_chunks, pick_backend, to_tensor, xyz_float64)
 from detbench.ops.points_in_boxes import _AABB_PAD, _inside
 
 __all__ = ["RoIPoints", "roi_point_pool", "to_canonical", "from_canonical"]

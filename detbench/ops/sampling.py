@@ -16,13 +16,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
-from detbench.ops.point_batch import (
-    check_counts,
-    check_xyz,
-    frame_offsets,
-    pick_backend,
-    xyz_float64,
-)
+from detbench.ops.point_batch import check_counts, check_xyz, frame_offsets, pick_backend, xyz_float64
 
 __all__ = ["farthest_point_sample"]
 

@@ -10,6 +10,7 @@ its traceback (exit status 1).
 """
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 from collections.abc import Callable, Sequence
@@ -36,6 +37,14 @@ def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | 
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR
+
+
+def doc_parser(doc: str, **kwargs) -> argparse.ArgumentParser:
+    """A tool's parser from its module docstring: the first paragraph is the description, the rest (examples,
+    what it writes) the epilog, laid out as written."""
+    head, _, rest = doc.partition("\n\n")
+    return argparse.ArgumentParser(description=head, epilog=rest, formatter_class=argparse.RawDescriptionHelpFormatter,
+                                   **kwargs)
 
 
 def require(ok: bool, message: str) -> None:
