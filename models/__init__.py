@@ -6,7 +6,7 @@ the only places a model's name is written: the run config's `model.name` comes f
 file). Every class follows the detector contract `detbench.train.detector.Detector`
 (forward, loss, predict, STAGES and `prepare_config(model_cfg, train_boxes) -> model_cfg`,
 which fills data-derived values: SECOND sizes its anchors from the training boxes); the
-two-stage ones also `TwoStageDetector` (set_output_stage). tests/test_models_contract.py
+two-stage ones also `TwoStageDetector` (set_output_stage). tests/models/test_contract.py
 checks each registered model. tools/train.py calls `prepare_model_config` once before building,
 and the result is stored in the checkpoint so evaluation rebuilds the same model.
 """

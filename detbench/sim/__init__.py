@@ -18,7 +18,7 @@ timestamp) with three extras filled by the ray caster:
   0.05 in configs/sim.yaml, i.e. `detbench.data.regions.DETECTED_BOTTOM_LIFT`, the paper's
   LiDAR-detected rule). It is computed on the final float32 points and float32 boxes with
   the same test as `detbench.data.regions.detected_point_counts(points, boxes)`, so the two agree
-  exactly (tests/test_ability.py::test_simulator_counts_match_points_in_boxes proves it on
+  exactly (tests/studies/test_ability.py::test_simulator_counts_match_points_in_boxes proves it on
   simulated frames).
 - `point_box` (N,) int64: the box containing each point under that rule, or -1.
 - `rays_cast`: rays traced for the frame.

@@ -18,7 +18,7 @@ Mixed precision: under `torch.autocast` the features are cast to the autocast dt
 dtype with autocast off; the weight stays float32 and its gradient is accumulated in float32.
 Left to autocast, each `torch.mm` inside the function casts on its own, so the forward output
 is float16 while the saved features stay float32, and the backward pass fails on mixed dtypes
-(tests/test_stability_precision.py drives this path).
+(tests/train/test_precision.py drives this path).
 """
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """The detector contract: what the training loop, inference and the benchmark ask of a model.
 
 A detector is an `nn.Module` that satisfies `Detector` (models/ registers one per file;
-tests/test_models_contract.py checks every registered model against it). Nothing else
+tests/models/test_contract.py checks every registered model against it). Nothing else
 of a model is used by `detbench.train.train`, `detbench.train.inference.predict_frames`
 or tools/benchmark.py. A two-stage detector also satisfies `TwoStageDetector`: it can
 predict its first stage's boxes instead of the refined ones (tools/eval.py --stage).

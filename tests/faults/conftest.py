@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from faultkit import stalling_trainer, train_argv
+from tests.faults.faultkit import stalling_trainer, train_argv
 
 
 @pytest.fixture(scope="session")

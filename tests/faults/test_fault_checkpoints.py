@@ -6,7 +6,8 @@ import os
 import pytest
 import torch
 
-from faultkit import kill_when_stalled, load_checkpoint_dict, same_tensors, snapshot, stalling_trainer, train_argv
+from tests.faults.faultkit import (kill_when_stalled, load_checkpoint_dict, same_tensors, snapshot, stalling_trainer,
+                                   train_argv)
 
 
 def eval_argv(ckpt, out):

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from faultkit import snapshot, train_argv
+from tests.faults.faultkit import snapshot, train_argv
 
 
 @pytest.mark.parametrize("override, named", [

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from faultkit import snapshot
+from tests.faults.faultkit import snapshot
 import tools.train
 
 
@@ -119,7 +119,7 @@ def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, c
     """Without ground-truth sampling (whose database reads every training frame), a bad training frame was
     found only when the data loader reached it mid-epoch. Here the anchor-size sampling reads only the first
     training frame, as it reads at most 400 of a larger dataset, so only the pre-check can find the last one."""
-    from faultkit import train_argv
+    from tests.faults.faultkit import train_argv
     from detbench.train.run import collect_train_boxes
     from detbench.utils.cli import run_main
 

@@ -12,7 +12,7 @@ import textwrap
 
 import pytest
 
-from faultkit import ROOT, run_python, snapshot, train_argv
+from tests.faults.faultkit import ROOT, run_python, snapshot, train_argv
 
 LIMIT = 200_000  # bytes: config.yaml and history.json fit, a SECOND smoke checkpoint (1.3 MB) does not
 

@@ -1,6 +1,6 @@
 """tools/train.py --init-from with a checkpoint that cannot start the model: refused before any training,
 naming the file and the fix, and nothing is written."""
-from faultkit import train_argv
+from tests.faults.faultkit import train_argv
 
 
 def test_missing_init_checkpoint_is_refused(tool, fault_data, tmp_path):

@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from faultkit import ROOT, snapshot
+from tests.faults.faultkit import ROOT, snapshot
 
 
 def _siblings(folder):

@@ -6,13 +6,12 @@ import importlib.util
 import os
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from tools import _checkout
+from tests.helpers import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 TOOLS = sorted(p.stem for p in (ROOT / "tools").glob("*.py") if not p.name.startswith("_"))
 
 

@@ -8,6 +8,7 @@ import pytest
 from detbench import config as C
 from detbench.data.frame import Frame, Sensor, height_key
 from detbench.utils import io
+from tests.helpers import ROOT
 
 
 def write(p, text):
@@ -191,13 +192,11 @@ def test_no_literal_defaults_for_the_keys_of_default_yaml():
     writes one as a number (models/ is left out: its post-processing thresholds are the detectors' own
     model.post keys, whose home is the model YAMLs)."""
     import ast
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
     options = {"--" + name.replace("_", "-") for name in RESOLVED_DEFAULTS}
     bad = []
-    for path in sorted([*(root / "detbench").rglob("*.py"), *(root / "tools").rglob("*.py")]):
-        rel = path.relative_to(root).as_posix()
+    for path in sorted([*(ROOT / "detbench").rglob("*.py"), *(ROOT / "tools").rglob("*.py")]):
+        rel = path.relative_to(ROOT).as_posix()
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
                 a = node.args
@@ -219,17 +218,15 @@ def test_no_literal_defaults_for_the_keys_of_default_yaml():
 def test_pyproject_lists_every_package_and_ships_the_configs():
     """pyproject.toml lists its packages by hand (configs/ is mapped to detbench.configs): none may be missed."""
     tomllib = pytest.importorskip("tomllib")
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
-    setup = tomllib.loads((root / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
-    on_disk = {".".join(p.parent.relative_to(root).parts) for top in ("detbench", "models")
-               for p in (root / top).rglob("__init__.py")}
+    setup = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["tool"]["setuptools"]
+    on_disk = {".".join(p.parent.relative_to(ROOT).parts) for top in ("detbench", "models")
+               for p in (ROOT / top).rglob("__init__.py")}
     assert set(setup["packages"]) == on_disk | {"detbench.configs"}
     assert setup["package-dir"] == {"detbench.configs": "configs"}
-    shipped = {p.relative_to(root / "configs").as_posix() for p in (root / "configs").rglob("*.yaml")}
+    shipped = {p.relative_to(ROOT / "configs").as_posix() for p in (ROOT / "configs").rglob("*.yaml")}
     globs = setup["package-data"]["detbench.configs"]
-    assert shipped == {p.relative_to(root / "configs").as_posix() for g in globs for p in (root / "configs").glob(g)}
+    assert shipped == {p.relative_to(ROOT / "configs").as_posix() for g in globs for p in (ROOT / "configs").glob(g)}
 
 
 @pytest.mark.slow
@@ -242,25 +239,23 @@ def test_wheel_ships_the_configs_and_every_module(tmp_path):
     import subprocess
     import sys
     import zipfile
-    from pathlib import Path
 
     from models import REGISTRY
 
-    root = Path(__file__).resolve().parents[1]
     src = tmp_path / "src"
     for name in ("detbench", "models", "configs"):
-        shutil.copytree(root / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+        shutil.copytree(ROOT / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     for name in ("pyproject.toml", "README.md"):
-        shutil.copy2(root / name, src / name)
+        shutil.copy2(ROOT / name, src / name)
     proc = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "--no-index",
                            "-q", "-w", str(tmp_path / "dist"), str(src)], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     (wheel,) = (tmp_path / "dist").glob("detbench-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     configs = {"detbench/configs/default.yaml"} | {f"detbench/configs/{m}.yaml" for m in REGISTRY}
-    configs |= {f"detbench/configs/presets/{p.name}" for p in (root / "configs" / "presets").glob("*.yaml")}
+    configs |= {f"detbench/configs/presets/{p.name}" for p in (ROOT / "configs" / "presets").glob("*.yaml")}
     assert len(configs) > 5 and configs <= names, sorted(configs - names)
-    modules = {p.relative_to(root).as_posix() for top in ("detbench", "models") for p in (root / top).rglob("*.py")}
+    modules = {p.relative_to(ROOT).as_posix() for top in ("detbench", "models") for p in (ROOT / top).rglob("*.py")}
     assert modules <= names, sorted(modules - names)
 
 

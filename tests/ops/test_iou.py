@@ -8,7 +8,6 @@ A Monte Carlo check guards the reference's own conventions (corner order, headin
 from __future__ import annotations
 
 import math
-from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -27,74 +26,12 @@ from detbench.ops import (
     iou_bev_pair_nb,
     overlap_bev_pair_nb,
 )
+from tests.helpers import ref_iou, ref_overlap_bev
 
 
 # ----------------------------------------------------------------------------------------
-# independent slow reference
+# box makers and the paths of each op (the exact reference: tests/helpers.py)
 # ----------------------------------------------------------------------------------------
-def ref_corners(box):
-    x, y, _, dx, dy, _, h = (float(v) for v in box[:7])
-    c, s = math.cos(h), math.sin(h)
-    out = []
-    for u, v in ((dx / 2, dy / 2), (-dx / 2, dy / 2), (-dx / 2, -dy / 2), (dx / 2, -dy / 2)):
-        out.append((Fraction(x + u * c - v * s), Fraction(y + u * s + v * c)))
-    return out
-
-
-def ref_clip(poly, p, q):
-    """Keep the part of `poly` left of the directed line p -> q (exact)."""
-    def side(pt):
-        return (q[0] - p[0]) * (pt[1] - p[1]) - (q[1] - p[1]) * (pt[0] - p[0])
-
-    out = []
-    for i in range(len(poly)):
-        s_pt, e_pt = poly[i - 1], poly[i]
-        fs, fe = side(s_pt), side(e_pt)
-        if fe >= 0:
-            if fs < 0:
-                t = fs / (fs - fe)
-                out.append((s_pt[0] + t * (e_pt[0] - s_pt[0]), s_pt[1] + t * (e_pt[1] - s_pt[1])))
-            out.append(e_pt)
-        elif fs >= 0:
-            t = fs / (fs - fe)
-            out.append((s_pt[0] + t * (e_pt[0] - s_pt[0]), s_pt[1] + t * (e_pt[1] - s_pt[1])))
-    return out
-
-
-def ref_area(poly):
-    if len(poly) < 3:
-        return Fraction(0)
-    acc = Fraction(0)
-    for i in range(len(poly)):
-        x0, y0 = poly[i - 1]
-        x1, y1 = poly[i]
-        acc += x0 * y1 - x1 * y0
-    return abs(acc) / 2
-
-
-def ref_overlap_bev(a, b):
-    ca, cb = ref_corners(a), ref_corners(b)
-    poly = cb
-    for i in range(4):
-        poly = ref_clip(poly, ca[i], ca[(i + 1) % 4])
-        if not poly:
-            return 0.0
-    return float(ref_area(poly))
-
-
-def ref_iou(a, b, mode="3d"):
-    inter = ref_overlap_bev(a, b)
-    area_a, area_b = float(a[3]) * float(a[4]), float(b[3]) * float(b[4])
-    if mode == "bev":
-        union = area_a + area_b - inter
-        return inter / union if union > 0 else 0.0
-    top = min(float(a[2]) + float(a[5]) / 2, float(b[2]) + float(b[5]) / 2)
-    bot = max(float(a[2]) - float(a[5]) / 2, float(b[2]) - float(b[5]) / 2)
-    inter3 = inter * max(0.0, top - bot)
-    union3 = area_a * float(a[5]) + area_b * float(b[5]) - inter3
-    return inter3 / union3 if union3 > 0 else 0.0
-
-
 def random_boxes(rng, n, spread=3.0, size=(0.5, 5.0)):
     return np.c_[
         rng.uniform(-spread, spread, (n, 2)),

@@ -15,19 +15,9 @@ from detbench.data.gt_database import (
 )
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, lidar_detected
 from detbench.ops import boxes_iou_bev, points_in_boxes
+from tests.helpers import box_points
 
 PC_RANGE = [0.0, -20.0, -2.0, 80.0, 20.0, 4.0]
-
-
-def _box_points(rng, box, n, margin=0.0):
-    """n points inside `box` (x y z dx dy dz heading), at least `margin` metres from every face."""
-    half = np.array(box[3:6]) / 2 - margin
-    local = rng.uniform(-1, 1, size=(n, 3)) * half
-    c, s = math.cos(box[6]), math.sin(box[6])
-    x = box[0] + c * local[:, 0] - s * local[:, 1]
-    y = box[1] + s * local[:, 0] + c * local[:, 1]
-    z = box[2] + local[:, 2]
-    return np.stack([x, y, z, rng.uniform(0, 1, n)], axis=1).astype(np.float32)
 
 
 def make_frame(seed, frame_id="0000_000", n_vehicles=3, with_hidden=True):
@@ -40,7 +30,7 @@ def make_frame(seed, frame_id="0000_000", n_vehicles=3, with_hidden=True):
         dims = (rng.uniform(4, 5), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.8))
         box = [x, y, dims[2] / 2, *dims, float(rng.uniform(-0.1, 0.1))]
         boxes.append(box)
-        p = _box_points(rng, box, int(rng.integers(20, 60)), margin=0.01)
+        p = box_points(box, int(rng.integers(20, 60)), rng, margin=0.01, intensity=None)
         p = p[p[:, 2] > 0.3]
         pts.append(p)
     if with_hidden:
@@ -70,7 +60,7 @@ def test_flip_twice_is_identity_and_headings_wrap():
 def test_rotation_and_scaling_preserve_point_box_membership():
     rng = np.random.default_rng(1)
     f = make_frame(1)
-    inside = np.concatenate([_box_points(rng, b, 300, margin=0.02) for b in f.boxes])
+    inside = np.concatenate([box_points(b, 300, rng, margin=0.02, intensity=None) for b in f.boxes])
     outside = np.stack([rng.uniform(0, 80, 500), rng.uniform(-20, 20, 500), rng.uniform(3.5, 4, 500),
                         rng.uniform(0, 1, 500)], axis=1).astype(np.float32)  # above every vehicle
     points = np.concatenate([inside, outside])

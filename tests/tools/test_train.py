@@ -10,8 +10,8 @@ from detbench.benchmarks.detectors import idle_loaded_markdown, loaded_figures
 from detbench.utils.cli import run_main
 import tools.eval
 import tools.study
+from tests.helpers import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

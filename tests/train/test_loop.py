@@ -1,115 +1,24 @@
-"""Training infrastructure with a tiny test-only detector on synthetic frames built here.
-
-The detector pools per-point MLP features per frame and regresses one box (the frame's first
-ground-truth box) plus a "has a vehicle" logit: small, honest and finite on empty frames.
-"""
+"""Training infrastructure (detbench.train: the loop, checkpoints, resume, distributed runs) with the tiny
+test-only detector and synthetic frames of tests/helpers.py."""
 import math
 import os
 import pickle
-import signal
 import socket
-from typing import NamedTuple
 
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from detbench.config import ConfigError
 from detbench.data.augment import AugmentConfig
-from detbench.data.batch import Batch, Detections, Sample, collate
-from detbench.data.frame import Frame, Sensor
+from detbench.data.batch import Sample, collate
 from detbench.data.gt_database import build_gt_database
 from detbench.train import (
     CheckpointError, CheckpointManager, TrainConfig, TrainingSet, cleanup, init_distributed, load_checkpoint,
     main_process_first, seed_everything, train,
 )
-
-PC_RANGE = [0.0, -20.0, -2.0, 80.0, 20.0, 4.0]
-SCALE = torch.tensor([80.0, 20.0, 2.0, 5.0, 2.0, 2.0, 1.0])
-
-
-# ---------------------------------------------------------------- synthetic data
-def make_frame(seed: int, frame_id: str) -> Frame:
-    """Road points, 1-2 vehicles with points, one vehicle without points (not LiDAR-detected)."""
-    rng = np.random.default_rng(seed)
-    boxes, pts = [], []
-    for y in rng.permutation([-3.5, 0.0, 3.5])[: int(rng.integers(1, 3))]:
-        dims = (rng.uniform(4, 5), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.7))
-        box = [rng.uniform(10, 60), y, dims[2] / 2, *dims, float(rng.uniform(-0.1, 0.1))]
-        boxes.append(box)
-        local = rng.uniform(-0.45, 0.45, size=(40, 3)) * np.array(dims)
-        c, s = math.cos(box[6]), math.sin(box[6])
-        pts.append(np.stack([box[0] + c * local[:, 0] - s * local[:, 1], box[1] + s * local[:, 0] + c * local[:, 1],
-                             box[2] + np.abs(local[:, 2]), rng.uniform(0, 1, 40)], axis=1))
-    boxes.append([75.0, -10.5, 0.8, 4.5, 1.8, 1.6, 0.0])
-    pts.append(np.stack([rng.uniform(0, 80, 150), rng.uniform(-20, 20, 150), np.zeros(150),
-                         rng.uniform(0, 1, 150)], axis=1))
-    m = len(boxes)
-    return Frame(frame_id, frame_id[:4], np.concatenate(pts).astype(np.float32), np.asarray(boxes, np.float32),
-                 np.array(["car"] * m), np.arange(m, dtype=np.int64), np.zeros(m, dtype=np.int64),
-                 Sensor(height=1.8)).check()
-
-
-FRAMES = [make_frame(s, f"{s // 4:04d}_{s % 4:03d}") for s in range(8)]
-
-
-def make_set(tmp_path, gt_sampling=True, seed=0) -> TrainingSet:
-    aug = AugmentConfig.from_dict({"gt_sampling": {"enabled": gt_sampling, "sample_count": 4,
-                                                   "filter_by_min_points": 5}})
-    db = build_gt_database(FRAMES, tmp_path / "db", progress=False) if gt_sampling else None
-    return TrainingSet(FRAMES, PC_RANGE, augment=aug, gt_database=db, seed=seed)
-
-
-# ---------------------------------------------------------------- the test-only detector
-class TinyOut(NamedTuple):
-    boxes: torch.Tensor  # (B, 7) normalised box
-    logits: torch.Tensor  # (B,)
-
-
-class TinyDetector(nn.Module):
-    def __init__(self, hidden: int = 32, interrupt_at: int | None = None, crash_at: int | None = None):
-        super().__init__()
-        self.mlp = nn.Sequential(nn.Linear(4, hidden), nn.ReLU(), nn.Dropout(0.1), nn.Linear(hidden, hidden), nn.ReLU())
-        self.norm = nn.BatchNorm1d(hidden)
-        self.head = nn.Linear(hidden, 8)
-        self.interrupt_at, self.crash_at, self.train_calls = interrupt_at, crash_at, 0
-
-    def forward(self, batch: Batch) -> TinyOut:
-        if self.training:
-            self.train_calls += 1
-            if self.train_calls == self.interrupt_at:
-                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of a step
-            if self.train_calls == self.crash_at:
-                raise RuntimeError("simulated crash")
-        p = batch.points
-        feats = self.mlp(p[:, 1:5] / torch.tensor([80.0, 20.0, 2.0, 1.0], device=p.device))
-        idx = p[:, 0].long()
-        pooled = torch.zeros(batch.batch_size, feats.shape[1], device=p.device).index_add_(0, idx, feats)
-        pooled = pooled / torch.bincount(idx, minlength=batch.batch_size).clamp(min=1)[:, None]
-        out = self.head(self.norm(pooled))
-        return TinyOut(out[:, :7], out[:, 7])
-
-    def loss(self, out: TinyOut, batch: Batch):
-        has = batch.gt_mask.any(dim=1) if batch.gt_mask.shape[1] else torch.zeros(batch.batch_size, dtype=torch.bool)
-        if batch.gt_mask.shape[1] and has.any():
-            target = batch.gt_boxes[:, 0] / SCALE.to(out.boxes.device)
-            box = F.smooth_l1_loss(out.boxes[has], target[has])
-        else:
-            box = out.boxes.sum() * 0.0
-        cls = F.binary_cross_entropy_with_logits(out.logits, has.float())
-        total = box + cls
-        return total, {"box": float(box.detach()), "cls": float(cls.detach())}
-
-    def predict(self, out: TinyOut, batch: Batch) -> list[Detections]:
-        boxes = out.boxes * SCALE.to(out.boxes.device)
-        return [Detections(boxes[i:i + 1], torch.sigmoid(out.logits[i:i + 1]),
-                           torch.zeros(1, dtype=torch.int64, device=boxes.device)) for i in range(batch.batch_size)]
-
-
-RUN_CONFIG = {"model": {"name": "tiny"}, "train": {"epochs": 2, "batch_size": 2, "workers": 0, "lr": 0.01}}
-DATA = {"source": "synthetic", "height": 1.8}
+from tests.helpers import DATA, FRAMES, PC_RANGE, RUN_CONFIG, TinyDetector, make_set
 
 
 def run(tmp_path, out, epochs=2, resume=False, model_kw=None, **over):

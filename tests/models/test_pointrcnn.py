@@ -7,7 +7,7 @@ import models
 from detbench.train.run_config import load_run_config
 from models.stages.point_head import point_targets
 from models.stages.pointnet2 import sample_frame_points
-from test_second import batch_of, box_points
+from tests.helpers import batch_of, box_points
 
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
 
@@ -64,8 +64,8 @@ def test_empty_sparse_and_normal_frames_give_finite_losses_and_predictions():
     model = models.build_model("pointrcnn", tiny_cfg())
     empty = np.zeros((0, 4), np.float32)
     few = np.array([[5.0, 0.0, 0.5, 0.3], [6.0, 1.0, 0.5, 0.3]], np.float32)  # fewer points than the budget
-    car = np.concatenate([box_points(CAR, n=400), np.random.default_rng(0).uniform([0, -8, 0, 0], [40, 8, 0.1, 1],
-                                                                                   (400, 4)).astype(np.float32)])
+    road = np.random.default_rng(0).uniform([0, -8, 0, 0], [40, 8, 0.1, 1], (400, 4)).astype(np.float32)
+    car = np.concatenate([box_points(CAR, n=400, on_faces=True), road])
     batch = batch_of([empty, few, car], [np.zeros((0, 7)), np.zeros((0, 7)), np.array([CAR])])
     out = model(batch)
     loss, parts = model.loss(out, batch)
@@ -102,7 +102,7 @@ def test_a_valid_roi_without_points_trains(monkeypatch):
     torch.manual_seed(0)
     model = models.build_model("pointrcnn", cfg)
     far = [40.0, -6.0, 0.8, 4.5, 1.9, 1.6, -0.4]  # 30 m from the nearest point
-    batch = batch_of([box_points(CAR, n=400)], [np.array([far])])
+    batch = batch_of([box_points(CAR, n=400, on_faces=True)], [np.array([far])])
     out = model(batch)
     loss, parts = model.loss(out, batch)
     loss.backward()
@@ -137,7 +137,7 @@ def test_overfit_a_few_frames():
     cars = [np.array([[8.0, 1.0, 0.8, 4.5, 1.9, 1.6, 0.1], [15.0, -2.5, 0.8, 4.2, 1.8, 1.5, 1.4]]),
             np.array([[12.0, -0.5, 0.9, 4.8, 2.0, 1.8, -0.2]])]
     rng = np.random.default_rng(0)
-    pts = [np.concatenate([box_points(b, seed=i) for i, b in enumerate(bs)]
+    pts = [np.concatenate([box_points(b, rng=i, on_faces=True) for i, b in enumerate(bs)]
                           + [rng.uniform([0, -8, 0, 0], [30, 8, 0.05, 1], (300, 4)).astype(np.float32)])
            for bs in cars]
     batch = batch_of(pts, cars)
@@ -151,8 +151,6 @@ def test_overfit_a_few_frames():
         loss.backward()
         opt.step()
     mean = lambda k, sl: float(np.mean([h[k] for h in hist[sl]]))  # noqa: E731
-    print({k: (round(mean(k, slice(0, 10)), 4), round(mean(k, slice(-10, None)), 4))
-           for k in ("loss_point_cls", "loss_point_box", "loss_rcnn_cls", "loss_rcnn_reg", "loss_rcnn_corner")})
     assert mean("loss_point_cls", slice(-10, None)) < 0.3 * mean("loss_point_cls", slice(0, 10))
     assert mean("loss_point_box", slice(-10, None)) < 0.5 * mean("loss_point_box", slice(0, 10))
     # the second stage learns too
@@ -166,8 +164,8 @@ def test_overfit_a_few_frames():
     # a live box branch: the residuals differ between RoIs (a dead one, every ReLU of its last hidden
     # layer off, gives the same residual for every RoI: what lr 0.01 did on the cpu preset)
     deltas = out.refine.box_deltas[out.refine.roi_mask]
-    print(f"{len(deltas)} RoIs, residual std across them {deltas.std(dim=0).tolist()}")
-    assert len(deltas) >= 2 and (deltas[:, :2].std(dim=0) > 1e-4).all()
+    assert len(deltas) >= 2 and (deltas[:, :2].std(dim=0) > 1e-4).all(), \
+        f"{len(deltas)} RoIs, residual std across them {deltas.std(dim=0).tolist()}"
     for d, gt in zip(dets, cars):
         assert len(d.boxes) >= 1
         assert float(boxes_iou3d(d.boxes.double(), torch.as_tensor(gt)).max(dim=0).values.min()) > 0.3

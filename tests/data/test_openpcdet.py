@@ -29,8 +29,8 @@ import tools.analyze
 import tools.eval
 import tools.export_openpcdet
 import tools.simulate
+from tests.helpers import ROOT, box_points
 
-ROOT = Path(__file__).resolve().parents[1]
 KITTI_EVAL = {"Car", "Pedestrian", "Cyclist", "Van", "Person_sitting"}
 
 
@@ -94,14 +94,6 @@ def road_points(rng, n=1500):
     return np.c_[rng.uniform(3, 60, n), rng.uniform(-6, 6, n), np.zeros(n), rng.uniform(0, 1, n)]
 
 
-def box_points(boxes, rng, k=12):
-    pts = []
-    for b in boxes:
-        off = rng.uniform(-0.4, 0.4, (k, 3)) * b[3:6]
-        pts.append(np.c_[b[0] + off[:, 0], b[1] + off[:, 1], b[2] + off[:, 2], np.full(k, 0.5)])
-    return np.concatenate(pts) if pts else np.zeros((0, 4))
-
-
 VEHICLES = [  # x y z dx dy dz heading class, on the road (z = dz / 2)
     [12.0, 0.2, 0.75, 4.5, 1.9, 1.5, 0.05, "car"],
     [25.0, 3.6, 0.85, 4.8, 2.0, 1.7, -0.1, "suv"],
@@ -126,7 +118,8 @@ def hand_dataset(tmp_path_factory):
                 names = np.array([r[7] for r in rows], dtype=str)
                 frames = []
                 for h in (0.5, 1.8):
-                    pts = np.concatenate([road_points(rng), box_points(boxes, rng)]).astype(np.float32)
+                    inside = [box_points(b, 12, rng, margin=0.15) for b in boxes]
+                    pts = np.concatenate([road_points(rng), *inside]).astype(np.float32)
                     frames.append(Frame(fid, f"{s:04d}", pts, boxes, names, np.arange(len(rows)),
                                         np.zeros(len(rows), dtype=np.int64), sensors[h]))
                 w.add(frames)
@@ -255,7 +248,7 @@ def ground_frames(n=6, seed=0, extra=()):
     boxes = np.array([v[:7] for v in VEHICLES], dtype=np.float32)
     out = {}
     for i in range(n):
-        pts = np.concatenate([road_points(rng), box_points(boxes, rng)])
+        pts = np.concatenate([road_points(rng), *(box_points(b, 12, rng, margin=0.15) for b in boxes)])
         names = ["Vehicle"] * len(boxes)
         b = boxes
         if extra:

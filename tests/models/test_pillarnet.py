@@ -3,7 +3,6 @@ empty inputs, gradients and a short overfit on synthetic frames."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +17,8 @@ from models.stages.center_head import (CenterHead, CenterHeadOutput, build_cente
                                        gaussian_radius)
 from models.stages.losses import centernet_focal_loss, od_iou_loss
 from models.stages.pillar_encoder import DynamicPillarEncoder
+from tests.helpers import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(autouse=True)

@@ -3,7 +3,8 @@ and its rule that models/stages/__init__.py exports every stage."""
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.helpers import ROOT
+
 
 # detbench's subpackages, lowest first; a module may import its own subpackage and lower ones
 LAYERS = {"runtime": 0, "utils": 0, "config": 0, "ops": 1, "sparse": 1, "data": 2, "sim": 3, "eval": 3, "train": 4,

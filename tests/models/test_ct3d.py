@@ -11,10 +11,10 @@ from detbench.train.run_config import load_run_config
 from models.stages.ct3d_head import (
     ChannelWiseAttention, ChannelWiseDecoderLayer, cylinder_radius, encode_proposal_points, gather_cylinder_points,
 )
-from test_second import TINY, batch_of, box_points
+from tests.helpers import TINY, batch_of, box_points
 
 def _tiny_ct3d() -> dict:
-    """TINY (test_second's grid) with the ct3d smoke preset's second stage, a few sizes smaller."""
+    """TINY (the tiny SECOND of tests/helpers.py) with the ct3d smoke preset's second stage, a few sizes smaller."""
     cfg = copy.deepcopy(load_run_config("ct3d", "smoke")["model"])
     cfg.update({k: copy.deepcopy(v) for k, v in TINY.items() if k != "name"})
     rh = cfg["roi_head"]
@@ -161,7 +161,8 @@ def test_finite_losses_on_an_empty_frame_and_predictions():
     loss.backward()
     assert torch.isfinite(loss) and parts["num_fg_rois"] == 0
     car = [5.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.2]
-    mixed = batch_of([np.zeros((0, 4), np.float32), box_points(car)], [np.zeros((0, 7)), np.array([car])])
+    mixed = batch_of([np.zeros((0, 4), np.float32), box_points(car, on_faces=True)],
+                     [np.zeros((0, 7)), np.array([car])])
     loss, parts = model.loss(model(mixed), mixed)
     assert torch.isfinite(loss) and parts["num_fg_rois"] > 0
     model.eval()
@@ -195,7 +196,8 @@ def test_zero_proposals_through_the_full_model(how, monkeypatch):
 
         monkeypatch.setattr(model.head, "decode", no_scores)
     car = [5.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.2]
-    batch = batch_of([box_points(car), np.zeros((0, 4), np.float32)], [np.array([car]), np.zeros((0, 7))])
+    batch = batch_of([box_points(car, on_faces=True), np.zeros((0, 4), np.float32)],
+                     [np.array([car]), np.zeros((0, 7))])
     out = model(batch)
     assert not out.proposals.mask.any() and not out.refine.roi_mask.any()
     loss, parts = model.loss(out, batch)
@@ -237,7 +239,7 @@ def test_overfit_a_few_frames_refines_the_boxes():
     torch.manual_seed(0)
     cars = [np.array([[4.6, 1.0, 0.8, 4.5, 1.9, 1.6, 0.1], [9.0, -1.5, 0.8, 4.2, 1.8, 1.5, 1.4]]),
             np.array([[6.0, -0.5, 0.9, 4.8, 2.0, 1.8, -0.2]])]
-    pts = [np.concatenate([box_points(b, seed=i) for i, b in enumerate(bs)]) for bs in cars]
+    pts = [np.concatenate([box_points(b, rng=i, on_faces=True) for i, b in enumerate(bs)]) for bs in cars]
     batch = batch_of(pts, cars)
     cfg = {**TINY_CT3D, "roi_head": {**TINY_CT3D["roi_head"], "hidden_dim": 32, "mlp_hidden": 32, "fc": [64]}}
     model = models.build_model("ct3d", cfg)
@@ -271,5 +273,5 @@ def test_overfit_a_few_frames_refines_the_boxes():
             before.append(boxes_iou3d_aligned(r[0], target))
             after.append(boxes_iou3d_aligned(boxes, target))
     before, after = torch.cat(before).mean(), torch.cat(after).mean()
-    print(f"mean 3D IoU of jittered RoIs {float(before):.3f} -> refined {float(after):.3f}")
-    assert float(after) > float(before) + 0.05
+    assert float(after) > float(before) + 0.05, \
+        f"mean 3D IoU of jittered RoIs {float(before):.3f} -> refined {float(after):.3f}"

@@ -15,21 +15,13 @@ import models
 from detbench.data.batch import Batch, Detections, Sample, collate
 from detbench.train.detector import Detector, TwoStageDetector
 from detbench.train.run_config import load_run_config
+from tests.helpers import box_points
 
 CAR = np.array([20.0, 1.0, 0.8, 4.5, 1.9, 1.6, 0.3], np.float32)  # metres, radians
 
 
-def car_points(box: np.ndarray, per_side: int = 8) -> np.ndarray:
-    """(per_side^3, 4) points on a lattice filling `box` (x, y, z, dx, dy, dz, heading), intensity 0.5."""
-    u = np.linspace(-0.45, 0.45, per_side)
-    local = np.stack(np.meshgrid(u, u, u, indexing="ij"), -1).reshape(-1, 3) * box[3:6]
-    c, s = math.cos(box[6]), math.sin(box[6])
-    xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + box[:2]
-    return np.concatenate([xy, box[2] + local[:, 2:3], np.full((len(local), 1), 0.5)], 1).astype(np.float32)
-
-
 def two_frames() -> Batch:
-    return collate([Sample(car_points(CAR), CAR[None], "car"),
+    return collate([Sample(box_points(CAR, 512, margin=0.1), CAR[None], "car"),
                     Sample(np.zeros((0, 4), np.float32), np.zeros((0, 7), np.float32), "empty")])
 
 

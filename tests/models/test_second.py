@@ -7,48 +7,10 @@ import torch
 
 import models
 from detbench.config import ConfigError
-from detbench.data.batch import Batch
 from detbench.ops import ResidualBoxCoder, boxes_iou_bev
 from detbench.train.run_config import load_run_config
 from models.stages import AnchorGenerator, AnchorHeadOutput, VoxelGrid, assign_targets
-
-GRID = VoxelGrid((0.0, -3.2, -0.6, 12.8, 3.2, 4.2), (0.2, 0.2, 0.15))
-TINY = {
-    "name": "second", "point_cloud_range": list(GRID.point_cloud_range), "voxel_size": list(GRID.voxel_size),
-    "backbone3d": {"channels": [4, 8, 8, 8], "blocks": [1, 1, 1, 1], "out_channels": 8},
-    "backbone2d": {"layer_nums": [1, 1], "layer_strides": [1, 2], "num_filters": [8, 16],
-                   "upsample_strides": [1, 2], "num_upsample_filters": [8, 8]},
-    "head": {"anchor_sizes": [[4.5, 1.9, 1.6]], "num_anchor_sizes": 1, "rotations": [0.0, math.pi / 2],
-             "pos_iou": 0.6, "neg_iou": 0.45},
-    "post": {"score_threshold": 0.1, "pre_nms_top_k": 100, "nms_threshold": 0.1, "post_nms_top_k": 20},
-}
-
-
-def batch_of(points_list, boxes_list):
-    pts = [torch.cat([torch.full((len(p), 1), float(i)), torch.as_tensor(p, dtype=torch.float32).reshape(-1, 4)], 1)
-           for i, p in enumerate(points_list)]
-    m = max([len(b) for b in boxes_list] + [0])
-    gt = torch.zeros(len(boxes_list), m, 7)
-    mask = torch.zeros(len(boxes_list), m, dtype=torch.bool)
-    for i, b in enumerate(boxes_list):
-        gt[i, :len(b)] = torch.as_tensor(b, dtype=torch.float32).reshape(-1, 7)
-        mask[i, :len(b)] = True
-    return Batch(torch.cat(pts) if pts else torch.zeros(0, 5), gt, mask, [str(i) for i in range(len(boxes_list))],
-                 len(boxes_list))
-
-
-def box_points(box, n=300, seed=0):
-    """Points on the faces of a box (x, y, z, dx, dy, dz, heading), intensity 0.5."""
-    rng = np.random.default_rng(seed)
-    x, y, z, dx, dy, dz, h = box
-    local = rng.uniform(-0.5, 0.5, (n, 3)) * [dx, dy, dz]
-    face = rng.integers(0, 3, n)
-    local[np.arange(n), face] = np.sign(local[np.arange(n), face]) * np.array([dx, dy, dz])[face] / 2
-    c, s = math.cos(h), math.sin(h)
-    wx = x + c * local[:, 0] - s * local[:, 1]
-    wy = y + s * local[:, 0] + c * local[:, 1]
-    return np.stack([wx, wy, z + local[:, 2], np.full(n, 0.5)], 1).astype(np.float32)
-
+from tests.helpers import GRID, TINY, batch_of, box_points
 
 def test_anchor_layout():
     gen = AnchorGenerator([[4.0, 2.0, 1.5]], rotations=(0.0, math.pi / 2))
@@ -127,7 +89,7 @@ def test_overfit_two_frames_raises_score_on_the_cars():
     torch.manual_seed(0)
     cars = [np.array([[4.6, 1.0, 0.8, 4.5, 1.9, 1.6, 0.1], [9.0, -1.5, 0.8, 4.2, 1.8, 1.5, 1.4]]),
             np.array([[6.0, -0.5, 0.9, 4.8, 2.0, 1.8, -0.2]])]
-    pts = [np.concatenate([box_points(b, seed=i) for i, b in enumerate(bs)]) for bs in cars]
+    pts = [np.concatenate([box_points(b, rng=i, on_faces=True) for i, b in enumerate(bs)]) for bs in cars]
     batch = batch_of(pts, cars)
     model = models.build_model("second", TINY)
     opt = torch.optim.AdamW(model.parameters(), lr=0.01)

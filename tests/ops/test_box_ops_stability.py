@@ -6,8 +6,8 @@ BEV IoU (`boxes_iou3d`, `boxes_iou_bev`), `nms_bev`, `ResidualBoxCoder`, `points
 Paths: the numba kernels (numpy in, and torch CPU tensors), and the vectorised torch kernels
 that run on CUDA (called directly here, on the CPU, in the tensors' dtype).
 
-References are exact or float64: IoU against the rational-arithmetic reference of
-tests/test_ops_iou.py, evaluated on the float32-rounded inputs and, far from the origin, on
+References are exact or float64: IoU against the rational-arithmetic reference in
+tests/helpers.py (`ref_iou`), evaluated on the float32-rounded inputs and, far from the origin, on
 boxes moved back by an exactly representable offset (the reference itself works in world
 coordinates, whose float64 corners carry ~1e-12 m rounding at 1e4 m); membership against a
 long-double distance to the box surface.
@@ -39,7 +39,7 @@ from detbench.ops import (
 from detbench.ops.iou import MODE_IOU_3D, MODE_IOU_BEV, _torch_pair_values
 from detbench.ops.nms import _nms_torch
 from detbench.ops.points_in_boxes import _points_in_boxes_mask_torch, _points_in_boxes_torch
-from test_ops_iou import ref_iou
+from tests.helpers import ref_iou
 
 FAR = 1e4  # metres
 F32_STEP_FAR = float(np.spacing(np.float32(FAR)))  # 0.000977 m: float32 resolution at 1e4 m

@@ -26,7 +26,7 @@ from detbench.data.frame import Frame, Sensor
 from detbench.train.precision import (
     available_precisions, autocast_for, box_differences, compare_precision, precision_markdown, run_at_precision,
 )
-from test_models_contract import car_points
+from tests.helpers import box_points
 import tools.precision
 
 
@@ -107,7 +107,7 @@ def _frames():
     out = []
     for k, xs in enumerate([(12.0, 30.0), (45.0,), (20.0, 70.0, 110.0), ()]):
         boxes = np.array([_car(x, 0.0) for x in xs]).reshape(-1, 7).astype(np.float32)
-        pts = np.concatenate([car_points(b.astype(np.float32), 4) for b in boxes]) if len(boxes) else np.zeros((0, 4))
+        pts = np.concatenate([box_points(b, 64, margin=0.1) for b in boxes]) if len(boxes) else np.zeros((0, 4))
         m = len(boxes)
         out.append(Frame(f"0000_{k:03d}", "0000", pts.astype(np.float32), boxes, np.array(["car"] * m),
                          np.arange(m, dtype=np.int64), np.zeros(m, dtype=np.int64), Sensor(height=1.8)).check())

@@ -2,7 +2,6 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,8 +11,8 @@ from detbench.eval.evaluate import format_prediction_lines
 from detbench.utils.cli import run_main
 import tools.bench_eval
 import tools.eval
+from tests.helpers import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 
 
 # ------------------------------------------------------------------ prediction files

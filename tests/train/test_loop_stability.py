@@ -28,8 +28,7 @@ from detbench.train import CheckpointManager, TrainConfig, TrainingSet, load_che
 from detbench.train import loop as loop_mod
 from detbench.train.loop import NonFiniteTrainingError
 from detbench.train.run_config import load_run_config
-from test_models_contract import car_points
-from test_train import DATA, RUN_CONFIG, TinyDetector, make_set
+from tests.helpers import DATA, FRAMES, RUN_CONFIG, TinyDetector, box_points, make_set
 
 NO_AUGMENT = AugmentConfig.from_dict({k: {"enabled": False} for k in (
     "random_world_flip", "random_world_rotation", "random_world_scaling", "gt_sampling")})
@@ -53,11 +52,12 @@ def extreme_frames() -> dict[str, list[Frame]]:
     empty = np.zeros((0, 4), np.float32)
     crowd = [_car(6.0 + 7.4 * i, -13.5 + 3.0 * j, 0.05 * ((i + j) % 3 - 1)) for i in range(20) for j in range(10)]
     near = _car(1.0, 0.0)  # centre 1 m ahead: the box reaches 1.25 m behind the sensor, out of the range
-    near_pts = car_points(near, 8)
+    near_pts = box_points(near, 512, margin=0.1)
     far = _car(149.0, 0.5)
     return {
         "empty_batch": [_frame("0000_000", empty, np.zeros((0, 7))), _frame("0000_001", empty, np.zeros((0, 7)))],
-        "200_vehicles": [_frame("0001_000", np.concatenate([car_points(b, 3) for b in crowd]), np.stack(crowd))],
+        "200_vehicles": [_frame("0001_000", np.concatenate([box_points(b, 27, margin=0.1) for b in crowd]),
+                                np.stack(crowd))],
         "vehicle_1m": [_frame("0002_000", near_pts[near_pts[:, 0] >= 0], near[None])],
         "one_point_150m": [_frame("0003_000", np.array([[146.8, 0.5, 0.9, 0.3]]), far[None])],
     }
@@ -179,7 +179,6 @@ def _amp_run(tmp_path, device: torch.device, epochs: int = 2):
     """SECOND (smoke sizes) trained `epochs` x 4 steps with mixed precision on `device` (the scaler skips the
     first ~5 steps, as designed: the initial loss scale 2**16 overflows float16 until it is lowered to 2**11)."""
     from detbench.train.distributed import DistInfo
-    from test_train import FRAMES
 
     run_cfg = load_run_config("second", "smoke", overrides=[f"train.epochs={epochs}", "train.tensorboard=false"])
     model_cfg = models.prepare_model_config("second", run_cfg["model"], np.concatenate([f.boxes for f in FRAMES]))
