@@ -149,7 +149,8 @@ def test_typed_configs_read_their_defaults_from_default_yaml():
     assert (set(flip), set(rot), set(scl)) == ({"enabled", "probability"}, {"enabled", "world_rot_angle_deg"},
                                                {"enabled", "world_scale_range"})
     assert (aug.flip, aug.flip_probability) == (flip["enabled"], flip["probability"])
-    assert (aug.rotation, aug.rotation_range) == (rot["enabled"], tuple(math.radians(d) for d in rot["world_rot_angle_deg"]))
+    assert (aug.rotation, aug.rotation_range) == (rot["enabled"],
+                                                  tuple(math.radians(d) for d in rot["world_rot_angle_deg"]))
     assert (aug.scaling, aug.scale_range) == (scl["enabled"], tuple(scl["world_scale_range"]))
     none = AugmentConfig.none()
     assert not (none.flip or none.rotation or none.scaling or none.gt_sampling.enabled)

@@ -80,7 +80,8 @@ def test_numba_imported_first_still_gets_the_threading_layer():
 
 
 def test_torch_imported_first_warns_once_unless_the_user_chose():
-    p = python("import warnings; warnings.simplefilter('always'); import torch; import detbench; import detbench.runtime")
+    p = python("import warnings; warnings.simplefilter('always'); import torch; import detbench; "
+               "import detbench.runtime")
     assert p.returncode == 0 and p.stderr.count("RuntimeWarning") == 1 and "OMP_WAIT_POLICY" in p.stderr
     p = python("import warnings; warnings.simplefilter('always'); import torch; import detbench",
                OMP_WAIT_POLICY="ACTIVE")

@@ -25,7 +25,7 @@ def make_frame(seed, frame_id="0000_000", n_vehicles=3, with_hidden=True):
     rng = np.random.default_rng(seed)
     boxes, pts = [], []
     lanes = rng.permutation([-7.0, -3.5, 0.0, 3.5, 7.0])[:n_vehicles]
-    for k, y in enumerate(lanes):
+    for _k, y in enumerate(lanes):
         x = rng.uniform(8, 60)
         dims = (rng.uniform(4, 5), rng.uniform(1.7, 2.0), rng.uniform(1.4, 1.8))
         box = [x, y, dims[2] / 2, *dims, float(rng.uniform(-0.1, 0.1))]

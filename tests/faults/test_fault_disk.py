@@ -125,7 +125,8 @@ def test_a_real_full_file_system(trained_run, fault_data, tmp_path):
     script = tmp_path / "in_full_fs.py"
     script.write_text(IN_FULL_FS)
     run = mounts[1] / "run"
-    mount = " && ".join(f'mount -t tmpfs -o size={size} tmpfs "${i + 1}"' for i, size in enumerate(("256k", "1m", "64k")))
+    mount = " && ".join(f'mount -t tmpfs -o size={size} tmpfs "${i + 1}"'
+                        for i, size in enumerate(("256k", "1m", "64k")))
     proc = subprocess.run(["unshare", "-rm", "sh", "-c", f'{mount} && exec "$4" "$5" "$1" "$2" "$3" "$6" "$7"', "sh",
                            *map(str, mounts), sys.executable, str(script), str(fault_data),
                            json.dumps(train_argv(fault_data, run))],

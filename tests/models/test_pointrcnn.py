@@ -201,7 +201,8 @@ def test_bin_coder_round_trip():
     n = 2000
     pts = torch.randn(n, 3, generator=g, dtype=torch.float64) * 20
     centre = pts + (torch.rand(n, 3, generator=g, dtype=torch.float64) - 0.5) * 5.98  # within +-2.99 m
-    size = torch.tensor([4.5, 1.9, 1.6], dtype=torch.float64) * (0.5 + torch.rand(n, 3, generator=g, dtype=torch.float64))
+    size = torch.tensor([4.5, 1.9, 1.6], dtype=torch.float64) * (
+        0.5 + torch.rand(n, 3, generator=g, dtype=torch.float64))
     heading = (torch.rand(n, 1, generator=g, dtype=torch.float64) - 0.5) * 2 * np.pi
     boxes = torch.cat([centre, size, heading], dim=1)
     t = coder.encode(boxes, pts)

@@ -27,9 +27,9 @@ def proposals_of(rows, b=1):
 
 
 def shifted(box, dx=0.0, dy=0.0, dh=0.0):
-    x, y, z, l, w, h, r = box
+    x, y, z, length, w, h, r = box
     c, s = math.cos(r), math.sin(r)
-    return [x + c * dx - s * dy, y + s * dx + c * dy, z, l, w, h, r + dh]
+    return [x + c * dx - s * dy, y + s * dx + c * dy, z, length, w, h, r + dh]
 
 
 def test_select_proposals_budgets_nms_and_padding():
@@ -84,7 +84,8 @@ def test_iou_guided_confidence_targets_on_hand_made_boxes():
 
 def test_canonical_transform_round_trips():
     g = torch.Generator().manual_seed(1)
-    rois = torch.rand(3, 7, generator=g) * torch.tensor([50, 20, 2, 5, 2, 2, 6.28]) - torch.tensor([0, 10, 0, 0, 0, 0, 3.14])
+    rois = (torch.rand(3, 7, generator=g) * torch.tensor([50, 20, 2, 5, 2, 2, 6.28])
+            - torch.tensor([0, 10, 0, 0, 0, 0, 3.14]))
     pts = torch.rand(3, 50, 4, generator=g) * 40
     local = to_canonical(pts[..., :3], rois)
     assert torch.allclose(from_canonical(local, rois), pts[..., :3], atol=1e-4)

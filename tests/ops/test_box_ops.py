@@ -134,7 +134,8 @@ def test_far_from_origin_and_nan_points():
     box = np.array([[10000.0, -2000.0, 0.8, 4.0, 2.0, 1.6, 0.7]])
     c, s = math.cos(0.7), math.sin(0.7)
     local = np.array([[1.999, 0.999], [2.001, 0.0], [0.0, 1.001], [-1.99, -0.99]])
-    pts = np.c_[10000.0 + local[:, 0] * c - local[:, 1] * s, -2000.0 + local[:, 0] * s + local[:, 1] * c, np.full(4, 0.8)]
+    pts = np.c_[10000.0 + local[:, 0] * c - local[:, 1] * s, -2000.0 + local[:, 0] * s + local[:, 1] * c,
+                np.full(4, 0.8)]
     pts = np.vstack([pts, [np.nan, np.nan, np.nan]])
     for counts, idx in pib_all_paths(pts, box):
         assert list(idx) == [0, -1, -1, 0, -1] and int(counts[0]) == 2

@@ -91,7 +91,8 @@ def test_iou_at_the_extremes_against_the_exact_reference(case, dtype):
     a, b, offset = extreme_pair_sets()[case]
     a, b = a.astype(dtype), b.astype(dtype)
     a64, b64 = a.astype(np.float64), b.astype(np.float64)
-    assert np.array_equal((a64 - np.r_[offset, np.zeros(5)]).astype(dtype).astype(np.float64) + np.r_[offset, np.zeros(5)],
+    assert np.array_equal((a64 - np.r_[offset, np.zeros(5)]).astype(dtype).astype(np.float64)
+                          + np.r_[offset, np.zeros(5)],
                           a64)  # the offset is exact: the reference sees the same boxes
     for mode, aligned, pair_mode in (("3d", boxes_iou3d_aligned, MODE_IOU_3D),
                                      ("bev", boxes_iou_bev_aligned, MODE_IOU_BEV)):

@@ -149,7 +149,8 @@ def test_hand_computed_cases():
     np.testing.assert_allclose(boxes_overlap_bev(a, b)[0], [2, octagon, 4], rtol=1e-12)
     np.testing.assert_allclose(boxes_iou3d(a, b)[0], [1 / 3, octagon / (8 - octagon), 1 / 3], rtol=1e-12)
     # a 4 x 2 box turned by 90 degrees is the 2 x 4 box
-    np.testing.assert_allclose(boxes_iou3d([[5, 5, 0, 4, 2, 1, math.pi / 2]], [[5, 5, 0, 2, 4, 1, 0.0]]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(boxes_iou3d([[5, 5, 0, 4, 2, 1, math.pi / 2]], [[5, 5, 0, 2, 4, 1, 0.0]]), 1.0,
+                               atol=1e-12)
     # heading counter-clockwise: a 4 x 1 box turned +90 deg covers +y, not +x
     bar = [[0, 0, 0, 4, 1, 1, math.pi / 2]]
     assert boxes_overlap_bev(bar, [[0, 1.5, 0, 1, 1, 1, 0.0]])[0, 0] == pytest.approx(1.0)
@@ -168,9 +169,12 @@ def test_identical_boxes_give_one():
     for dt in (torch.float64, torch.float32):
         out = boxes_iou3d_aligned(torch.as_tensor(boxes, dtype=dt), torch.as_tensor(boxes, dtype=dt))
         np.testing.assert_allclose(out.numpy(), 1.0, atol=1e-6)
-        np.testing.assert_allclose(torch.diagonal(boxes_iou_bev(torch.as_tensor(boxes, dtype=dt), torch.as_tensor(boxes, dtype=dt))).numpy(), 1.0, atol=1e-6)
+        np.testing.assert_allclose(
+            torch.diagonal(boxes_iou_bev(torch.as_tensor(boxes, dtype=dt), torch.as_tensor(boxes, dtype=dt))).numpy(),
+            1.0, atol=1e-6)
     np.testing.assert_allclose(np.diag(boxes_iou3d(boxes, boxes)), 1.0, atol=1e-6)
-    np.testing.assert_allclose(np.diag(boxes_iou_bev(boxes.astype(np.float32), boxes.astype(np.float32))), 1.0, atol=1e-6)
+    np.testing.assert_allclose(np.diag(boxes_iou_bev(boxes.astype(np.float32), boxes.astype(np.float32))), 1.0,
+                               atol=1e-6)
 
 
 def test_touching_boxes_give_zero():
@@ -275,7 +279,8 @@ def test_tiny_and_huge_boxes(scale):
         np.testing.assert_allclose(out, unit, rtol=1e-9, atol=1e-12)
     for out in both_paths(boxes_iou3d_aligned, sa, sb, torch.float32):
         np.testing.assert_allclose(out, unit, atol=1e-4)
-    np.testing.assert_allclose(boxes_overlap_bev(sa[:5], sb[:5]), boxes_overlap_bev(a[:5], b[:5]) * scale**2, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(boxes_overlap_bev(sa[:5], sb[:5]), boxes_overlap_bev(a[:5], b[:5]) * scale**2,
+                               rtol=1e-9, atol=1e-15)
 
 
 def test_far_from_origin_no_cancellation():

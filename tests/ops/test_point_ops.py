@@ -253,7 +253,8 @@ def test_three_nn_ties_flat_and_far_targets(backend):
     assert idx[1].tolist() == [4, 5, 0] and idx[2].tolist() == [0, 4, 5]
     flat = clouds(7, [200]) * torch.tensor([1.0, 1.0, 0.0])  # z == 0: a degenerate grid axis
     tt = clouds(8, [50])
-    np.testing.assert_array_equal(three_nn(tt, flat, backend=backend)[1].numpy(), ref_three_nn(tt, flat, [50], [200])[1])
+    np.testing.assert_array_equal(three_nn(tt, flat, backend=backend)[1].numpy(),
+                                  ref_three_nn(tt, flat, [50], [200])[1])
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
@@ -334,7 +335,8 @@ def test_roi_point_pool_matches_reference(backend):
     for f, (r0, r1) in enumerate(zip(offsets(rc)[:-1], offsets(rc)[1:])):
         p0, p1 = offsets(pc)[f], offsets(pc)[f + 1]
         if r1 > r0:  # counts agree with points_in_boxes on the enlarged boxes
-            np.testing.assert_array_equal(out.count[r0:r1].numpy(), points_in_boxes(xyz[p0:p1], enlarged[r0:r1])[0].numpy())
+            np.testing.assert_array_equal(out.count[r0:r1].numpy(),
+                                          points_in_boxes(xyz[p0:p1], enlarged[r0:r1])[0].numpy())
     assert (out.count > 16).any() and ((out.count > 0) & (out.count < 16)).any()  # both sampling rules ran
 
 

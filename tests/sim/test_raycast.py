@@ -115,7 +115,7 @@ def test_nothing_beyond_max_range_or_outside_fov():
     rng = np.random.default_rng(0)
     cat = VehicleCatalog(load_sim_config()["vehicles"])
     vehicles = []
-    for i in range(40):
+    for _ in range(40):
         shp = cat.sample(rng)
         vehicles.append((shp.parts, float(rng.uniform(-10, 120)), float(rng.uniform(-40, 40)),
                          float(rng.uniform(-math.pi, math.pi))))

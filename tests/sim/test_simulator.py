@@ -118,7 +118,8 @@ def test_vehicles_never_overlap_over_a_scene():
 
 
 def test_lanes_match_lateral_offsets_on_a_straight_road():
-    cfg = load_sim_config("straight", overrides=["traffic.ego_lane_change_every_s=[]", "traffic.lane_change.enabled=false",
+    cfg = load_sim_config("straight", overrides=["traffic.ego_lane_change_every_s=[]",
+                                                 "traffic.lane_change.enabled=false",
                                                  "traffic.lateral_jitter_m=0.0",
                                                  "traffic.opposite_density_per_km_lane=12.0"])
     steps = _run(cfg, 4, 6, [LidarConfig(height=1.0, channels=4, h_samples=16)], fps=6, with_points=False)

@@ -86,7 +86,7 @@ def test_pitch_moves_the_rings_as_configured(frames):
     """Same height, pitch -10 / 0 / +10: the ground returns of the lowest ring straight ahead lie at
     h / tan(-(lower fov limit) + pitch), the pitch tilting the sensor down when positive."""
     lidars, steps = frames
-    f_by = {(l.height, l.pitch_deg): f for l, f in zip(lidars, steps[0]) if l.range_noise_m == 0}
+    f_by = {(lidar.height, lidar.pitch_deg): f for lidar, f in zip(lidars, steps[0]) if lidar.range_noise_m == 0}
     checked = 0
     for h in (0.2, 1.8, 3.0):
         for p in (-10.0, 0.0, 10.0):

@@ -88,7 +88,8 @@ def test_strided_conv_matches_dense(ndim, stride, padding):
     # Outside the output sites the dense conv sees only zeros: output equals bias there.
     dense_y = y.dense()
     mask = torch.zeros_like(dense_y[:, :1], dtype=torch.bool)
-    mask[tuple(torch.cat([y.indices[:, :1], torch.zeros_like(y.indices[:, :1]), y.indices[:, 1:]], 1).long().t())] = True
+    mask[tuple(torch.cat([y.indices[:, :1], torch.zeros_like(y.indices[:, :1]), y.indices[:, 1:]], 1)
+               .long().t())] = True
     off = (ref - conv.bias.view(1, -1, *([1] * ndim))).detach().masked_select(~mask)
     assert float(off.abs().sum()) < 1e-12
 
@@ -126,7 +127,7 @@ def test_gradcheck_subm_strided_inverse():
                                                         ).requires_grad_(True)
         w = torch.randn(cout, cin, 3, 3, 3, dtype=torch.float64, generator=g, requires_grad=True)
         b = torch.randn(cout, dtype=torch.float64, generator=g, requires_grad=True)
-        assert torch.autograd.gradcheck(lambda f, w_, b_: sparse_conv(f, w_, rb, b_), (f_in, w, b))
+        assert torch.autograd.gradcheck(lambda f, w_, b_, rb=rb: sparse_conv(f, w_, rb, b_), (f_in, w, b))
 
 
 def test_gradients_match_dense_autograd():

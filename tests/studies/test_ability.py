@@ -301,9 +301,9 @@ def _scene_study(ldrs_05, ldrs_18=None, vehicles=10, frames=4, bootstrap=400, se
         for i in range(frames):
             fid = f"{s:04d}_{i:03d}"
             fs, cs = [], []
-            for h, l in ((0.5, l05), (1.8, l18)):
+            for h, ldr in ((0.5, l05), (1.8, l18)):
                 fs.append(frame(boxes, [], height=h, fid=fid))
-                cs.append((np.arange(vehicles) < round(l * vehicles)).astype(np.int64))
+                cs.append((np.arange(vehicles) < round(ldr * vehicles)).astype(np.int64))
             st.add(fs, counts=cs)
     return st
 

@@ -29,7 +29,8 @@ def test_the_papers_own_counts_pass():
 
 def test_paper_decomposition_is_the_tables_differences():
     ldr, per_frame = cc.paper_decomposition()
-    # second-in-lane, small, 0.5 m: (11923 - 9725) / (13661 - 9949); beyond-Top6, small, 0.5 m: (12638 - 11923) / (17268 - 13661)
+    # second-in-lane, small, 0.5 m: (11923 - 9725) / (13661 - 9949);
+    # beyond-Top6, small, 0.5 m: (12638 - 11923) / (17268 - 13661)
     assert ldr[SMALL, 0, 0] == pytest.approx((11923 - 9725) / (13661 - 9949))
     assert ldr[SMALL, 1, 0] == pytest.approx((12638 - 11923) / (17268 - 13661))
     assert per_frame[SMALL, 0] == pytest.approx((13661 - 9949) / 8000)
@@ -179,7 +180,8 @@ def test_judges_the_preset_it_is_given(tmp_path, tool):
 
 
 def test_bad_arguments_exit_2(tmp_path, capsys, tool):
-    assert tool.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30", "--out", str(tmp_path)]) == 2
+    assert tool.main(["--frames", "40", "--frames-per-scene", "20", "--block-frames", "30",
+                      "--out", str(tmp_path)]) == 2
     assert "multiple of the frames per scene" in capsys.readouterr().err
     assert tool.main(["--set", "traffic.no_such_key=1", "--out", str(tmp_path)]) == 2
     assert tool.main(["--allowed-misses", "-1", "--out", str(tmp_path)]) == 2

@@ -23,7 +23,8 @@ def test_hand_computed_values():
     # two swapped neighbours: sum d^2 = 4 -> rho = 1 - 6*4/(5*24) = 0.8; 8 concordant, 2 discordant -> tau 0.6
     assert spearman([1, 2, 3, 4, 5], [2, 1, 4, 3, 5]) == pytest.approx(0.8)
     assert kendall_tau_b([1, 2, 3, 4, 5], [2, 1, 4, 3, 5]) == pytest.approx(0.6)
-    # a tie in x: S = 5 of 6 pairs, one pair tied in x -> tau_b = 5 / sqrt(5 * 6); rho from average ranks 4.5 / sqrt(22.5)
+    # a tie in x: S = 5 of 6 pairs, one pair tied in x -> tau_b = 5 / sqrt(5 * 6);
+    # rho from average ranks 4.5 / sqrt(22.5)
     assert kendall_tau_b([1, 2, 2, 3], [1, 3, 2, 4]) == pytest.approx(5 / np.sqrt(30))
     assert spearman([1, 2, 2, 3], [1, 3, 2, 4]) == pytest.approx(4.5 / np.sqrt(22.5))
     assert spearman(range(6), range(6)[::-1]) == pytest.approx(-1.0)
@@ -135,7 +136,8 @@ def test_correlate_sweep_with_detector_reports(tmp_path):
     assert any("pillarnet" in n and "not in the sweep" in n for n in corr["notes"])
     assert any(s.startswith("ldr_w fails to predict second's recall in 9 of 9") for s in corr["statements"])
     md = correlation_markdown(corr, "evidence")
-    assert "| evidence | 18 | 18 | 0 | 0 |" in md and "| ldr_w | 18 | 0 | 0 | 18 |" in md and "Where the scores fail" in md
+    assert ("| evidence | 18 | 18 | 0 | 0 |" in md and "| ldr_w | 18 | 0 | 0 | 18 |" in md
+            and "Where the scores fail" in md)
 
 
 def test_detector_report_errors(tmp_path):
@@ -161,4 +163,5 @@ def test_detector_report_errors(tmp_path):
 def test_four_heights_never_reach_a_verdict():
     """Four heights: the exact permutation p is at least 2 / 24, so even a perfect order is 'no evidence'."""
     a = rank_agreement(["0.5", "1.0", "1.5", "2.2"], [1, 2, 3, 4], [4, 3, 2, 1], replicates=300)
-    assert a["spearman"] == -1.0 and a["p_spearman"] == pytest.approx(2 / 24, abs=1e-5) and a["verdict"] == "no evidence"
+    assert (a["spearman"] == -1.0 and a["p_spearman"] == pytest.approx(2 / 24, abs=1e-5)
+            and a["verdict"] == "no evidence")

@@ -97,7 +97,8 @@ def _ap_report(model: str, height: float, ap_small: float) -> dict:
 
 
 def test_a_model_below_the_learning_floor_at_every_height_is_named_and_one_that_learned_somewhere_is_not():
-    reps = [_ap_report("pointrcnn", 1.8, 0.049), _ap_report("pointrcnn", 0.5, 0.035), _ap_report("pointrcnn", 1.0, 0.012),
+    reps = [_ap_report("pointrcnn", 1.8, 0.049), _ap_report("pointrcnn", 0.5, 0.035),
+            _ap_report("pointrcnn", 1.0, 0.012),
             _ap_report("second", 0.5, 0.52), _ap_report("second", 1.8, 0.55),
             _ap_report("pillarnet", 0.5, 0.02), _ap_report("pillarnet", 1.8, 0.30)]  # learned at 1.8 m: not named
     bad = unlearned_models(reps)

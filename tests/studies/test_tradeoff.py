@@ -178,7 +178,7 @@ def test_markdown_marks_the_front_and_unmodelled_ranges(tmp_path):
     assert plot_learning_curves(result["curves"], tmp_path / "c.png", ends).stat().st_size > 10_000
 
 
-# ---- the sweep's points (detbench.studies.tradeoff_points) -------------------------------------------------------------
+# ---- the sweep's points (detbench.studies.tradeoff_points) -------------------------------------------------
 @pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
 def test_sweep_points_build_and_cover_the_knobs(model):
     import models
@@ -297,7 +297,8 @@ def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_p
     assert all(b > a for a, b in zip(cpu, cpu[1:])) and cpu[0] > 0
     assert all(set(e["accuracy"]) == {"small", "moderate", "large"} for e in curve["points"])
     assert res["preset_run_ends"]["second"]["train_cpu_s"] > 0
-    assert (out / "learning_curve.png").stat().st_size > 10_000 and "## Training budget" in (out / "tradeoff.md").read_text()
+    assert ((out / "learning_curve.png").stat().st_size > 10_000
+            and "## Training budget" in (out / "tradeoff.md").read_text())
     before = {f: f.stat().st_mtime_ns for f in (out / "points").rglob("*.json")}
     assert tool.main(argv) == 0  # resumed: nothing measured again
     assert {f: f.stat().st_mtime_ns for f in (out / "points").rglob("*.json")} == before

@@ -89,8 +89,8 @@ def test_ckpt_errors_name_the_file(tmp_path, capsys):
     rc = run_main(tool.main, ["--ckpt", str(tmp_path / "bad.pt"), "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 2 and "bad.pt: " in err and "tools/train.py" in err
-    rc = run_main(tool.main, ["--data", str(tmp_path), "--height", "1.8", "--pred", str(tmp_path), "--test-height", "0.5",
-                    "--out", str(tmp_path / "o")])
+    rc = run_main(tool.main, ["--data", str(tmp_path), "--height", "1.8", "--pred", str(tmp_path),
+                              "--test-height", "0.5", "--out", str(tmp_path / "o")])
     assert rc == 2 and "--test-height goes with --ckpt" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 

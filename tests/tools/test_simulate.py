@@ -82,7 +82,7 @@ def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
     from detbench.data import read_info
     from detbench.sim.dataset import calibration_id, sim_calibration, simulate_dataset
 
-    long_label = "v2 (issue %d)" % 16
+    long_label = f"v2 (issue {16})"
     assert calibration_id(long_label) == "v2" and calibration_id("v2") == "v2" and calibration_id("v1") == "v1"
     assert sim_calibration({"calibration": long_label}) == "v2"
     assert sim_calibration({"config": {"calibration": long_label}}) == "v2"

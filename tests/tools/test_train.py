@@ -105,8 +105,8 @@ def test_benchmark_idle_and_loaded_table():
 
 def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tmp_path):
     out = tmp_path / "study"
-    args = ["tools/study.py", "--preset", "smoke", "--set", "study.models=[second]", "--heights", "0.5", "1.8", "--data",
-            str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.epochs=1",
+    args = ["tools/study.py", "--preset", "smoke", "--set", "study.models=[second]", "--heights", "0.5", "1.8",
+            "--data", str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.epochs=1",
             "--set", "train.tensorboard=false", "--cross-height"]
     proc = run(args)
     # the progress line names the stage k of n, the model and height, and the time left

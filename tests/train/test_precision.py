@@ -130,7 +130,8 @@ def test_compare_precision_reports_what_the_reduced_precision_changed():
     assert bf["detections"] == 5
     b = bf["boxes"]
     assert b["matched"] == 5 and b["unmatched_reference"] == 1 and b["unmatched_other"] == 0
-    assert b["max_centre_diff_m"] == pytest.approx(0.3, abs=1e-5) and b["max_corner_diff_m"] == pytest.approx(0.3, abs=1e-5)
+    assert (b["max_centre_diff_m"] == pytest.approx(0.3, abs=1e-5)
+            and b["max_corner_diff_m"] == pytest.approx(0.3, abs=1e-5))
     # a 0.3 m shift along a 4.5 m car: 3D IoU 4.2 / 4.8 = 0.875 >= 0.7, still true positives; AP changes only by the
     # lost detection (the far one in frame 0000_002 is not among the first: recall drops in the range that held it)
     assert bf["ap_r40_diff"]["small"] == pytest.approx(bf["ap_r40"]["small"] - f32["ap_r40"]["small"])
