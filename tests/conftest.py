@@ -8,7 +8,7 @@ os.environ.setdefault("NUMBA_NUM_THREADS", "2")
 # Before any test module imports torch or numba: the library's thread-runtime defaults
 # (detbench/runtime.py: thread counts and a short OpenMP spin, so a busy machine does not
 # slow the tests several-fold).
-import detbench  # noqa: E402,F401
+import detbench  # noqa: F401
 
 
 def pytest_addoption(parser):
