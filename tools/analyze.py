@@ -23,7 +23,8 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown
-from detbench.studies.ability_run import AbilityOptions, run_ability, summary_lines
+from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
+from detbench.studies.split_check import split_check_markdown, split_check_warnings
 from detbench.utils.cli import run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
@@ -76,6 +77,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--bootstrap", type=int, default=1000, metavar="B",
                     help="replicates of the scene bootstrap behind the 95 %% intervals in the report (default 1000; "
                          "0 = no intervals). Scenes, not frames, are resampled: frames of a scene are correlated")
+    ap.add_argument("--compare-splits", action="store_true",
+                    help="(--data) also count the train and test splits apart and compare the test split's vehicles "
+                         "per frame and LDR with the train split's (OUT/split_check.md, .json); a warning names each "
+                         "cell whose difference exceeds both splits' sampling noise")
     ap.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     return ap
 
@@ -99,6 +104,16 @@ def main(argv=None) -> int:
         from detbench.studies.ability_plots import save_ability_figures
 
         written += list(save_ability_figures(report, out, example).values())
+    if args.compare_splits:
+        result, train_rep, test_rep = dataset_split_check(opts)
+        atomic_write_json(out / "split_check.json", {"comparison": result, "train": train_rep, "test": test_rep})
+        atomic_write_text(out / "split_check.md", "\n".join(
+            ["# The test split against the train split", "",
+             f"*Data: {args.data}; {train_rep['num_frames']} train and {test_rep['num_frames']} test frames.*", "",
+             *split_check_markdown(result, "test split", "train split"), ""]))
+        written += [out / "split_check.json", out / "split_check.md"]
+        for line in split_check_warnings(result, "test split", "train split"):
+            print(line, file=sys.stderr)
     print("\n".join(summary_lines(report, seconds)))
     print("wrote: " + ", ".join(str(p) for p in written))
     return 0

@@ -155,6 +155,7 @@ class AbilityStudy:
         self._frame_ids: set[str] = set()
         # per cluster (scene id, or the frame id when a frame has none): {height: (2, 9) total, detected}
         self._clusters: dict[str, dict[str, np.ndarray]] = {}
+        self._cluster_frames: dict[str, dict[str, int]] = {}  # frames per cluster and height
         self._frames_without_scene = 0
         self._cache_key = None
         self._cache = None
@@ -220,6 +221,8 @@ class AbilityStudy:
         self._frame_ids.add(frame.frame_id)
         cluster = str(frame.scene_id or "") or f"frame:{frame.frame_id}"
         per_height = self._clusters.setdefault(cluster, {})
+        frames_here = self._cluster_frames.setdefault(cluster, {})
+        frames_here[hk] = frames_here.get(hk, 0) + 1
         if hk not in per_height:
             per_height[hk] = np.zeros((2, len(CELLS)), np.int64)
         if frame.num_boxes:
@@ -365,13 +368,20 @@ class AbilityStudy:
                     arr[i, j] = self._clusters[c][hk]
         return ids, heights, arr
 
+    def cluster_frames(self) -> np.ndarray:
+        """Frames per cluster and height, (C, H), in the order of `cluster_counts`."""
+        ids, heights = sorted(self._clusters), self.heights
+        return np.array([[self._cluster_frames.get(c, {}).get(hk, 0) for hk in heights] for c in ids],
+                        dtype=np.int64).reshape(len(ids), len(heights))
+
     def uncertainty(self, confidence: float = 0.95) -> dict:
         """Sampling uncertainty of the LDRs from a percentile bootstrap over scenes.
 
         Returns {"method", "clusters" ("scene" or "frame" when some frames had no scene id),
         "num_clusters", "replicates", "confidence", "heights": {h: {range: {level: {"ci95":
-        [lo, hi], "scene_std": s}}}}, "differences": {"<hi>-<lo>": {range: {level: {"diff",
-        "ci95"}}}}}. scene_std is the standard deviation of one scene's LDR (scenes with
+        [lo, hi], "scene_std": s, "vehicles_per_frame_ci95": [lo, hi]}}}}, "differences": {"<hi>-<lo>":
+        {range: {level: {"diff", "ci95"}}}}}. vehicles_per_frame_ci95 is the interval of the cell's vehicles
+        per frame (the same scene resampling). scene_std is the standard deviation of one scene's LDR (scenes with
         vehicles in the cell); the standard error of a study of n such scenes is about
         scene_std / sqrt(n). Differences pair the heights within each resampled scene (the
         same traffic), so they are much tighter than the LDRs themselves. Values are null when
@@ -400,9 +410,15 @@ class AbilityStudy:
             good = values[np.isfinite(values)]
             return round(float(good.std(ddof=1)), 6) if ok and good.size >= 2 else None
 
+        if ok:
+            frames = self.cluster_frames().astype(np.float64)  # (C, H)
+            w = scene_bootstrap_weights(n, self.bootstrap, self.bootstrap_seed)
+            vpf_boot = np.einsum("bc,chk->bhk", w, tot) / np.maximum(w @ frames, 1.0)[:, :, None]  # (B, H, 9)
         for j, hk in enumerate(heights):
             out["heights"][hk] = {r: {lv: {"ci95": interval(boot[:, j, CELLS.index((r, lv))]) if ok else None,
-                                           "scene_std": spread(per_scene[:, j, CELLS.index((r, lv))]) if ok else None}
+                                           "scene_std": spread(per_scene[:, j, CELLS.index((r, lv))]) if ok else None,
+                                           "vehicles_per_frame_ci95":
+                                               interval(vpf_boot[:, j, CELLS.index((r, lv))]) if ok else None}
                                       for lv in LEVELS} for r in RANGE_NAMES}
         if self.difference_pairs == "adjacent":
             pairs = [(a, a + 1) for a in range(len(heights) - 1)]

@@ -179,6 +179,22 @@ def run_ability(args: AbilityOptions) -> tuple[dict, ExampleFrames | None, float
     return report, example, seconds
 
 
+def dataset_split_check(args: AbilityOptions) -> tuple[dict, dict, dict]:
+    """A dataset's test split against its train split (tools/analyze.py --compare-splits): (the comparison of
+    detbench.studies.split_check, the train split's report, the test split's report). A test split that holds
+    other traffic than the train split scores a detector on another world than it learned."""
+    from dataclasses import replace
+
+    from detbench.studies.split_check import compare_splits
+
+    if args.data is None:
+        raise UserError("--compare-splits needs --data ROOT (the splits of a dataset on disk)")
+    reports = {}
+    for split in ("train", "test"):
+        reports[split], _, _ = run_ability(replace(args, split=split, no_figures=True))
+    return compare_splits(reports["test"], reports["train"]), reports["train"], reports["test"]
+
+
 def summary_lines(report: dict, seconds: float) -> list[str]:
     """A short summary for the terminal: LDR of all vehicles per range and height, and the sampling uncertainty."""
     lines = []

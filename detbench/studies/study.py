@@ -21,6 +21,7 @@ from detbench.config import ConfigError
 from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.runner import run_command
+from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
 from detbench.studies.study_summary import (
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
@@ -145,6 +146,29 @@ def study_models(preset: str, requested: list[str] | None, overrides: list[str],
     return names, ([] if requested else sorted(set(registry.REGISTRY) - set(names)))
 
 
+def split_ability_reports(root: Path, heights: list[float], out: Path, *, no_progress: bool = True) -> dict:
+    """{"train": report, "test": report}: the ability study counted on each split of the dataset at `root`
+    (hit counts of its points, as tools/analyze.py --data), kept in `out`/<split>.json and reused while the
+    dataset's dataset.json is unchanged."""
+    from detbench.studies.ability_run import AbilityOptions, run_ability
+
+    stamp = (Path(root) / "dataset.json").stat().st_mtime_ns if (Path(root) / "dataset.json").is_file() else None
+    reports = {}
+    for split in ("train", "test"):
+        path = out / f"{split}.json"
+        if path.is_file():
+            cached = read_json(path)
+            if cached.get("extras", {}).get("dataset_stamp") == stamp:
+                reports[split] = cached
+                continue
+        report, _, _ = run_ability(AbilityOptions(data=str(root), split=split, heights=list(heights),
+                                                  no_figures=True, no_progress=no_progress))
+        report["extras"]["dataset_stamp"] = stamp
+        atomic_write_json(path, report)
+        reports[split] = report
+    return reports
+
+
 def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.PathLike) -> tuple[Path, float]:
     """Run the study (each stage a tool of `repo` in its own process, resumed where OUT has its
     output) and write OUT/study.md and study.json: (the study.md path, the seconds it took).
@@ -225,6 +249,13 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
         run([py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights", *map(str, heights),
              "--out", str(out / "ability"), *quiet], "LiDAR detection ability (every frame of the dataset)",
             progress, "ability")
+
+    # 2b. the splits against the ability study: does the test split hold the traffic the ability tables describe?
+    split_reports = split_ability_reports(root, heights, out / "splits", no_progress=args.no_progress)
+    split_checks = {name: compare_splits(rep, read_json(ability_json)) for name, rep in split_reports.items()}
+    for name, result in split_checks.items():
+        for line in split_check_warnings(result, f"{name} split", "ability study"):
+            print(line, file=sys.stderr)
 
     # 3-4. train and evaluate each model at each height
     reports = []
@@ -309,7 +340,8 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
              "train_seconds": {m: round(t, 1) for m, t in train_s.items()},
              "summary": {"heights": height_summary(ability),
                          "detectors": {str(h): c for h, c in detector_summary(report_dicts).items()}},
-             "ability": ability, "detection": combined}
+             "ability": ability, "detection": combined,
+             "split_check": split_checks}
     cross_lines: list[str] = []
     if cross_reports:
         cross_dicts = [read_json(r) for r in cross_reports]
@@ -358,6 +390,16 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
              "`python tools/study.py --preset paper --device cuda`.", "",
              "## 1. LiDAR detection ability", "",
              embed(out / "ability" / "ability.md", source_ability), "",
+             "### The splits against the ability study", "",
+             "The detection dataset's splits counted like the ability study (all vehicles; 95 % scene-bootstrap "
+             "intervals): a test split that holds other traffic than the ability study scores the detectors on "
+             "another world.", "",
+             f"*Preset `{args.preset}`; the train and test splits of {data_words}, against the ability study "
+             f"({ability_words}).*", "",
+             *[ln for name, result in split_checks.items()
+               for ln in [f"**{name.capitalize()} split** ({split_reports[name]['num_frames']} frames, "
+                          f"{(split_reports[name]['extras'].get('uncertainty') or {}).get('num_clusters')} scenes)",
+                          "", *split_check_markdown(result, f"{name} split", "ability study"), ""]],
              "## 2. Detectors on the LiDAR-detected vehicles (test split)", "",
              embed(out / "combined" / "combined.md", source_detect), "",
              *cross_lines,
