@@ -32,6 +32,11 @@ from typing import Any
 
 import yaml
 
+from detbench.utils.untrusted import MAX_DEPTH, clip, excerpt, structure_problem
+
+# values a config may hold once YAML aliases are expanded: a run's config has a few hundred; an alias bomb
+# (each anchor repeating the one before) would expand to billions wherever the config is walked or printed
+MAX_CONFIG_VALUES = 100_000
 
 
 def _config_dir() -> Path:
@@ -49,13 +54,30 @@ class ConfigError(ValueError):
     """A config problem, worded for the user: what is wrong, where, and how to fix it."""
 
 
+def yaml_value(text: str, where: str) -> Any:
+    """`text` parsed as YAML, refused (ConfigError naming `where`) when it nests deeper than MAX_DEPTH levels,
+    holds itself, or expands through aliases to more than MAX_CONFIG_VALUES values. yaml.YAMLError passes."""
+    try:
+        data = yaml.safe_load(text)
+    except RecursionError:
+        data = _TOO_DEEP
+    problem = (f"it is nested deeper than {MAX_DEPTH} levels" if data is _TOO_DEEP
+               else structure_problem(data, max_values=MAX_CONFIG_VALUES))
+    if problem:
+        raise ConfigError(f"{where}: not read: {problem}; write the values out (a config holds a few hundred)")
+    return data
+
+
+_TOO_DEEP = object()
+
+
 def _read_yaml(path: Path) -> dict:
     if not path.is_file():
         raise ConfigError(f"{path}: config file not found")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yaml_value(path.read_text(encoding="utf-8"), str(path))
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: not valid YAML: {e}") from None
+        raise ConfigError(f"{path}: not valid YAML: {clip(e)}") from None
     except UnicodeDecodeError as e:
         raise ConfigError(f"{path}: not UTF-8 text (byte {e.start} cannot be decoded); save the config file "
                           f"as UTF-8") from None
@@ -158,13 +180,13 @@ def shipped_default(dotted: str, value: Any = None) -> Any:
 
 def parse_override(item: str) -> tuple[list[str], Any]:
     if "=" not in item:
-        raise ConfigError(f"override {item!r} must look like key.sub=value")
+        raise ConfigError(f"override {excerpt(item)} must look like key.sub=value")
     key, _, raw = item.partition("=")
     key = key.strip()
     if not key:
-        raise ConfigError(f"override {item!r} has an empty key")
+        raise ConfigError(f"override {excerpt(item)} has an empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = yaml_value(raw, f"--set {excerpt(key)}") if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
     if isinstance(value, str):  # YAML 1.1 reads 1e-3 as a string; users mean a number
@@ -214,7 +236,7 @@ def _check_path(keys: list[str], reference: Mapping, where: str, open_keys: tupl
             raise ConfigError(f"{where}: {'.'.join(keys[:depth])} is a value, not a section; it has no key {k!r}")
         if k not in node:
             known = ", ".join(sorted(map(str, node))) or "(none)"
-            raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(k, map(str, node))} "
+            raise ConfigError(f"{where}: unknown config key {excerpt(dotted)}{_closest(k, map(str, node))} "
                               f"(known keys here: {known})")
         node = node[k]
     return node
@@ -255,7 +277,7 @@ def check_value(value: Any, ref: Any, where: str, dotted: str) -> None:
     kind = _kind(ref)
     if kind is not None and not _fits(value, kind):
         shown = str(ref).lower() if isinstance(ref, bool) else repr(ref)
-        raise ConfigError(f"{where}: {dotted} must be {kind} (like the default {shown}), got {value!r}")
+        raise ConfigError(f"{where}: {dotted} must be {kind} (like the default {shown}), got {excerpt(value)}")
 
 
 def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys: Iterable[str] = (),
@@ -267,7 +289,7 @@ def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys:
         dotted = f"{_prefix}{k}"
         if k not in reference:
             known = ", ".join(sorted(map(str, reference))) or "(none)"
-            raise ConfigError(f"{where}: unknown config key {dotted!r}{_closest(str(k), map(str, reference))} "
+            raise ConfigError(f"{where}: unknown config key {excerpt(dotted)}{_closest(str(k), map(str, reference))} "
                               f"(known keys here: {known})")
         if dotted in open_keys:
             continue
@@ -280,7 +302,7 @@ def validate(cfg: Mapping, reference: Mapping, where: str = "config", open_keys:
 def section_with_defaults(d: Any, defaults: Mapping, where: str) -> dict:
     """A config section `d` (None = empty) checked against `defaults` (`validate`), missing keys filled in."""
     if d is not None and not isinstance(d, Mapping):
-        raise ConfigError(f"{where} must be a section of keys (see configs/default.yaml), got {d!r}")
+        raise ConfigError(f"{where} must be a section of keys (see configs/default.yaml), got {excerpt(d)}")
     d = dict(d or {})
     validate(d, defaults, where=where)  # unknown keys, and each value of its default's kind
     return {**defaults, **d}

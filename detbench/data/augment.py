@@ -26,6 +26,7 @@ import numpy as np
 from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.gt_database import GTSampler, GTSamplingConfig
 from detbench.ops import normalize_heading
+from detbench.utils.untrusted import excerpt
 
 __all__ = [
     "AUGMENT_DEFAULTS", "AugmentConfig", "flip_x", "rotate_z", "scale_world", "random_flip_x",
@@ -39,7 +40,7 @@ def _pair(value, name: str, where: str) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in value)
     except (TypeError, ValueError):
-        raise ConfigError(f"{where}: {name} must be a [low, high] pair of numbers, got {value!r}") from None
+        raise ConfigError(f"{where}: {name} must be a [low, high] pair of numbers, got {excerpt(value)}") from None
     if not (math.isfinite(lo) and math.isfinite(hi)) or lo > hi:
         raise ConfigError(f"{where}: {name} must be finite with low <= high, got [{lo}, {hi}]")
     return lo, hi
@@ -164,7 +165,7 @@ def check_point_cloud_range(point_cloud_range: Sequence[float], where: str = "po
         r = np.asarray(point_cloud_range, dtype=np.float64).reshape(-1)
     except (TypeError, ValueError):
         raise ConfigError(f"{where}: must be 6 numbers [x_min, y_min, z_min, x_max, y_max, z_max] in metres, "
-                          f"got {point_cloud_range!r}") from None
+                          f"got {excerpt(point_cloud_range)}") from None
     if r.shape != (6,) or not np.isfinite(r).all() or (r[3:] <= r[:3]).any():
         raise ConfigError(f"{where}: must be 6 finite numbers [x_min, y_min, z_min, x_max, y_max, z_max] in metres "
                           f"with each max > min, got {list(np.asarray(point_cloud_range).reshape(-1))}")

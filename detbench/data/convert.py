@@ -108,9 +108,9 @@ def _source_split(src: Path) -> tuple[list[str], list[str], str] | None:
     sets = src / "ImageSets"
     if not (sets / "train.txt").is_file():
         return None
-    train = read_imageset(sets / "train.txt")
+    train = read_imageset(sets / "train.txt", root=src)
     test_name = next((n for n in ("val.txt", "test.txt") if (sets / n).is_file()), None)
-    test = read_imageset(sets / test_name) if test_name else []
+    test = read_imageset(sets / test_name, root=src) if test_name else []
     both = sorted(set(train) & set(test))
     if both:
         raise DatasetError(f"{len(both)} frame id(s) are in both train.txt and {test_name} (e.g. {both[0]!r}); a "
@@ -127,7 +127,7 @@ def _sample(ids: list[str], n: int = SAMPLE_FRAMES) -> list[str]:
 def _resolve_points_frame(k: str, src: Path, ext: str, sample: list[str], pitch: float, given: str,
                           checks: bool) -> tuple[str, dict]:
     """The frame of source `k`'s points: `given`, or found from the road of `sample` frames."""
-    road = [level_road_z(read_points(src / "points" / f"{fid}{ext}"), pitch) for fid in sample]
+    road = [level_road_z(read_points(src / "points" / f"{fid}{ext}", root=src), pitch) for fid in sample]
     guess, why = guess_points_frame(road, float(k))
     record = {"road_z_m": [round(v, 3) for v in road], "evidence": why}
     if given == "auto":
@@ -150,7 +150,7 @@ def _check_label_bottoms(k: str, src: Path, sample: list[str], labels_frame: str
     """The boxes of `sample`, moved to the ground frame, must stand on the road (bottom near 0 m)."""
     bottoms = []
     for fid in sample:
-        boxes, _ = read_labels(src / "labels" / f"{fid}.txt")
+        boxes, _ = read_labels(src / "labels" / f"{fid}.txt", root=src)
         if labels_frame == "sensor":
             boxes = boxes_sensor_to_ground(boxes, float(k), pitch)
         bottoms.extend(label_bottom_z(boxes).tolist())
@@ -291,7 +291,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
         for fid in iterator:
             ground = {}
             for k, src in srcs.items():
-                boxes, names = read_labels(src / "labels" / f"{fid}.txt")
+                boxes, names = read_labels(src / "labels" / f"{fid}.txt", root=src)
                 if k == ref_key:
                     count_classes(names.tolist(), cmap, class_counts)
                 keep, new_names = cmap.apply(names.tolist())
@@ -315,7 +315,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
             atomic_write_text(label_path(staged, fid), format_labels(rb, rn))
             for k, src in srcs.items():
                 sp = src / "points" / f"{fid}{exts[k]}"
-                pts = read_points(sp)  # validates before copying
+                pts = read_points(sp, root=src)  # validates before copying
                 dst = points_path(staged, k, fid, exts[k])
                 if k not in road_z:
                     g = pts if frames[k]["frame"] == "ground" else sensor_to_ground(pts, float(k), sensors[k].pitch_deg)

@@ -22,7 +22,7 @@ from detbench.data.layout import (
     INFO_FILE, SPLIT_CHOICES, DatasetInfo, HeightInfo, imageset_path, label_path, meta_path, points_path,
     read_info,
 )
-from detbench.data.readers import read_imageset, read_labels, read_meta, read_points
+from detbench.data.readers import check_inside, read_imageset, read_labels, read_meta, read_points
 from detbench.data.transforms import sensor_to_ground
 
 
@@ -34,9 +34,9 @@ def split_ids(root: str | os.PathLike, split: str) -> list[str]:
     if split not in SPLIT_CHOICES:
         raise ValueError(f"unknown split {split!r}; use one of {', '.join(SPLIT_CHOICES)}")
     if split != "all":
-        return read_imageset(imageset_path(root, split))
-    train = read_imageset(imageset_path(root, "train"))
-    test = read_imageset(imageset_path(root, "test"))
+        return read_imageset(imageset_path(root, split), root=root)
+    train = read_imageset(imageset_path(root, "train"), root=root)
+    test = read_imageset(imageset_path(root, "test"), root=root)
     both = set(train) & set(test)
     if both:
         first = sorted(both)[0]
@@ -148,12 +148,12 @@ class Height3Dataset:
     def read_labels(self, frame_id: str) -> dict:
         """Labels and extras of a frame without its points: dict with boxes (M, 7) float32, classes (M,) str,
         track_ids (M,) int64, lanes (M,) int64, scene_id, timestamp (s), ego (dict), sensor (Sensor)."""
-        boxes, classes = read_labels(label_path(self.root, frame_id), self.info.classes)
+        boxes, classes = read_labels(label_path(self.root, frame_id), self.info.classes, root=self.root)
         m = len(boxes)
         sensor = self.height_info.sensor
         if self.info.has_meta:
             mpath = meta_path(self.root, frame_id)
-            meta = read_meta(mpath, frame_id, m)
+            meta = read_meta(mpath, frame_id, m, root=self.root)
             if self.height_key in meta["sensors"]:
                 sensor = meta["sensors"][self.height_key]
                 if height_key(sensor.height) != self.height_key:
@@ -174,7 +174,7 @@ class Height3Dataset:
         """The validated Frame of `frame_id` at this height."""
         lab = self.read_labels(frame_id)
         ppath = self.points_file(frame_id)
-        points = read_points(ppath, self.height_info.bin_columns)
+        points = read_points(ppath, self.height_info.bin_columns, root=self.root)
         if self.height_info.points_frame == "sensor":
             s = lab["sensor"]
             points = sensor_to_ground(points, s.height, s.pitch_deg)
@@ -197,9 +197,10 @@ class Height3Dataset:
             if not path.is_file():
                 raise MissingFileError("meta file not found; every frame needs meta/<id>.json when has_meta "
                                        "is true", path=path)
+            check_inside(path, self.root)
             try:
                 scene = json.loads(path.read_text(encoding="utf-8")).get("scene_id")
-            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError, RecursionError):
                 scene = None
             if not isinstance(scene, str) or not scene:
                 raise DatasetError("no valid 'scene_id' (a non-empty string) in this meta file; re-create it",

@@ -45,6 +45,7 @@ from detbench.data.frame import Frame
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, detected_point_index
 from detbench.ops import boxes_iou_bev, points_in_boxes
 from detbench.utils.io import atomic_save, atomic_write_json, read_json
+from detbench.utils.untrusted import excerpt
 
 __all__ = [
     "GT_SAMPLING_DEFAULTS", "GTSamplingConfig", "GTDatabase", "GTSampler", "build_gt_database", "load_gt_database",
@@ -80,16 +81,16 @@ class GTSamplingConfig:
         d = {**GT_SAMPLING_DEFAULTS, **cfg}
         n, mp = d["sample_count"], d["filter_by_min_points"]
         if not isinstance(n, int) or isinstance(n, bool) or n < 0:
-            raise ConfigError(f"{where}: sample_count must be an integer >= 0, got {n!r}")
+            raise ConfigError(f"{where}: sample_count must be an integer >= 0, got {excerpt(n)}")
         if not isinstance(mp, int) or isinstance(mp, bool) or mp < 1:
-            raise ConfigError(f"{where}: filter_by_min_points must be an integer >= 1, got {mp!r}")
+            raise ConfigError(f"{where}: filter_by_min_points must be an integer >= 1, got {excerpt(mp)}")
         try:
             w = tuple(float(v) for v in d["remove_extra_width"])
         except (TypeError, ValueError):
             w = ()
         if len(w) != 3 or not all(math.isfinite(v) and v >= 0 for v in w):
             raise ConfigError(f"{where}: remove_extra_width must be 3 numbers >= 0 (metres added to dx, dy, dz), "
-                              f"got {d['remove_extra_width']!r}")
+                              f"got {excerpt(d['remove_extra_width'])}")
         db = d["database_dir"]
         return cls(enabled=bool(d["enabled"]), sample_count=n, limit_whole_scene=bool(d["limit_whole_scene"]),
                    filter_by_min_points=mp, remove_extra_width=w,  # type: ignore[arg-type]
@@ -245,7 +246,7 @@ def load_gt_database(out_dir: str | os.PathLike) -> GTDatabase:
     if not isinstance(index, dict) or index.get("format") != DB_FORMAT:
         raise ValueError(f"{index_path}: not a detbench ground-truth database index (format != {DB_FORMAT!r}); {fix}")
     if index.get("version") != DB_VERSION:
-        raise ValueError(f"{index_path}: database version {index.get('version')!r}, "
+        raise ValueError(f"{index_path}: database version {excerpt(index.get('version'))}, "
                          f"this code reads {DB_VERSION}; {fix}")
     arrays_path = out_dir / ARRAYS_FILE
     try:

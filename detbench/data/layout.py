@@ -26,6 +26,7 @@ from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
 from detbench.utils.io import FolderKind, read_json
+from detbench.utils.untrusted import clip, excerpt, outside_folder
 
 FORMAT_NAME = "detbench-height3"
 FORMAT_VERSION = 1
@@ -43,14 +44,21 @@ POINTS_FRAMES = ("ground", "sensor")
 DEFAULT_CLASSES = ("car", "suv", "van", "taxi", "truck")
 
 _FRAME_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]*$")
+# a frame id with its longest suffix (".json") fits the 255 bytes file systems allow a file name
+MAX_FRAME_ID_CHARS = 200
 
 
 def check_frame_id(frame_id: str, where: str = "") -> str:
-    """Frame ids become file names: letters, digits, '_', '-', '.'; no path separators."""
+    """Frame ids become file names: letters, digits, '_', '-', '.'; no path separators; at most
+    MAX_FRAME_ID_CHARS characters."""
     if not isinstance(frame_id, str) or not _FRAME_ID_RE.match(frame_id) or frame_id in (".", ".."):
         raise DatasetError(
-            f"invalid frame id {frame_id!r}: use letters, digits, '_', '-' and '.' only "
+            f"invalid frame id {excerpt(frame_id)}: use letters, digits, '_', '-' and '.' only "
             f"(it becomes a file name), e.g. '0003_017'", path=where or None)
+    if len(frame_id) > MAX_FRAME_ID_CHARS:
+        raise DatasetError(
+            f"frame id {excerpt(frame_id)} is longer than {MAX_FRAME_ID_CHARS} characters; it becomes a file "
+            f"name, which file systems keep under 255 bytes; shorten it (e.g. '0003_017')", path=where or None)
     return frame_id
 
 
@@ -172,7 +180,7 @@ def _need(d: dict, key: str, typ, path: Path, where: str):
     val = d[key]
     if not isinstance(val, typ) or (typ is not bool and isinstance(val, bool)):
         raise DatasetError(f"key {where}{key!r} must be {getattr(typ, '__name__', typ)}, got "
-                           f"{type(val).__name__} {val!r}", path=path)
+                           f"{type(val).__name__} {excerpt(val)}", path=path)
     return val
 
 
@@ -183,11 +191,11 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
         raise DatasetError("dataset.json must hold a JSON object", path=path)
     fmt = d.get("format", FORMAT_NAME)
     if fmt != FORMAT_NAME:
-        raise DatasetError(f"format {fmt!r} is not {FORMAT_NAME!r}; convert the data first "
+        raise DatasetError(f"format {excerpt(fmt)} is not {FORMAT_NAME!r}; convert the data first "
                            f"(python -m detbench.data.convert --help)", path=path)
     version = d.get("version", FORMAT_VERSION)
     if not isinstance(version, int) or version > FORMAT_VERSION or version < 1:
-        raise DatasetError(f"format version {version!r} is not supported (this detbench reads "
+        raise DatasetError(f"format version {excerpt(version)} is not supported (this detbench reads "
                            f"version 1..{FORMAT_VERSION}); upgrade detbench or re-create the dataset", path=path)
     raw_heights = _need(d, "heights", dict, path, "")
     if not raw_heights:
@@ -200,30 +208,31 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
             hval = float(key)
             canon = height_key(hval)
         except ValueError:
-            raise DatasetError(f"height key {key!r} is not a positive number of metres (e.g. \"1.8\")",
+            raise DatasetError(f"height key {excerpt(key)} is not a positive number of metres (e.g. \"1.8\")",
                                path=path) from None
         if canon != key:
-            raise DatasetError(f"height key {key!r} must be written {canon!r} (the folder name under points/)",
-                               path=path)
+            raise DatasetError(f"height key {excerpt(key)} must be written {canon!r} (the folder name under "
+                               f"points/)", path=path)
         if not isinstance(h, dict):
             raise DatasetError(f"heights.{key} must be an object with at least a 'sensor'", path=path)
         sensor_d = _need(h, "sensor", dict, path, where)
         try:
             sensor = Sensor.from_dict(sensor_d)
         except (TypeError, ValueError) as e:
-            raise DatasetError(f"{where}sensor is invalid: {e}", path=path) from None
+            raise DatasetError(f"{where}sensor is invalid: {clip(e)}", path=path) from None
         if abs(float(sensor.height) - hval) > 1e-6:
             raise DatasetError(f"{where}sensor.height is {sensor.height} but the key says {key} m; make them agree",
                                path=path)
         pf = h.get("points_frame", "ground")
         if pf not in POINTS_FRAMES:
-            raise DatasetError(f"{where}points_frame is {pf!r}; use one of {', '.join(POINTS_FRAMES)}", path=path)
+            raise DatasetError(f"{where}points_frame is {excerpt(pf)}; use one of {', '.join(POINTS_FRAMES)}",
+                               path=path)
         ext = h.get("points_ext", ".npy")
         if ext not in POINT_EXTS:
-            raise DatasetError(f"{where}points_ext is {ext!r}; use one of {', '.join(POINT_EXTS)}", path=path)
+            raise DatasetError(f"{where}points_ext is {excerpt(ext)}; use one of {', '.join(POINT_EXTS)}", path=path)
         cols = h.get("bin_columns", 4)
         if not isinstance(cols, int) or isinstance(cols, bool) or cols < 4:
-            raise DatasetError(f"{where}bin_columns is {cols!r}; it must be an integer >= 4 "
+            raise DatasetError(f"{where}bin_columns is {excerpt(cols)}; it must be an integer >= 4 "
                                f"(x y z intensity, then any extra columns)", path=path)
         heights[key] = HeightInfo(key=key, sensor=sensor, points_frame=pf, points_ext=ext, bin_columns=cols)
     classes = d.get("classes", list(DEFAULT_CLASSES))
@@ -232,10 +241,10 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
     lane_width = d.get("lane_width", DEFAULT_LANE_WIDTH)
     if not isinstance(lane_width, (int, float)) or isinstance(lane_width, bool) or not lane_width > 0 \
             or not math.isfinite(lane_width):
-        raise DatasetError(f"'lane_width' must be a positive number of metres, got {lane_width!r}", path=path)
+        raise DatasetError(f"'lane_width' must be a positive number of metres, got {excerpt(lane_width)}", path=path)
     has_meta = d.get("has_meta", True)
     if not isinstance(has_meta, bool):
-        raise DatasetError(f"'has_meta' must be true or false, got {has_meta!r}", path=path)
+        raise DatasetError(f"'has_meta' must be true or false, got {excerpt(has_meta)}", path=path)
     sr = d.get("scene_rule", {"kind": "prefix", "sep": "_"})
     if not isinstance(sr, dict) or sr.get("kind") not in ("prefix", "block", "frame"):
         raise DatasetError("'scene_rule' must be {\"kind\": \"prefix\", \"sep\": \"_\"}, "
@@ -248,7 +257,8 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
     elif rule.kind == "block":
         fps = sr.get("frames_per_scene")
         if not isinstance(fps, int) or isinstance(fps, bool) or fps < 1:
-            raise DatasetError(f"'scene_rule.frames_per_scene' must be a positive integer, got {fps!r}", path=path)
+            raise DatasetError(f"'scene_rule.frames_per_scene' must be a positive integer, got {excerpt(fps)}",
+                               path=path)
         rule.frames_per_scene = fps
     source = d.get("source", {})
     split = d.get("split", {})
@@ -303,6 +313,11 @@ def read_info(root: str | os.PathLike) -> DatasetInfo:
                 else "this is not a detbench dataset (create one with tools/simulate.py, or convert "
                      "OpenPCDet-style data with python -m detbench.data.convert)")
         raise MissingFileError(f"dataset.json not found: {hint}", path=path)
+    target = outside_folder(path, root)
+    if target is not None:
+        raise DatasetError(f"a link to {target}, outside {root}; detbench reads only the files inside the folder "
+                           f"it is given (a link out of it could expose any file); copy the file into the folder",
+                           path=path)
     try:
         d = read_json(path)
     except ValueError as e:

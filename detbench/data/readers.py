@@ -6,7 +6,9 @@
 - meta: JSON side file with scene id, timestamp, ego state, track ids, lanes, sensors.
 
 Every problem raises `DatasetError` naming the file (and the 1-based line for labels),
-what is wrong and how to fix it.
+what is wrong and how to fix it; content is quoted as a short, escaped excerpt. Each reader takes
+`root`, the folder the user named (default: the folder the file is in), and refuses a file that is
+a link to somewhere outside it.
 """
 from __future__ import annotations
 
@@ -21,35 +23,75 @@ from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import BOX_DIM, POINT_DIM, Sensor
 from detbench.data.layout import check_frame_id
 from detbench.data.transforms import wrap_heading
+from detbench.utils.untrusted import MAX_DEPTH, clip, excerpt, outside_folder, structure_problem
 
 LABEL_COLUMNS = ("x", "y", "z", "dx", "dy", "dz", "heading", "class")
 
 
+def check_inside(path: Path, root: str | os.PathLike | None) -> None:
+    """DatasetError when `path` is a link (or lies under one) leading outside `root` (default: its folder)."""
+    root = path.parent if root is None else root
+    target = outside_folder(path, root)
+    if target is not None:
+        raise DatasetError(f"a link to {target}, outside {root}; detbench reads only the files inside the folder "
+                           f"it is given (a link out of it could expose any file); copy the file into the folder",
+                           path=path)
+
+
+def _npy_data_problem(path: Path) -> str | None:
+    """What is wrong with a .npy file's header against its size (a header claiming more data than the file
+    holds would make numpy allocate it all), or None."""
+    try:
+        with open(path, "rb") as fh:
+            version = np.lib.format.read_magic(fh)
+            read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                           (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+            if read_header is None:
+                return f".npy format version {version[0]}.{version[1]} is not read; save with np.save"
+            shape, _, dtype = read_header(fh)
+            data_bytes = os.fstat(fh.fileno()).st_size - fh.tell()
+    except (ValueError, OSError, EOFError, SyntaxError, TypeError) as e:
+        return f"cannot read as .npy ({clip(e)}); the file is truncated or not a numpy file; re-create it"
+    if dtype.hasobject:
+        return None  # np.load(allow_pickle=False) refuses it
+    need = math.prod(shape) * dtype.itemsize
+    if need != data_bytes:
+        return (f"the header says shape {excerpt(shape)} of {dtype.str} ({need:,} bytes) but the file holds "
+                f"{data_bytes:,} bytes of data; it is truncated or damaged; re-create it")
+    return None
+
+
 # --------------------------------------------------------------------------- points
 
-def read_points(path: str | os.PathLike, columns: int = POINT_DIM) -> np.ndarray:
+def read_points(path: str | os.PathLike, columns: int = POINT_DIM, *, root: str | os.PathLike | None = None
+                ) -> np.ndarray:
     """Read one point cloud: `.npy` or `.bin` -> (N, 4) float32 x, y, z, intensity.
 
     `.npy` must hold a 2-D float32 array with 4 columns. `.bin` is a raw float32 file with
     `columns` values a point (KITTI: 4); only the first four are kept. Points are checked to
-    be finite. Raises MissingFileError / DatasetError naming the file.
+    be finite; the .npy header must describe the data the file holds. Raises MissingFileError /
+    DatasetError naming the file.
     """
     path = Path(path)
     if not path.is_file():
         raise MissingFileError("points file not found; re-create the frame or remove its id from ImageSets",
                                path=path)
+    check_inside(path, root)
     ext = path.suffix.lower()
     if ext == ".npy":
         if path.stat().st_size == 0:
             raise DatasetError("the file is empty (0 bytes), as an interrupted copy or a full disk leaves it; "
                                "copy or re-create it", path=path)
+        problem = _npy_data_problem(path)
+        if problem:
+            raise DatasetError(problem, path=path)
         try:
             arr = np.load(path, allow_pickle=False)
         except ValueError as e:
-            raise DatasetError(f"cannot read as .npy ({e}); save points with np.save(path, "
+            raise DatasetError(f"cannot read as .npy ({clip(e)}); save points with np.save(path, "
                                f"points.astype(np.float32))", path=path) from None
         except (OSError, EOFError) as e:
-            raise DatasetError(f"cannot read as .npy ({e}); the file is truncated or not a numpy file; "
+            raise DatasetError(f"cannot read as .npy ({clip(e)}); the file is truncated or not a numpy file; "
                                f"re-create it", path=path) from None
         if arr.ndim != 2 or arr.shape[1] != POINT_DIM:
             raise DatasetError(f"points array has shape {arr.shape}, expected (N, {POINT_DIM}) "
@@ -85,16 +127,17 @@ def _parse_label_line(s: str, path, lineno: int, known: set | None) -> tuple[lis
     parts = s.split()
     if len(parts) != len(LABEL_COLUMNS):
         raise DatasetError(f"{len(parts)} columns, expected {len(LABEL_COLUMNS)}: "
-                           f"{' '.join(LABEL_COLUMNS)} (got {s!r})", path=path, line=lineno)
+                           f"{' '.join(LABEL_COLUMNS)} (got {excerpt(s)})", path=path, line=lineno)
     vals = []
     for col, tok in zip(LABEL_COLUMNS[:7], parts[:7]):
         try:
             v = float(tok)
         except ValueError:
-            raise DatasetError(f"column {col!r} is {tok!r}, not a number; write a decimal number "
+            raise DatasetError(f"column {col!r} is {excerpt(tok)}, not a number; write a decimal number "
                                f"(metres or radians)", path=path, line=lineno) from None
         if not math.isfinite(v):
-            raise DatasetError(f"column {col!r} is {tok}; label values must be finite", path=path, line=lineno)
+            raise DatasetError(f"column {col!r} is {clip(tok, 40)}; label values must be finite", path=path,
+                               line=lineno)
         vals.append(v)
     for col, v in zip(("dx", "dy", "dz"), vals[3:6]):
         if v < 0:
@@ -107,11 +150,11 @@ def _parse_label_line(s: str, path, lineno: int, known: set | None) -> tuple[lis
     except ValueError:
         is_number = False
     if is_number:
-        raise DatasetError(f"class is {name!r}, a number; the 8th column is the class name "
+        raise DatasetError(f"class is {excerpt(name)}, a number; the 8th column is the class name "
                            f"(e.g. car); check the column order x y z dx dy dz heading class",
                            path=path, line=lineno)
     if known is not None and name not in known:
-        raise DatasetError(f"class {name!r} is not in the dataset's classes {sorted(known)}; add it to "
+        raise DatasetError(f"class {excerpt(name)} is not in the dataset's classes {excerpt(sorted(known))}; add it to "
                            f"'classes' in dataset.json or fix the label", path=path, line=lineno)
     return vals, name
 
@@ -163,12 +206,14 @@ def parse_labels(text: str, path: str | os.PathLike = "<labels>", classes=None) 
     return boxes.astype(np.float32), np.asarray(names, dtype=str).reshape(-1)
 
 
-def read_labels(path: str | os.PathLike, classes=None) -> tuple[np.ndarray, np.ndarray]:
+def read_labels(path: str | os.PathLike, classes=None, *, root: str | os.PathLike | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Read ROOT/labels/<id>.txt -> (boxes (M, 7) float32, classes (M,) str); see `parse_labels`."""
     path = Path(path)
     if not path.is_file():
         raise MissingFileError("label file not found; every frame id in ImageSets needs labels/<id>.txt "
                                "(an empty file when there are no vehicles)", path=path)
+    check_inside(path, root)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -207,11 +252,12 @@ def _int_list(d: dict, key: str, m: int, path: Path) -> np.ndarray:
                            f"the meta and label files are from different frames - re-create them", path=path)
     if not all(isinstance(v, int) and not isinstance(v, bool) for v in val):
         bad = next(v for v in val if not isinstance(v, int) or isinstance(v, bool))
-        raise DatasetError(f"{key!r} holds {bad!r}; entries must be integers", path=path)
+        raise DatasetError(f"{key!r} holds {excerpt(bad)}; entries must be integers", path=path)
     return np.asarray(val, dtype=np.int64).reshape(-1)
 
 
-def read_meta(path: str | os.PathLike, frame_id: str, num_boxes: int) -> dict:
+def read_meta(path: str | os.PathLike, frame_id: str, num_boxes: int, *, root: str | os.PathLike | None = None
+              ) -> dict:
     """Read ROOT/meta/<id>.json, validated against the frame id and the label count.
 
     Returns a dict with scene_id (str), timestamp (float, seconds), ego (dict), track_ids
@@ -222,23 +268,30 @@ def read_meta(path: str | os.PathLike, frame_id: str, num_boxes: int) -> dict:
         raise MissingFileError("meta file not found; dataset.json says has_meta is true, so every frame "
                                "needs meta/<id>.json (or set has_meta to false to derive lanes from y)",
                                path=path)
+    check_inside(path, root)
     try:
         d = json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         line = getattr(e, "lineno", None)
-        raise DatasetError(f"not valid JSON ({getattr(e, 'msg', e)}); re-create the file", path=path,
+        raise DatasetError(f"not valid JSON ({clip(getattr(e, 'msg', e))}); re-create the file", path=path,
                            line=line) from None
+    except RecursionError:
+        raise DatasetError(f"not read: it is nested deeper than {MAX_DEPTH} levels; re-create the file",
+                           path=path) from None
+    problem = structure_problem(d)
+    if problem:
+        raise DatasetError(f"not read: {problem}; re-create the file", path=path)
     if not isinstance(d, dict):
         raise DatasetError("meta must be a JSON object", path=path)
     if d.get("frame_id", frame_id) != frame_id:
-        raise DatasetError(f"frame_id inside is {d.get('frame_id')!r} but the file is for {frame_id!r}; "
+        raise DatasetError(f"frame_id inside is {excerpt(d.get('frame_id'))} but the file is for {frame_id!r}; "
                            f"the file was renamed or copied - re-create it", path=path)
     scene_id = d.get("scene_id")
     if not isinstance(scene_id, str) or not scene_id:
         raise DatasetError("'scene_id' must be a non-empty string (the split is by scene)", path=path)
     ts = d.get("timestamp", 0.0)
     if not isinstance(ts, (int, float)) or isinstance(ts, bool) or not math.isfinite(ts):
-        raise DatasetError(f"'timestamp' must be a finite number of seconds, got {ts!r}", path=path)
+        raise DatasetError(f"'timestamp' must be a finite number of seconds, got {excerpt(ts)}", path=path)
     ego = d.get("ego", {})
     if not isinstance(ego, dict):
         raise DatasetError("'ego' must be a JSON object", path=path)
@@ -250,7 +303,7 @@ def read_meta(path: str | os.PathLike, frame_id: str, num_boxes: int) -> dict:
         try:
             sensors[k] = Sensor.from_dict(sd)
         except (TypeError, ValueError) as e:
-            raise DatasetError(f"sensors.{k} is invalid: {e}", path=path) from None
+            raise DatasetError(f"sensors.{excerpt(k)} is invalid: {clip(e)}", path=path) from None
     return {
         "scene_id": scene_id,
         "timestamp": float(ts),
@@ -274,12 +327,13 @@ def meta_dict(frame, sensors: dict | None = None) -> dict:
     }
 
 
-def read_imageset(path: str | os.PathLike) -> list[str]:
+def read_imageset(path: str | os.PathLike, *, root: str | os.PathLike | None = None) -> list[str]:
     """Frame ids of ROOT/ImageSets/<split>.txt (one a line; blank lines skipped; duplicates rejected)."""
     path = Path(path)
     if not path.is_file():
         raise MissingFileError("split list not found; create ImageSets/train.txt and test.txt with one "
                                "frame id a line (tools/simulate.py writes them)", path=path)
+    check_inside(path, root)
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
@@ -295,7 +349,7 @@ def read_imageset(path: str | os.PathLike) -> list[str]:
         except DatasetError as e:
             raise DatasetError(e.reason, path=path, line=lineno) from None
         if s in seen:
-            raise DatasetError(f"frame id {s!r} is listed twice (first at line {seen[s]}); remove the duplicate",
+            raise DatasetError(f"frame id {excerpt(s)} is listed twice (first at line {seen[s]}); remove the duplicate",
                                path=path, line=lineno)
         seen[s] = lineno
         ids.append(s)

@@ -40,6 +40,7 @@ from detbench.data.regions import (
     DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
 )
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
+from detbench.utils.untrusted import excerpt
 
 IOU_KINDS: tuple[str, ...] = ("3d", "bev")
 # An IoU counts as reaching the threshold when IoU >= threshold - IOU_EPS. The exact IoU of
@@ -693,18 +694,18 @@ def parse_prediction_file(path: str | Path) -> Predictions:
             continue
         if len(fields) not in (8, 9):
             raise ValueError(f"{path}:{lineno}: expected 8 numbers 'x y z dx dy dz heading score' and an "
-                             f"optional class name, got {len(fields)} field(s): {line.strip()!r}")
+                             f"optional class name, got {len(fields)} field(s): {excerpt(line.strip())}")
         try:
             values = [float(v) for v in fields[:8]]
         except ValueError:
             raise ValueError(f"{path}:{lineno}: not a number among the first 8 fields "
-                             f"'x y z dx dy dz heading score': {line.strip()!r}") from None
+                             f"'x y z dx dy dz heading score': {excerpt(line.strip())}") from None
         if not all(math.isfinite(v) for v in values):
-            raise ValueError(f"{path}:{lineno}: non-finite value in {line.strip()!r}; every field must "
+            raise ValueError(f"{path}:{lineno}: non-finite value in {excerpt(line.strip())}; every field must "
                              f"be a finite number")
         if min(values[3:6]) < 0:
             raise ValueError(f"{path}:{lineno}: negative box size dx, dy, dz = {values[3:6]} in "
-                             f"{line.strip()!r}; sizes are lengths in metres, >= 0")
+                             f"{excerpt(line.strip())}; sizes are lengths in metres, >= 0")
         rows.append(values)
     arr = np.array(rows, dtype=np.float64).reshape(-1, 8)
     return Predictions(np.ascontiguousarray(arr[:, :7]), np.ascontiguousarray(arr[:, 7]))

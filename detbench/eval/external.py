@@ -34,8 +34,10 @@ the BEV matches exceeds a few decimetres it says so, with the flag that likely f
 from __future__ import annotations
 
 import importlib
+import io
 import math
 import pickle
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Iterable, Sequence
@@ -47,6 +49,7 @@ from detbench.config import shipped_default
 from detbench.data.openpcdet import NON_VEHICLE_CLASSES
 from detbench.data.transforms import boxes_sensor_to_ground, ground_to_sensor, wrap_heading
 from detbench.eval.evaluate import PREDICTION_SUFFIX, Predictions
+from detbench.utils.untrusted import clip, excerpt, outside_folder, structure_problem
 
 PRED_FRAMES = ("ground", "sensor")
 TEXT_LAYOUTS = {
@@ -58,6 +61,9 @@ TEXT_LAYOUTS = {
 PICKLE_WARNING = ("a pickle can run code when loaded; detbench reads result.pkl with a restricted unpickler that "
                   "admits only plain containers, numbers, strings and numpy arrays, but open only result files you "
                   "or your own tools wrote")
+# what a result.pkl of n bytes may allocate for its arrays: 8 n + 1 MiB (see _RestrictedUnpickler)
+PICKLE_BYTES_PER_FILE_BYTE = 8
+PICKLE_BYTES_FLOOR = 1 << 20
 
 # frame-mismatch check
 OFFSET_THRESHOLD_M = 0.3  # |median dz| above this is reported
@@ -95,12 +101,66 @@ def _numpy_global(where: str, name: str):
     raise pickle.UnpicklingError(f"numpy has no {where}.{name}")
 
 
+_NUMPY_CALLS = {name: _numpy_global(where, name) for where, name in
+                (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer"))}
+
+
 class _Refused(pickle.UnpicklingError):
-    """An object type the restricted unpickler does not admit."""
+    """An object type the restricted unpickler does not admit, or arrays beyond what the file can hold."""
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    """Admits plain containers, numbers, strings and numpy arrays / dtypes / scalars; nothing else."""
+def _count(shape) -> int:
+    """Elements of an array of `shape` (an int or a tuple of ints), in Python ints (no overflow)."""
+    if type(shape) is int:
+        shape = (shape,)
+    if type(shape) is not tuple or any(type(d) is not int or d < 0 for d in shape):
+        raise pickle.UnpicklingError(f"an array shape is {excerpt(shape)}, not a tuple of sizes")
+    return math.prod(shape)
+
+
+class _RestrictedUnpickler(pickle._Unpickler):
+    """Admits plain containers, numbers, strings and numpy arrays / dtypes / scalars; nothing else.
+
+    Arrays may together take at most `budget` bytes: their data is in the file, so a result file of n
+    bytes holds at most n bytes of numbers (8 n for arrays of objects, a pointer for each element of at
+    least one byte); a file asking for more lies about its arrays and is refused before they are
+    allocated. Python's own unpickler (pickle._Unpickler) runs the file, as its memo is a dict: the C
+    unpickler grows a list to any index a 7-byte file names.
+    """
+
+    dispatch = dict(pickle._Unpickler.dispatch)
+
+    def __init__(self, file, budget: int):
+        super().__init__(file)
+        self.budget = budget
+        self.granted = 0
+        self.numpy = {"ndarray": self._ndarray, "_reconstruct": self._reconstruct, "scalar": self._scalar,
+                      "_frombuffer": self._frombuffer}  # one object each: _reconstruct knows its ndarray by identity
+
+    def _grant(self, count: int, dtype) -> None:
+        nbytes = count * np.dtype(dtype).itemsize
+        if self.granted + nbytes > self.budget:
+            raise _Refused(f"it asks for arrays of {nbytes + self.granted:,} bytes, more than its size on disk "
+                           f"allows ({self.budget:,} bytes at most); it is damaged or was made to exhaust memory")
+        self.granted += nbytes
+
+    def _ndarray(self, shape, dtype=float, *args, **kwargs):
+        self._grant(_count(shape), dtype)
+        return np.ndarray(shape, dtype, *args, **kwargs)
+
+    def _reconstruct(self, subtype, shape, dtype):
+        if subtype is not self.numpy["ndarray"]:
+            raise _Refused(f"it rebuilds an array of type {excerpt(subtype)}; only numpy arrays are read")
+        self._grant(_count(shape), dtype)
+        return _NUMPY_CALLS["_reconstruct"](np.ndarray, shape, dtype)
+
+    def _scalar(self, dtype, *args):
+        self._grant(1, dtype)
+        return _NUMPY_CALLS["scalar"](dtype, *args)
+
+    def _frombuffer(self, buf, dtype, shape, order):
+        self._grant(_count(shape), dtype)
+        return _NUMPY_CALLS["_frombuffer"](buf, dtype, shape, order)
 
     def find_class(self, module: str, name: str):
         if (module, name) == ("collections", "OrderedDict"):
@@ -110,35 +170,57 @@ class _RestrictedUnpickler(pickle.Unpickler):
         target = _NUMPY_GLOBALS.get((module, name))
         if target is None:
             raise _Refused(
-                f"it holds an object of type {module}.{name}; only plain containers and numpy arrays are read "
-                f"(a pickle can run code, so other types are refused)")
-        return _numpy_global(*target)
+                f"it holds an object of type {excerpt(f'{module}.{name}')}; only plain containers and numpy "
+                f"arrays are read (a pickle can run code, so other types are refused)")
+        if target == ("numpy", "dtype"):
+            return np.dtype
+        return self.numpy[target[1]]
+
+    def load_build(self):
+        state, inst = self.stack[-1], self.stack[-2]
+        if isinstance(inst, np.ndarray):  # (version,) shape, dtype, is_fortran, raw data: the array is reallocated
+            if not isinstance(state, tuple) or len(state) not in (4, 5) or not isinstance(state[-3], np.dtype):
+                raise pickle.UnpicklingError(f"an array's state is {excerpt(state)}, not numpy's")
+            self._grant(_count(state[-4]), state[-3])
+        elif not isinstance(inst, np.dtype):
+            raise _Refused(f"it sets the state of {excerpt(inst)}; only numpy arrays and dtypes have one")
+        pickle._Unpickler.load_build(self)
+
+    dispatch[pickle.BUILD[0]] = load_build
 
 
 def load_result_pkl(path: str | Path):
     """The object in an OpenPCDet result.pkl, read with the restricted unpickler. ValueError naming the file."""
     path = Path(path)
     try:
-        with open(path, "rb") as fh:
-            return _RestrictedUnpickler(fh).load()
+        data = path.read_bytes()
     except FileNotFoundError:
         raise FileNotFoundError(f"{path}: result file not found; give the result.pkl OpenPCDet's tools/test.py "
                                 f"wrote (output/.../eval/.../result.pkl)") from None
+    budget = PICKLE_BYTES_PER_FILE_BYTE * len(data) + PICKLE_BYTES_FLOOR
+    try:
+        obj = _RestrictedUnpickler(io.BytesIO(data), budget).load()
     except _Refused as e:
         raise ValueError(f"{path}: not read: {e}") from None
     except (pickle.UnpicklingError, EOFError, ValueError, TypeError, AttributeError, IndexError, KeyError,
-            UnicodeDecodeError) as e:
-        raise ValueError(f"{path}: not a readable pickle ({type(e).__name__}: {e}); is it OpenPCDet's result.pkl, "
-                         f"complete?") from None
+            UnicodeDecodeError, OverflowError, RecursionError, MemoryError, struct.error) as e:
+        raise ValueError(f"{path}: not a readable pickle ({type(e).__name__}: {clip(e)}); is it OpenPCDet's "
+                         f"result.pkl, complete?") from None
+    problem = structure_problem(obj, max_values=len(data) + PICKLE_BYTES_FLOOR)
+    if problem:
+        raise ValueError(f"{path}: not read: {problem}; OpenPCDet's result.pkl is a flat list of per-frame dicts")
+    return obj
 
 
 def _frame_id(value, where: str) -> str:
     if isinstance(value, np.ndarray) and value.ndim == 0:
         value = value.item()
     if isinstance(value, (bytes, np.bytes_)):
-        value = value.decode("utf-8", "replace")
-    if not isinstance(value, (str, np.str_, int, np.integer)) or isinstance(value, bool):
-        raise ValueError(f"{where}: frame_id is {type(value).__name__} {value!r}, not a frame id string")
+        value = bytes(value).decode("utf-8", "replace")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool) and abs(int(value)) < 10 ** 18:
+        value = str(int(value))
+    if not isinstance(value, (str, np.str_)):
+        raise ValueError(f"{where}: frame_id is {excerpt(value)}, not a frame id string")
     return str(value)
 
 
@@ -146,7 +228,7 @@ def _checked(boxes, scores, names, where: str) -> ExternalPredictions:
     try:
         b = np.asarray(boxes, dtype=np.float64)
         s = np.asarray(scores, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ValueError(f"{where}: boxes_lidar and score must be numeric arrays") from None
     if b.size == 0:
         b = b.reshape(0, 7)
@@ -156,10 +238,14 @@ def _checked(boxes, scores, names, where: str) -> ExternalPredictions:
     b = np.ascontiguousarray(b[:, :7])
     if len(s) != len(b):
         raise ValueError(f"{where}: {len(b)} boxes but {len(s)} scores")
-    if names is None or (len(names) == 0 and len(b) == 0):
+    raw = None if names is None else np.asarray(names, dtype=object).reshape(-1)
+    if raw is None or (len(raw) == 0 and len(b) == 0):
         n = np.full(len(b), "", dtype=object).astype(str)
     else:
-        n = np.asarray([str(v) for v in np.asarray(names).reshape(-1)], dtype=str)
+        bad = next((v for v in raw if not isinstance(v, (str, bytes))), None)
+        if bad is not None:
+            raise ValueError(f"{where}: name holds {excerpt(bad)}, not a class name string")
+        n = np.asarray([v.decode("utf-8", "replace") if isinstance(v, bytes) else str(v) for v in raw], dtype=str)
         if len(n) != len(b):
             raise ValueError(f"{where}: {len(b)} boxes but {len(n)} names")
     if not (np.isfinite(b).all() and np.isfinite(s).all()):
@@ -180,15 +266,15 @@ def predictions_from_result_pkl(path: str | Path) -> dict[str, ExternalPredictio
     for i, d in enumerate(data):
         where = f"{path}: entry {i}"
         if not isinstance(d, dict):
-            raise ValueError(f"{where} is a {type(d).__name__}, not a dict with frame_id, boxes_lidar, score, name")
+            raise ValueError(f"{where} is {excerpt(d)}, not a dict with frame_id, boxes_lidar, score, name")
         missing = [k for k in ("frame_id", "boxes_lidar", "score") if k not in d]
         if missing:
-            raise ValueError(f"{where} has no {', '.join(missing)} (keys: {sorted(map(str, d))}); is this the "
+            raise ValueError(f"{where} has no {', '.join(missing)} (keys: {excerpt(list(d))}); is this the "
                              f"result.pkl of OpenPCDet's tools/test.py?")
         fid = _frame_id(d["frame_id"], where)
         if fid in out:
-            raise ValueError(f"{where}: frame {fid!r} appears twice")
-        out[fid] = _checked(d["boxes_lidar"], d["score"], d.get("name"), f"{where} (frame {fid})")
+            raise ValueError(f"{where}: frame {excerpt(fid)} appears twice")
+        out[fid] = _checked(d["boxes_lidar"], d["score"], d.get("name"), f"{where} (frame {excerpt(fid)})")
     return out
 
 
@@ -248,7 +334,7 @@ def parse_prediction_text(path: str | Path) -> tuple[ExternalPredictions, str | 
         this = _line_layout(fields)
         if this is None:
             raise ValueError(f"{path}:{lineno}: expected 8 numbers 'x y z dx dy dz heading score' and an optional "
-                             f"class name (or another layout), got {len(fields)} field(s): {line.strip()!r}; "
+                             f"class name (or another layout), got {len(fields)} field(s): {excerpt(line.strip())}; "
                              f"{_layout_help(fields)}")
         if layout is None:
             layout = this
@@ -266,12 +352,13 @@ def parse_prediction_text(path: str | Path) -> tuple[ExternalPredictions, str | 
                 box, name, score = kitti_camera_to_lidar(np.array(cam))[0].tolist(), fields[0], float(fields[15])
                 float(fields[3])  # alpha must be a number too
         except ValueError:
-            raise ValueError(f"{path}:{lineno}: a field that should be a number is not, in {line.strip()!r} "
+            raise ValueError(f"{path}:{lineno}: a field that should be a number is not, in {excerpt(line.strip())} "
                              f"(layout {layout}: {TEXT_LAYOUTS[layout]})") from None
         if not all(math.isfinite(v) for v in [*box, score]):
-            raise ValueError(f"{path}:{lineno}: non-finite value in {line.strip()!r}")
+            raise ValueError(f"{path}:{lineno}: non-finite value in {excerpt(line.strip())}")
         if min(box[3:6]) < 0:
-            raise ValueError(f"{path}:{lineno}: negative box size in {line.strip()!r}; sizes are lengths in metres")
+            raise ValueError(f"{path}:{lineno}: negative box size in {excerpt(line.strip())}; sizes are lengths in "
+                             f"metres")
         rows.append(box)
         scores.append(score)
         names.append(name)
@@ -282,7 +369,8 @@ def parse_prediction_text(path: str | Path) -> tuple[ExternalPredictions, str | 
 def read_prediction_texts(pred_dir: str | Path) -> tuple[dict[str, ExternalPredictions], dict[str, int]]:
     """({frame_id: predictions}, {layout: number of files}) of a folder of `<frame_id>.txt` files.
 
-    Hidden files are ignored; any other entry than a .txt file is an error naming it.
+    Hidden files are ignored; any other entry than a .txt file, and a link to a file outside the folder, is an
+    error naming it.
     """
     pred_dir = Path(pred_dir)
     if not pred_dir.is_dir():
@@ -293,6 +381,11 @@ def read_prediction_texts(pred_dir: str | Path) -> tuple[dict[str, ExternalPredi
     for path in sorted(pred_dir.iterdir()):
         if path.name.startswith("."):
             continue
+        target = outside_folder(path, pred_dir)
+        if target is not None:
+            raise ValueError(f"{path}: a link to {target}, outside the prediction folder; detbench reads only the "
+                             f"files inside the folder it is given (a link out of it could expose any file); copy "
+                             f"the predictions into {pred_dir}")
         if not path.is_file() or path.suffix != PREDICTION_SUFFIX:
             hint = "; to read OpenPCDet's result file give --pred the .pkl itself" if path.suffix == ".pkl" else ""
             raise ValueError(f"{path}: unexpected entry in the prediction folder; it must hold only "
@@ -352,7 +445,7 @@ def load_predictions(path: str | Path, dataset, other_ids: Iterable[str] = (), *
     unknown = sorted(set(raw) - wanted - others)
     if unknown:
         where = path / f"{unknown[0]}{PREDICTION_SUFFIX}" if path.is_dir() else path
-        raise ValueError(f"{where}: unknown frame id {unknown[0]!r} (not a frame of the dataset"
+        raise ValueError(f"{where}: unknown frame id {excerpt(unknown[0])} (not a frame of the dataset"
                          f"{f'; {len(unknown)} such ids' if len(unknown) > 1 else ''}); check --data/--height, or "
                          f"rename or remove it")
     skipped = sorted(set(raw) & others)

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from detbench.config import ConfigError
+from detbench.data.errors import DatasetError
+from detbench.data.layout import read_info
 from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.runner import run_command
@@ -188,6 +190,11 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     if args.data and not Path(args.data).is_dir():
         raise UserError(f"--data {args.data}: no such folder; give a dataset written by tools/simulate.py or "
                         f"python -m detbench.data.convert, or leave --data out for the simulated default")
+    if args.data:  # a folder without a readable dataset.json is refused here, not by a stage after others ran
+        try:
+            read_info(args.data)
+        except DatasetError as e:
+            raise UserError(f"--data {args.data}: {e}") from None
     bad_heights = [h for h in (args.heights or []) if not (h > 0 and h < 10)]
     if bad_heights:
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "

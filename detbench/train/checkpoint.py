@@ -32,7 +32,9 @@ import torch
 from torch import nn
 
 from detbench.train.seed import restore_rng_state
+from detbench.config import MAX_CONFIG_VALUES
 from detbench.utils.io import atomic_save
+from detbench.utils.untrusted import clip, excerpt, structure_problem
 
 __all__ = [
     "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
@@ -124,7 +126,7 @@ def config_diff(saved: Mapping, current: Mapping, ignore: Iterable[str] = ()) ->
             continue
         va, vb = a.get(k, "<absent>"), b.get(k, "<absent>")
         if va != vb:
-            lines.append(f"{k}: {va!r} (checkpoint) vs {vb!r} (now)")
+            lines.append(f"{clip(k, 80)}: {excerpt(va)} (checkpoint) vs {excerpt(vb)} (now)")
     return lines
 
 
@@ -170,6 +172,11 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
     missing = [k for k in ("model_name", "config", "data", "state", "model") if k not in ckpt]
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {missing}; it is incomplete, re-train or use another one")
+    for part in ("config", "data"):  # compared and printed below: a bounded structure, before anything walks it
+        problem = structure_problem(ckpt[part], max_values=MAX_CONFIG_VALUES)
+        if problem or not isinstance(ckpt[part], Mapping):
+            raise CheckpointError(f"{path}: the checkpoint's {part} is not read: {problem or 'not a mapping'}; it "
+                                  f"was not written by tools/train.py from a config file: pass another checkpoint")
     if model_name is not None and ckpt["model_name"] != model_name:
         raise CheckpointError(f"{path}: checkpoint is for model {ckpt['model_name']!r}, not {model_name!r}; "
                               f"use --model {ckpt['model_name']} or a checkpoint of {model_name}, or start a new "

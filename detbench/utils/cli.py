@@ -11,11 +11,13 @@ its traceback (exit status 1).
 from __future__ import annotations
 
 import argparse
+import io
 import sys
 from pathlib import Path
 from collections.abc import Callable, Sequence
 
 from detbench.utils.io import DiskFullError
+from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_USER_ERROR", "UserError", "check_out_dir", "require", "run_main", "torch_device"]
 
@@ -30,8 +32,17 @@ class UserError(SystemExit):
         self.code = EXIT_USER_ERROR
 
 
+def _escape_unencodable_output() -> None:
+    """Print what the terminal cannot encode (a file name that is not UTF-8) escaped, never stop on it."""
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, io.TextIOWrapper) and stream.errors in ("strict", "backslashreplace"):
+            stream.reconfigure(errors=ESCAPE_ERRORS)
+
+
 def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
-    """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status."""
+    """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status.
+    Output the terminal cannot encode (a file name that is not UTF-8) is printed escaped (`\\xff`)."""
+    _escape_unencodable_output()
     try:
         return main(argv)
     except (UserError, DiskFullError) as e:

@@ -22,6 +22,8 @@ from pathlib import Path
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from detbench.utils.untrusted import ESCAPE_ERRORS, MAX_DEPTH, structure_problem
+
 
 def _current_umask() -> int:
     mask = os.umask(0)
@@ -119,7 +121,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
+    """UTF-8 text; a file name in it that is not UTF-8 is written with its bytes escaped (`\\xff`)."""
+    return atomic_write_bytes(path, text.encode("utf-8", ESCAPE_ERRORS))
 
 
 def _json_default(obj: Any):
@@ -169,13 +172,22 @@ def read_json(path: str | os.PathLike) -> Any:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        data = json.loads(path.read_text(encoding="utf-8"))
     except json.JSONDecodeError as e:
         raise ValueError(f"{path}: not valid JSON ({e.msg} at line {e.lineno}, column {e.colno}); "
                          f"re-create it or fix the file") from None
     except UnicodeDecodeError as e:
         raise ValueError(f"{path}: not UTF-8 text (byte {e.start} cannot be decoded), so not JSON; re-create it "
                          f"or fix the file") from None
+    except RecursionError:
+        data = _TOO_DEEP
+    problem = f"it is nested deeper than {MAX_DEPTH} levels" if data is _TOO_DEEP else structure_problem(data)
+    if problem:
+        raise ValueError(f"{path}: not read: {problem}; re-create it or fix the file")
+    return data
+
+
+_TOO_DEEP = object()
 
 
 # --------------------------------------------------------------------------- folders replaced whole
