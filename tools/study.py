@@ -56,7 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--cross-height", action="store_true",
                     help="also test each model at every other height (the cross-height matrix: rows trained at, "
                          "columns tested at; evaluations only, no extra training)")
-    ap.add_argument("--fresh", action="store_true", help="delete OUT first instead of resuming")
+    ap.add_argument("--fresh", action="store_true",
+                    help="empty OUT first instead of resuming (only a study's folder: any other is refused)")
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
     return ap
 

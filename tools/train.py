@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from contextlib import ExitStack
 from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
@@ -31,11 +32,11 @@ import torch
 import models
 from detbench.config import ConfigError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
-from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,
-                                option_overrides, write_summary)
+from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
+                                make_eval_fn, option_overrides, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
 from detbench.utils.cli import UserError, doc_parser, run_main
-from detbench.utils.io import DiskFullError
+from detbench.utils.io import DiskFullError, FolderNotReplaceable
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,7 +54,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--batch-size", type=int, default=None, help="override train.batch_size (frames per process)")
     ap.add_argument("--workers", type=int, default=None, help="override train.workers (DataLoader processes)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (cuda when available)")
-    ap.add_argument("--out", default=None, help="run folder (default runs/<model>_h<height>_<preset>)")
+    ap.add_argument("--out", default=None, help="run folder (default runs/<model>_h<height>_<preset>): new, empty or "
+                                                "a run's; locked while the run trains")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, repeatable, e.g. --set train.lr=0.002 --set model.voxel_size=[0.2,0.2,0.15]")
@@ -80,14 +82,26 @@ def run_config_from_args(args) -> dict:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from detbench.train import run_layout
+
+    cfg = run_config_from_args(args)
+    out = Path(args.out or run_layout.default_train_dir(cfg["model"]["name"], args.height, args.preset))
+    with ExitStack() as held:
+        try:
+            held.enter_context(claim_run_folder(out))
+        except FolderNotReplaceable as e:
+            raise UserError(f"--out {e}") from None
+        return train_in(args, cfg, out)
+
+
+def train_in(args, cfg: dict, out: Path) -> int:
+    """Train as `args` say into the run folder `out` (held by `main`)."""
     from detbench.eval.evaluate import EvalConfig
     from detbench.sim.dataset import default_dataset
     from detbench.train import AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed, \
-        main_process_first, run_layout, train
+        main_process_first, train
 
-    cfg = run_config_from_args(args)
     model_name = cfg["model"]["name"]
-    out = Path(args.out or run_layout.default_train_dir(model_name, args.height, args.preset))
     info = init_distributed(args.device)
     tcfg = TrainConfig.from_dict(cfg["train"])
     torch.manual_seed(tcfg.seed)

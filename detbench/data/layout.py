@@ -396,6 +396,7 @@ DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "
 
 
 # a dataset folder as a writer replaces it (`detbench.utils.io.check_replaceable`): whole, with the user's
-# own files refused, and an unfinished one (no dataset.json) replaceable too
+# own files refused, and an unfinished one (no dataset.json) replaceable too when its owner file says it is
+# a dataset (an OpenPCDet folder has the same points/, labels/ and ImageSets/)
 DATASET_FOLDER = FolderKind(name="a dataset", marker=INFO_FILE, entries=DATASET_ENTRIES, foreign="part of a dataset",
-                            unfinished="an unfinished dataset")
+                            unfinished="an unfinished dataset", key="dataset")

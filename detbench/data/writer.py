@@ -7,11 +7,14 @@ with DatasetWriter(root, heights=[0.5, 1.0, 1.8], source={"simulator": cfg, "see
 # leaving the block writes ImageSets/train.txt, test.txt (split by scene) and dataset.json
 ```
 
-Every file is written atomically (detbench.utils.io); dataset.json is written last, so a
-folder without it is an unfinished dataset and readers say so. A new or empty folder is
-written in place; an existing dataset (replaced only with `overwrite=True`) is replaced
-whole: the new one is built beside it and swapped in when complete, so no file of the old
-dataset survives and a failed or interrupted write leaves the old one as it was.
+Every file is written atomically (detbench.utils.io); the folder's owner file
+(`detbench.utils.io.OWNER_FILE`) is written first and dataset.json last, so a folder without
+dataset.json is an unfinished dataset, readers say so, and `overwrite` may replace it: the
+owner file proves it a dataset (the names points/ and labels/ alone do not: OpenPCDet uses
+them too). A new or empty folder is written in place; an existing dataset (replaced only with
+`overwrite=True`) is replaced whole: the new one is built beside it and swapped in when
+complete, so no file of the old dataset survives and a failed or interrupted write leaves the
+old one as it was.
 """
 from __future__ import annotations
 
@@ -31,7 +34,8 @@ from detbench.data.layout import (
 )
 from detbench.data.readers import format_labels, meta_dict
 from detbench.utils.io import (
-    atomic_save, atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder,
+    atomic_save, atomic_write_json, atomic_write_text, check_replaceable, folder_owner, recover_staged,
+    staged_folder, write_owner,
 )
 
 
@@ -128,6 +132,9 @@ class DatasetWriter:
         if check_replaceable(self.root, self.overwrite, DATASET_FOLDER, flag="overwrite=True"):
             self._stage = ExitStack()
             self._dir = self._stage.enter_context(staged_folder(self.root))
+        self._dir.mkdir(parents=True, exist_ok=True)
+        if folder_owner(self._dir) is None:
+            write_owner(self._dir, DATASET_FOLDER)  # first: even an unfinished dataset is known to be one
         for hk in self.height_keys:
             (self._dir / "points" / hk).mkdir(parents=True, exist_ok=True)
         for sub in ("labels", "meta", "ImageSets"):

@@ -11,9 +11,9 @@ is skipped, so the study resumes. The run folders follow detbench.train.run_layo
 from __future__ import annotations
 
 import os
-import shutil
 import sys
 import time
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,9 +28,12 @@ from detbench.studies.study_summary import (
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
 from detbench.train.run_config import load_run_config
-from detbench.train.run_layout import default_study_dir, eval_report_path, study_run_dir
+from detbench.train.run_layout import STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir
 from detbench.utils.cli import EXIT_USER_ERROR, UserError
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.io import (
+    FolderNotReplaceable, atomic_write_json, atomic_write_text, check_replaceable, claim_folder, clear_folder,
+    read_json,
+)
 
 # What each preset's detector figures can and cannot show (printed in the study's summary).
 PRESET_CAVEATS = {
@@ -59,7 +62,7 @@ class StudyOptions:
     out: str | None = None  # None: run_layout.default_study_dir(preset)
     overrides: list[str] = field(default_factory=list)  # --set KEY=VALUE for every training run
     cross_height: bool = False
-    fresh: bool = False  # delete OUT first instead of resuming
+    fresh: bool = False  # empty OUT (a study's folder) first instead of resuming
     no_progress: bool = False
 
 
@@ -174,14 +177,10 @@ def split_ability_reports(root: Path, heights: list[float], out: Path, *, no_pro
 def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.PathLike) -> tuple[Path, float]:
     """Run the study (each stage a tool of `repo` in its own process, resumed where OUT has its
     output) and write OUT/study.md and study.json: (the study.md path, the seconds it took).
-    Raises UserError naming the fix before anything is deleted or created."""
-    py = sys.executable
+    Raises UserError naming the fix before anything is deleted or created. OUT must be new, empty or a
+    study's (`detbench.train.run_layout.STUDY_FOLDER`); it is locked while the study runs, so a second
+    study on it is refused; `fresh` empties it first, only when it holds nothing but a study's files."""
     out = Path(args.out or default_study_dir(args.preset)).resolve()
-
-    def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
-            model: str | None = None) -> None:
-        run_stage(cmd, what, progress, kind, model, cwd=repo)
-
     try:
         names, left_out = study_models(args.preset, args.models, args.overrides, registry=registry)
         base_cfg = load_run_config(names[0], args.preset, overrides=args.overrides)
@@ -200,9 +199,31 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
     # only now, with the arguments known to be good, is anything deleted or created
-    if args.fresh and out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True, exist_ok=True)
+    with ExitStack() as held:
+        try:
+            if args.fresh:  # before the claim: a refused --fresh creates nothing
+                check_replaceable(out, True, STUDY_FOLDER, flag="--fresh", out="--out")
+            held.enter_context(claim_folder(out, STUDY_FOLDER, "a study", notes=_note))
+            if args.fresh:
+                clear_folder(out, STUDY_FOLDER, flag="--fresh")
+        except FolderNotReplaceable as e:
+            raise UserError(f"--out {e}") from None
+        return _run_stages(args, out, names, left_out, base_cfg, repo=repo)
+
+
+def _note(text: str) -> None:
+    print(f"note: {text}", file=sys.stderr, flush=True)
+
+
+def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[str], base_cfg: dict, *,
+                repo: str | os.PathLike) -> tuple[Path, float]:
+    """The study's stages in OUT (claimed and locked by `run_study`), then study.md and study.json."""
+    py = sys.executable
+
+    def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
+            model: str | None = None) -> None:
+        run_stage(cmd, what, progress, kind, model, cwd=repo)
+
     heights = args.heights or [float(h) for h in base_cfg["data"]["heights"]]
     quiet = ["--no-progress"] if args.no_progress else []
     t_start = time.perf_counter()

@@ -160,7 +160,8 @@ def do_train(sw: Sweep, model: str, train_id: str, over: dict, factor: float) ->
                                                            "invocations": 0}
     rec.update(wall_s=rec["wall_s"] + res.wall_s, cpu_s=rec["cpu_s"] + res.cpu_s,
                invocations=rec["invocations"] + 1)
-    atomic_write_json(rec_path, rec)
+    if run.is_dir():  # a refused start leaves no run folder, and only tools/train.py makes one
+        atomic_write_json(rec_path, rec)
     if res.timed_out:
         raise TimeoutError(f"stopped at the budget's end after {res.wall_s:.0f} s (its checkpoint is kept; "
                            f"run again with a larger --budget to continue it)")

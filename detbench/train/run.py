@@ -3,6 +3,10 @@ the frames read once before training so a bad file stops the run before it start
 the anchors, the evaluation after each epoch, and the summary files of the run."""
 from __future__ import annotations
 
+import os
+import sys
+from contextlib import contextmanager
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -14,10 +18,11 @@ from detbench.eval.evaluate import evaluate_predictions
 from detbench.train.dataset import TrainingSet
 from detbench.train import inference
 from detbench.train.loop import TrainResult
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.train.run_layout import RUN_FOLDER
+from detbench.utils.io import atomic_write_json, atomic_write_text, claim_folder
 
-__all__ = ["check_training_frames", "collect_train_boxes", "eval_frames", "make_eval_fn", "option_overrides",
-           "write_summary"]
+__all__ = ["check_training_frames", "claim_run_folder", "collect_train_boxes", "eval_frames", "make_eval_fn",
+           "option_overrides", "write_summary"]
 
 
 def option_overrides(overrides, *, epochs: int | None = None, batch_size: int | None = None,
@@ -30,6 +35,19 @@ def option_overrides(overrides, *, epochs: int | None = None, batch_size: int | 
     if data:
         out.append(f"data.root={Path(data).resolve()}")
     return out
+
+
+@contextmanager
+def claim_run_folder(out: Path) -> Iterator[None]:
+    """Hold the run folder `out` for the block (`detbench.utils.io.claim_folder`): it must be new, empty or a
+    training run's (`RUN_FOLDER`), else `FolderNotReplaceable` names it; it is locked, so a second run on it is
+    refused (`FolderInUse`, naming the holder's pid and host), and a lock left by a killed run is taken over
+    with a note. Under torchrun only rank 0 holds it (the others write nothing there)."""
+    if int(os.environ.get("RANK", "0") or 0) != 0:
+        yield
+        return
+    with claim_folder(out, RUN_FOLDER, "a training run", notes=lambda n: print(f"note: {n}", file=sys.stderr)):
+        yield
 
 
 def collect_train_boxes(train_set: TrainingSet, limit: int = 400) -> np.ndarray:

@@ -6,6 +6,10 @@ A training run of model M at mounting height H is a folder named `M_hH` inside a
 write next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height tested
 at) and `<run>/precision_hH_<split>/` (tools/precision.py). Heights are written by
 `detbench.data.frame.height_key` (1.8, 1.0, 0.25).
+
+`RUN_FOLDER` and `STUDY_FOLDER` say what such folders hold, for `detbench.utils.io.claim_folder`
+(a run or a study writes only into a folder that is new, empty or its own, and locks it while it
+runs) and `check_replaceable` (`tools/study.py --fresh` deletes only a study).
 """
 from __future__ import annotations
 
@@ -13,8 +17,26 @@ import os
 from pathlib import Path
 
 from detbench.data.frame import height_key
+from detbench.utils.io import FolderKind
 
 RUNS_DIR = Path("runs")  # default parent of runs and studies, relative to the working directory
+
+# a training run's folder: what tools/train.py writes, and the evaluations, comparisons and the trade-off
+# sweep's cost record written next to its checkpoints; one written before owner files existed is known by
+# its checkpoints or its summary
+RUN_FOLDER = FolderKind(
+    name="a training run", marker="train_summary.json",
+    entries=("checkpoints", "tensorboard", "history.json", "config.yaml", "train_summary.json", "train_summary.md",
+             "tradeoff_train.json"),
+    foreign="part of a training run", unfinished="an unfinished training run", key="run",
+    patterns=(r"eval_h[0-9.]+_[a-z]+(_[a-z]+)?", r"precision_h[0-9.]+_[a-z]+"), evidence=("checkpoints/epoch_*.pt",))
+
+# a study's folder (tools/study.py): its reports, the ability study, the combined report and one training
+# run per model and height (`model_run_name`), each of which must itself be a run
+STUDY_FOLDER = FolderKind(
+    name="a study", marker="study.json", entries=("study.json", "study.md", "ability", "combined", "cross_height"),
+    foreign="written by a study", unfinished="an unfinished study", key="study",
+    members=((r"[a-z0-9]+(?:[_-][a-z0-9]+)*_h[0-9]+(?:\.[0-9]+)?", RUN_FOLDER),), evidence=("ability/ability.json",))
 
 
 def model_run_name(model: str, height: float) -> str:
@@ -58,5 +80,5 @@ def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:
     return Path(ckpt).resolve().parent.parent
 
 
-__all__ = ["RUNS_DIR", "model_run_name", "default_train_dir", "default_study_dir", "study_run_dir", "eval_dir_name",
-           "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint"]
+__all__ = ["RUNS_DIR", "RUN_FOLDER", "STUDY_FOLDER", "model_run_name", "default_train_dir", "default_study_dir",
+           "study_run_dir", "eval_dir_name", "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint"]

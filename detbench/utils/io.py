@@ -13,6 +13,7 @@ import errno
 import json
 import math
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -193,20 +194,39 @@ _TOO_DEEP = object()
 # --------------------------------------------------------------------------- folders replaced whole
 
 class FolderNotReplaceable(FileExistsError, ValueError):
-    """A writer may not replace this folder: it is a file, it holds files the writer does not own, or it
-    holds an earlier result and replacing it was not asked for. The message names the folder and the fix."""
+    """A writer may not replace (or write into) this folder: it is a file, it holds files the writer does not
+    own, or it holds an earlier result and replacing it was not asked for. The message names the folder and
+    the fix."""
+
+
+class FolderInUse(FolderNotReplaceable):
+    """Another process holds the folder's lock (`folder_lock`); the message names its pid and host."""
+
+
+# the file by which a folder says which detbench writer made it: {"kind": "dataset"}; written into a new
+# folder before anything else, so that even an unfinished folder is known to be detbench's own
+OWNER_FILE = ".detbench-owner.json"
+# the lock of a folder a process writes into for a while (a training run, a study): `folder_lock`
+LOCK_FILE = ".detbench-lock"
 
 
 @dataclass(frozen=True)
 class FolderKind:
-    """What a folder holds that a writer replaces whole (`check_replaceable`).
+    """What a folder holds that a writer replaces whole (`check_replaceable`) or writes into (`claim_folder`).
 
     name: one such folder, with its article ("a dataset"); marker: the file a finished one holds
     ("dataset.json"); entries: every name it may hold (anything else belongs to the user, and a
     replacement would delete it); foreign: how a refusal describes other names ("part of a dataset");
     unfinished: what a folder of such entries without the marker is called ("an unfinished dataset")
     when `overwrite` may replace it, or None when it may not; removes: said when asking for
-    `overwrite`, what a replacement removes besides the obvious.
+    `overwrite`, what a replacement removes besides the obvious; key: the kind its writer records in
+    OWNER_FILE ("" when it writes none); patterns: regular expressions of further names it may hold
+    ("eval_h1.8_test"); members: (regular expression, kind) of the folders of another kind it may hold
+    (a study's training runs); evidence: glob patterns of files that show a folder written before
+    OWNER_FILE existed to be of this kind (besides `marker`).
+
+    What proves a folder to be of this kind: its OWNER_FILE names `key`, or it holds `marker` or
+    `evidence`. Entry names alone prove nothing (an OpenPCDet folder has a dataset's points/ and labels/).
     """
 
     name: str
@@ -215,29 +235,93 @@ class FolderKind:
     foreign: str
     unfinished: str | None = None
     removes: str = ""
+    key: str = ""
+    patterns: tuple[str, ...] = ()
+    members: tuple[tuple[str, FolderKind], ...] = ()
+    evidence: tuple[str, ...] = ()
+
+
+def folder_owner(dest: str | os.PathLike) -> str | None:
+    """The kind of folder `dest`'s OWNER_FILE names ("dataset"), or None when it has none (or an unreadable one)."""
+    path = Path(dest) / OWNER_FILE
+    try:
+        if path.is_file() and not path.is_symlink() and path.stat().st_size < 4096:
+            kind = json.loads(path.read_text(encoding="utf-8")).get("kind")
+            return kind if isinstance(kind, str) else None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return None
+
+
+def write_owner(dest: str | os.PathLike, kind: FolderKind) -> None:
+    """Record in `dest` (a folder) that it is a folder of `kind`, written by detbench."""
+    if kind.key:
+        atomic_write_json(Path(dest) / OWNER_FILE, {"kind": kind.key, "written_by": "detbench",
+                                                    "note": "this folder was made by detbench; its tools replace "
+                                                            "or delete only folders that hold this file"})
+
+
+def _folder_entries(dest: Path) -> list[str]:
+    """The names in `dest` that count: not temporary files of interrupted writes, nor the lock."""
+    return sorted(p.name for p in dest.iterdir() if not p.name.startswith(".tmp-") and p.name != LOCK_FILE)
+
+
+def _is_kind(dest: Path, kind: FolderKind) -> bool:
+    """`dest` (a folder) shows that it is of `kind` (OWNER_FILE, `marker` or `evidence`)."""
+    if kind.key and folder_owner(dest) == kind.key:
+        return True
+    return (dest / kind.marker).is_file() or any(next(dest.glob(g), None) is not None for g in kind.evidence)
+
+
+def _own_entry(dest: Path, name: str, kind: FolderKind) -> bool:
+    """Whether entry `name` of `dest` is one that a folder of `kind` holds."""
+    if name in kind.entries or name == OWNER_FILE or any(re.fullmatch(p, name) for p in kind.patterns):
+        return True
+    path = dest / name
+    return any(re.fullmatch(p, name) and path.is_dir() and not path.is_symlink() and _is_kind(path, k)
+               for p, k in kind.members)
+
+
+def _listing(names: list[str]) -> str:
+    return f"{', '.join(names[:5])}{', ...' if len(names) > 5 else ''}"
+
+
+def _not_this_kind(dest: Path, kind: FolderKind, listing: str, out: str) -> FolderNotReplaceable:
+    other = folder_owner(dest)
+    if other is not None:
+        return FolderNotReplaceable(f"{dest}: holds a detbench {other} (its {OWNER_FILE} says so), not "
+                                    f"{kind.name}; choose another {out}")
+    return FolderNotReplaceable(f"{dest}: the folder is not empty ({listing}) and nothing in it shows that detbench "
+                                f"wrote it as {kind.name} (no {kind.marker}, no {OWNER_FILE}); detbench does not "
+                                f"write into or delete folders it did not make: choose an empty or new {out}")
 
 
 def check_replaceable(dest: str | os.PathLike, overwrite: bool, kind: FolderKind, *, flag: str = "--overwrite",
                       out: str = "output folder") -> list[str]:
     """Refuse (`FolderNotReplaceable`) to write `kind` over `dest` unless `dest` is new or empty, or
-    `overwrite` is set and `dest` holds only `kind`'s entries (with its marker, unless `kind` allows
-    an unfinished one). Returns the entries a replacement removes (none for a new or empty folder).
+    `overwrite` is set and `dest` is proven to be of `kind` and holds only `kind`'s entries (with its
+    marker, unless `kind` allows an unfinished one). Returns the entries a replacement removes (none
+    for a new or empty folder).
 
-    The one rule for every writer that replaces a folder: the writer then builds the new folder
-    beside the old one and swaps it in whole (`staged_folder`), so nothing of the old one survives
-    and an interrupted replacement loses nothing. `flag` is how the caller's user asks to replace
-    (`--overwrite`, `overwrite=True`), `out` how the user names the folder (`--out`). Temporary
-    entries (`.tmp-*`) of interrupted writes are not counted.
+    The one rule for every writer that replaces or deletes a folder: a folder is replaced only when
+    detbench can prove it wrote it (`FolderKind`: OWNER_FILE, the marker or the evidence, never entry
+    names alone); the writer then builds the new folder beside the old one and swaps it in whole
+    (`staged_folder`), so nothing of the old one survives and an interrupted replacement loses
+    nothing. `flag` is how the caller's user asks to replace (`--overwrite`, `overwrite=True`), `out`
+    how the user names the folder (`--out`). Temporary entries (`.tmp-*`) of interrupted writes and
+    the lock are not counted.
     """
     dest = Path(dest)
     if not dest.exists():
         return []
     if not dest.is_dir():
         raise FolderNotReplaceable(f"{dest}: exists and is not a folder; choose another {out}")
-    entries = sorted(p.name for p in dest.iterdir() if not p.name.startswith(".tmp-"))
-    if not entries:
+    entries = _folder_entries(dest)
+    if not entries or (entries == [OWNER_FILE] and folder_owner(dest) == kind.key):
         return []
-    listing = f"{', '.join(entries[:5])}{', ...' if len(entries) > 5 else ''}"
+    listing = _listing(entries)
+    if not _is_kind(dest, kind):
+        raise _not_this_kind(dest, kind, listing, out)
     if not (dest / kind.marker).is_file() and (kind.unfinished is None or not overwrite):
         fix = f", or pass {flag} to replace it ({kind.unfinished})" if kind.unfinished is not None else ""
         raise FolderNotReplaceable(f"{dest}: the folder is not empty and holds no {kind.marker} ({listing}); choose "
@@ -246,13 +330,53 @@ def check_replaceable(dest: str | os.PathLike, overwrite: bool, kind: FolderKind
         removes = f" ({kind.removes})" if kind.removes else ""
         raise FolderNotReplaceable(f"{dest / kind.marker}: {kind.name} already exists here; choose another {out} "
                                    f"or pass {flag} to replace it{removes}")
-    foreign = [e for e in entries if e not in kind.entries]
+    foreign = [e for e in entries if not _own_entry(dest, e, kind)]
     if foreign:
         one = len(foreign) == 1
-        raise FolderNotReplaceable(f"{dest}: holds {', '.join(foreign[:5])}{', ...' if len(foreign) > 5 else ''}, "
+        raise FolderNotReplaceable(f"{dest}: holds {_listing(foreign)}, "
                                    f"which {'is' if one else 'are'} not {kind.foreign}; {flag} replaces the whole "
                                    f"folder, so move {'it' if one else 'them'} elsewhere first or choose another {out}")
     return [str(dest / e) for e in entries]
+
+
+def check_claimable(dest: str | os.PathLike, kind: FolderKind, *, out: str = "--out") -> None:
+    """Refuse (`FolderNotReplaceable`) to write into `dest` as a folder of `kind` unless it is new, empty or
+    proven to be of `kind` (`FolderKind`); one written before OWNER_FILE existed must hold nothing but
+    `kind`'s entries. Nothing is written."""
+    dest = Path(dest)
+    if not dest.exists():
+        return
+    if not dest.is_dir():
+        raise FolderNotReplaceable(f"{dest}: exists and is not a folder; choose another {out}")
+    entries = _folder_entries(dest)
+    if not entries:
+        return
+    if kind.key and folder_owner(dest) == kind.key:
+        return
+    if not _is_kind(dest, kind):
+        raise _not_this_kind(dest, kind, _listing(entries), out)
+    foreign = [e for e in entries if not _own_entry(dest, e, kind)]
+    if foreign:
+        one = len(foreign) == 1
+        raise FolderNotReplaceable(f"{dest}: holds {_listing(foreign)}, which {'is' if one else 'are'} not "
+                                   f"{kind.foreign}, and no {OWNER_FILE} says that the rest is detbench's; move "
+                                   f"{'it' if one else 'them'} elsewhere first or choose another {out}")
+
+
+def clear_folder(dest: str | os.PathLike, kind: FolderKind, *, flag: str, out: str = "--out") -> list[str]:
+    """Delete what `dest` holds (the folder itself, its OWNER_FILE and its lock stay) once `check_replaceable`
+    allows it to be replaced (`overwrite` given as `flag`). Returns the entries removed."""
+    dest = Path(dest)
+    removed = check_replaceable(dest, True, kind, flag=flag, out=out)
+    for e in removed:
+        p = Path(e)
+        if p.name == OWNER_FILE:
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink(missing_ok=True)
+    return [e for e in removed if Path(e).name != OWNER_FILE]
 
 
 STAGED_NEW = ".tmp-new-"  # `.tmp-new-<name>-<pid>`: the folder being built (or, after an exchange, the old one)
@@ -376,3 +500,131 @@ def staged_folder(dest: str | os.PathLike) -> Iterator[Path]:
         if staged.exists() and not (dest.exists() and dest.samefile(staged)):
             shutil.rmtree(staged, ignore_errors=True)
         raise
+
+
+# --------------------------------------------------------------------------- folders written into for a while
+
+def _holder_words(holder: dict | None) -> str:
+    if not holder:
+        return "another process (it did not say which)"
+    what = f"{holder.get('what')} " if holder.get("what") else ""
+    since = f", since {holder['since']}" if holder.get("since") else ""
+    return f"{what}pid {holder.get('pid', '?')} on host {holder.get('host', '?')}{since}"
+
+
+def _read_holder(fd: int) -> dict | None:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        text = os.read(fd, 4096).decode("utf-8", "replace")
+        holder = json.loads(text) if text.strip() else None
+    except (OSError, ValueError):
+        return None
+    return holder if isinstance(holder, dict) else None
+
+
+class FolderLock:
+    """The lock of one folder, held by this process (`folder_lock`). `recovered` is what the lock file said
+    of an earlier holder that ended without releasing it (killed), or None."""
+
+    def __init__(self, path: Path, fd: int, recovered: dict | None):
+        self.path, self.fd, self.recovered = path, fd, recovered
+
+    def note(self) -> str | None:
+        """One line about a lock taken over from a killed holder, or None."""
+        if self.recovered is None:
+            return None
+        return (f"{self.path}: taken over from {_holder_words(self.recovered)}, which ended without releasing it "
+                f"(killed?)")
+
+    def release(self) -> None:
+        if self.fd < 0:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # while still held: no other process has it open and locked
+        finally:
+            os.close(self.fd)  # closing the file releases the lock
+            self.fd = -1
+
+
+def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out") -> FolderLock:
+    """Lock the folder `dest` (which exists) for this process: `FolderInUse` naming the holder's pid and host
+    when another process holds it. The lock is the kernel's (`flock`) on `dest/LOCK_FILE`, so it ends with
+    its process however that ends (a kill -9 included); the file names the holder, and a file left by a
+    killed holder is taken over (`FolderLock.recovered`). `what` names this holder for the others' refusal."""
+    import socket
+    import time
+
+    path = Path(dest) / LOCK_FILE
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        return FolderLock(path, -1, None)
+    for _ in range(100):
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            holder = _read_holder(fd)
+            os.close(fd)
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise FolderInUse(f"{dest}: in use by {_holder_words(holder)} (its lock is {path}); wait for it to end, "
+                              f"or choose another {out}") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:  # released and removed by its holder between our open and our lock
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:  # pragma: no cover - another process creates and removes the lock a hundred times in a row
+        raise FolderInUse(f"{dest}: its lock {path} keeps changing hands; try again, or choose another {out}")
+    recovered = _read_holder(fd)
+    holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname(),
+              "since": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+    os.ftruncate(fd, 0)
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.write(fd, json.dumps(holder).encode("utf-8"))
+    os.fsync(fd)
+    return FolderLock(path, fd, recovered)
+
+
+@contextmanager
+def claim_folder(dest: str | os.PathLike, kind: FolderKind, what: str, *, out: str = "--out",
+                 notes: Callable[[str], None] | None = None) -> Iterator[FolderLock]:
+    """Hold `dest` as a folder of `kind` for the block: refused (`FolderNotReplaceable`) when it is not new,
+    empty or of `kind` (`check_claimable`), or (`FolderInUse`) while another process holds it; otherwise it
+    is created, locked (`acquire_folder_lock`; a lock left by a killed holder is taken over and reported
+    through `notes`) and marked as `kind`'s (OWNER_FILE). Released when the block ends, however it ends; a
+    folder the block left with nothing in it is removed again (with the parents the claim created), so a
+    refused start leaves no trace."""
+    dest = Path(dest)
+    check_claimable(dest, kind, out=out)
+    created = [p for p in (dest, *dest.parents) if not p.exists()]
+    dest.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = acquire_folder_lock(dest, what, out=out)
+    except BaseException:
+        _remove_created(dest, created)
+        raise
+    try:
+        if lock.note() is not None and notes is not None:
+            notes(lock.note())
+        check_claimable(dest, kind, out=out)  # again, now that no other process writes in it
+        if folder_owner(dest) is None:
+            write_owner(dest, kind)
+        yield lock
+    finally:
+        if _folder_entries(dest) in ([], [OWNER_FILE]):
+            (dest / OWNER_FILE).unlink(missing_ok=True)
+        lock.release()
+        _remove_created(dest, created)
+
+
+def _remove_created(dest: Path, created: list[Path]) -> None:
+    """Remove the folders in `created` (`dest` and parents made for it) that are empty, innermost first."""
+    for p in created:
+        try:
+            p.rmdir()
+        except OSError:
+            break

@@ -412,8 +412,8 @@ def test_writer_overwrite_replaces_the_dataset_whole(tmp_path):
     with DatasetWriter(root, [1.8], {"kind": "new"}, overwrite=True) as w:
         w.add(make_frames(7, 0, np.random.default_rng(1), heights=(1.8,)))
     files = sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
-    assert files == ["ImageSets/test.txt", "ImageSets/train.txt", "dataset.json", "labels/0007_000.txt",
-                     "meta/0007_000.json", "points/1.8/0007_000.npy"]
+    assert files == [".detbench-owner.json", "ImageSets/test.txt", "ImageSets/train.txt", "dataset.json",
+                     "labels/0007_000.txt", "meta/0007_000.json", "points/1.8/0007_000.npy"]
     assert read_info(root).source == {"kind": "new"} and sorted(p.name for p in tmp_path.iterdir()) == ["ds"]
 
     (root / "notes.txt").write_text("mine")
