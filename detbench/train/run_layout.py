@@ -34,7 +34,8 @@ RUN_FOLDER = FolderKind(
 # a study's folder (tools/study.py): its reports, the ability study, the combined report and one training
 # run per model and height (`model_run_name`), each of which must itself be a run
 STUDY_FOLDER = FolderKind(
-    name="a study", marker="study.json", entries=("study.json", "study.md", "ability", "combined", "cross_height"),
+    name="a study", marker="study.json", entries=("study.json", "study.md", "ability", "combined", "cross_height",
+             "splits"),
     foreign="written by a study", unfinished="an unfinished study", key="study",
     members=((r"[a-z0-9]+(?:[_-][a-z0-9]+)*_h[0-9]+(?:\.[0-9]+)?", RUN_FOLDER),), evidence=("ability/ability.json",))
 
