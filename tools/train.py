@@ -32,7 +32,7 @@ import models
 from detbench.config import ConfigError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, collect_train_boxes, eval_frames, make_eval_fn,
-                                option_overrides, write_summary)
+                                option_overrides, training_data_info, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
 from detbench.utils.cli import UserError, doc_parser, run_main
 from detbench.utils.io import DiskFullError
@@ -99,6 +99,7 @@ def main(argv=None) -> int:
                                                  progress=info.is_main and not args.no_progress)
         if train_set.sampler is None:  # with ground-truth sampling on, building its database read every frame
             check_training_frames(train_set.frames)
+        data_info = training_data_info(root, args.height, train_set)
         requested_model_cfg = cfg["model"]  # before `auto` values are resolved from the training data
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
@@ -124,7 +125,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     try:
         result = train(model, train_set, tcfg, out, model_name=model_name, run_config=cfg,
-                       data_info={"source": str(root), "height": float(args.height)}, dist_info=info,
+                       data_info=data_info, dist_info=info,
                        resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
                        resume_hint=f"run the same command again with --resume (--out {out})")
     except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
@@ -135,7 +136,8 @@ def main(argv=None) -> int:
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:
-        write_summary(out, model_name, args.height, args.preset, root, result, seconds, init)
+        write_summary(out, model_name, args.height, args.preset, root, result, seconds, init,
+                      frames_sha1=data_info["frames_sha1"])
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
             print("interrupted: resume with the same command and --resume")
