@@ -3,6 +3,9 @@ data, settings or heights on the same folder, and dataset metadata that misreads
 are in, their dtype, their byte order). Each is refused or recomputed with the reason named."""
 import shutil
 
+import numpy as np
+import pytest
+
 from tests.faults.faultkit import snapshot, train_argv
 
 
@@ -22,3 +25,50 @@ def test_resume_compares_the_datas_content_not_its_path(trained_run, data_copy, 
     assert "re-simulated or edited in place" in err and "another config" not in err and "Traceback" not in err
     assert snapshot(run) == before
 
+
+def _edit_info(root, key, **values):
+    import json
+
+    info = json.loads((root / "dataset.json").read_text())
+    info["heights"][key].update(values)
+    (root / "dataset.json").write_text(json.dumps(info, indent=2))
+
+
+def test_points_frame_that_contradicts_the_road_is_named(data_copy, tool):
+    """Ground-frame points declared `points_frame: sensor` are raised by the height once more on load; validation
+    finds the road off z = 0 in the declared frame and names the setting and its fix."""
+    _edit_info(data_copy, "1.8", points_frame="sensor")
+    before = snapshot(data_copy)
+    code, err = tool("validate", data_copy)
+    assert code == 1 and f"{data_copy / 'dataset.json'}: heights.1.8.points_frame is 'sensor', but the points are " \
+                         f"in the ground frame" in err
+    assert "set heights.1.8.points_frame to 'ground'" in err and "1 problem(s)" in err
+    assert snapshot(data_copy) == before
+
+
+@pytest.mark.parametrize("dtype, named", [("<f8", "float64"), (">f4", "big-endian float32")])
+def test_bin_points_of_another_dtype_are_named_and_the_fix_keeps_the_values(dtype, named, data_copy, tool):
+    """`.bin` points saved as float64 or big-endian are named as such (not as NaN points to drop), by validation
+    and by every reader, and the conversion the message gives restores the very points."""
+    folder = data_copy / "points" / "1.8"
+    originals = {}
+    for f in sorted(folder.glob("*.npy")):
+        originals[f.stem] = np.load(f)
+        originals[f.stem].astype("<f4").tofile(f.with_suffix(".bin"))
+        f.unlink()
+    _edit_info(data_copy, "1.8", points_ext=".bin")
+    bad = folder / "0001_002.bin"
+    originals["0001_002"].astype(dtype).tofile(bad)
+    before = snapshot(data_copy)
+    code, err = tool("validate", data_copy)
+    assert code == 1 and f"{bad}: the bytes are {named} values" in err and "1 problem(s)" in err, err
+    assert "drop them" not in err
+    fix = next(ln for ln in err.splitlines() if str(bad) in ln).split(" with ", 1)[1]
+    code, err = tool("analyze", "--data", data_copy, "--out", data_copy.parent / "a", "--no-figures",
+                     "--no-progress")
+    assert code == 2 and f"{bad}: the bytes are {named} values" in err
+    assert snapshot(data_copy) == before
+    exec(fix, {"np": np})
+    code, err = tool("validate", data_copy)
+    assert code == 0, err
+    np.testing.assert_array_equal(np.fromfile(bad, "<f4").reshape(-1, 4), originals["0001_002"])
