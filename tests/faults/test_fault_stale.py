@@ -72,3 +72,34 @@ def test_bin_points_of_another_dtype_are_named_and_the_fix_keeps_the_values(dtyp
     code, err = tool("validate", data_copy)
     assert code == 0, err
     np.testing.assert_array_equal(np.fromfile(bad, "<f4").reshape(-1, 4), originals["0001_002"])
+
+
+def test_study_rerun_with_other_inputs_does_not_report_the_old_figures(fault_data, data_copy, tool, tmp_path):
+    """A finished study rerun on the same --out: with other data or other settings its training run is refused,
+    naming the run and what changed, before anything runs or changes; with an added height the ability study
+    (and so the headline) is computed again with it, and the unchanged run is kept."""
+    from detbench.sim.dataset import simulate_dataset
+
+    out = tmp_path / "study"
+
+    def study(data, *extra):
+        return tool("study", "--preset", "smoke", "--models", "second", "--data", data, "--out", out,
+                    "--no-progress", "--set", "train.tensorboard=false", "--set", "train.epochs=1", *extra)
+
+    code, log = study(fault_data, "--heights", "1.8")
+    assert code == 0, log[-3000:]
+    simulate_dataset(data_copy, frames=12, heights=[0.5, 1.8], seed=1, frames_per_scene=4, overwrite=True,
+                     progress=False)
+    before = snapshot(out)
+    code, err = study(data_copy, "--heights", "1.8")
+    assert code == 2 and f"the training run {out / 'second_h1.8'} (data_fingerprint: then " in err, err[-3000:]
+    assert "run this study with another --out" in err and "Traceback" not in err
+    code, err = study(fault_data, "--heights", "1.8", "--set", "train.epochs=2")
+    assert code == 2 and f"the training run {out / 'second_h1.8'} (config train.epochs: 1 then, 2 now)" in err
+    assert snapshot(out) == before
+    code, log = study(fault_data, "--heights", "0.5", "1.8")
+    assert code == 0, log[-3000:]
+    assert "ability.json was computed from other inputs (" in log and "heights: then [1.8], now [0.5, 1.8]" in log
+    assert "train second at 1.8 m" not in log and "train second at 0.5 m" in log
+    ability = __import__("json").loads((out / "ability" / "ability.json").read_text())
+    assert "0.5" in str(ability["heights"]) and "0.5 m" in (out / "study.md").read_text().split("## 1.")[0]
