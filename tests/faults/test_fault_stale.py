@@ -43,7 +43,10 @@ def test_points_frame_that_contradicts_the_road_is_named(data_copy, tool):
     assert code == 1 and f"{data_copy / 'dataset.json'}: heights.1.8.points_frame is 'sensor', but the points are " \
                          f"in the ground frame" in err
     assert "set heights.1.8.points_frame to 'ground'" in err and "1 problem(s)" in err
-    assert snapshot(data_copy) == before
+    code, err = tool("analyze", "--data", data_copy, "--out", data_copy.parent / "a", "--no-figures",
+                     "--no-progress")
+    assert code == 2 and "heights.1.8.points_frame is 'sensor', but the points are in the ground frame" in err
+    assert not (data_copy.parent / "a").exists() and snapshot(data_copy) == before
 
 
 @pytest.mark.parametrize("dtype, named", [("<f8", "float64"), (">f4", "big-endian float32")])
