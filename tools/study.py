@@ -15,8 +15,11 @@ Examples:
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
 
-The study resumes: a stage whose output exists is skipped, an interrupted training run is
-resumed from its last checkpoint. Delete OUT (or pass --fresh) to start over.
+The study resumes: a stage whose output exists and was computed from the same inputs (the
+data's content, the config, the heights) is skipped, an interrupted training run is resumed
+from its last checkpoint. A rerun with other inputs computes the ability study and the
+evaluations again and refuses a finished training run computed from other inputs, naming it
+and what changed. Delete OUT (or pass --fresh) to start over.
 Writes OUT/study.md and OUT/study.json, OUT/ability/, OUT/<model>_h<height>/ (training run
 and eval_*/ report) and OUT/combined/ (table and figures).
 """

@@ -33,7 +33,7 @@ import models
 from detbench.config import ConfigError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
-                                make_eval_fn, option_overrides, write_summary)
+                                make_eval_fn, option_overrides, training_data_info, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
 from detbench.utils.cli import UserError, doc_parser, run_main
 from detbench.utils.io import DiskFullError, FolderNotReplaceable
@@ -113,6 +113,7 @@ def train_in(args, cfg: dict, out: Path) -> int:
                                                  progress=info.is_main and not args.no_progress)
         if train_set.sampler is None:  # with ground-truth sampling on, building its database read every frame
             check_training_frames(train_set.frames)
+        data_info = training_data_info(root, args.height, train_set)
         requested_model_cfg = cfg["model"]  # before `auto` values are resolved from the training data
         model_cfg = models.prepare_model_config(model_name, cfg["model"], collect_train_boxes(train_set))
         cfg["model"] = model_cfg
@@ -138,7 +139,7 @@ def train_in(args, cfg: dict, out: Path) -> int:
     t0 = time.perf_counter()
     try:
         result = train(model, train_set, tcfg, out, model_name=model_name, run_config=cfg,
-                       data_info={"source": str(root), "height": float(args.height)}, dist_info=info,
+                       data_info=data_info, dist_info=info,
                        resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
                        resume_hint=f"run the same command again with --resume (--out {out})")
     except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
@@ -149,7 +150,8 @@ def train_in(args, cfg: dict, out: Path) -> int:
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None
     seconds = time.perf_counter() - t0
     if info.is_main:
-        write_summary(out, model_name, args.height, args.preset, root, result, seconds, init)
+        write_summary(out, model_name, args.height, args.preset, root, result, seconds, init,
+                      frames_sha1=data_info["frames_sha1"])
         print(f"trained in {seconds / 60:.1f} min; checkpoint {result.last_checkpoint}")
         if result.interrupted:
             print("interrupted: resume with the same command and --resume")

@@ -67,10 +67,12 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM, *, root: str 
                 ) -> np.ndarray:
     """Read one point cloud: `.npy` or `.bin` -> (N, 4) float32 x, y, z, intensity.
 
-    `.npy` must hold a 2-D float32 array with 4 columns. `.bin` is a raw float32 file with
-    `columns` values a point (KITTI: 4); only the first four are kept. Points are checked to
-    be finite; the .npy header must describe the data the file holds. Raises MissingFileError /
-    DatasetError naming the file.
+    `.npy` must hold a 2-D float32 array with 4 columns. `.bin` is a raw little-endian float32
+    file with `columns` values a point (KITTI: 4); only the first four are kept. Points are
+    checked to be finite and plausible (coordinates within MAX_POINT_COORD metres, no
+    subnormal floats); a .bin file that holds float64 or big-endian values is named as such,
+    with a conversion that keeps the values; the .npy header must describe the data the file
+    holds. Raises MissingFileError / DatasetError naming the file.
     """
     path = Path(path)
     if not path.is_file():
@@ -107,8 +109,10 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM, *, root: str 
             raise DatasetError(f"file size {size} bytes is not a multiple of {4 * columns} "
                                f"({columns} float32 values a point); the file is truncated or has "
                                f"another column count (set bin_columns in dataset.json)", path=path)
-        arr = np.fromfile(path, dtype="<f4").reshape(-1, columns)
-        arr = np.ascontiguousarray(arr[:, :POINT_DIM]) if columns != POINT_DIM else arr
+        full = np.fromfile(path, dtype="<f4").reshape(-1, columns)
+        if _implausible_rows(full).size:
+            _refuse_misread_bin(path, columns, size)
+        arr = np.ascontiguousarray(full[:, :POINT_DIM]) if columns != POINT_DIM else full
         arr = arr.astype(np.float32, copy=False)
     else:
         raise DatasetError(f"unknown points extension {ext!r}; use .npy or .bin", path=path)
@@ -117,7 +121,60 @@ def read_points(path: str | os.PathLike, columns: int = POINT_DIM, *, root: str 
         bad_rows = np.flatnonzero(~finite.all(axis=1))
         raise DatasetError(f"{bad_rows.size} point(s) have NaN or inf values (first at row {int(bad_rows[0])}); "
                            f"drop them (points[np.isfinite(points).all(1)]) and save again", path=path)
+    bad_rows = _implausible_rows(arr)
+    if bad_rows.size:
+        raise DatasetError(f"{bad_rows.size} point(s) have implausible values (first at row {int(bad_rows[0])}: "
+                           f"{_row_text(arr[bad_rows[0]])}; a coordinate beyond {MAX_POINT_COORD:g} m or a "
+                           f"subnormal float): the points were not written as float32 metres; re-create the file "
+                           f"from the source data", path=path)
     return arr
+
+
+# a coordinate no LiDAR measures (metres); beyond it, the bytes were read with the wrong dtype or byte order
+MAX_POINT_COORD = 1e4
+_F32_TINY = float(np.finfo(np.float32).tiny)
+
+
+def _implausible_rows(arr: np.ndarray) -> np.ndarray:
+    """Rows of (N, C) points holding NaN / inf, a coordinate beyond MAX_POINT_COORD, or a subnormal value:
+    what float64 values or big-endian floats read as little-endian float32 give, and measured points do not."""
+    with np.errstate(all="ignore"):
+        a = np.asarray(arr, dtype=np.float64)
+        mag = np.abs(a)
+        bad = ~np.isfinite(a) | ((mag > 0) & (mag < _F32_TINY))
+        bad[:, :3] |= mag[:, :3] > MAX_POINT_COORD
+    return np.flatnonzero(bad.any(axis=1))
+
+
+def _row_text(row: np.ndarray) -> str:
+    return "(" + ", ".join(f"{float(v):.3g}" for v in row[:POINT_DIM]) + ")"
+
+
+def _refuse_misread_bin(path: Path, columns: int, size: int) -> None:
+    """A .bin file whose little-endian float32 reading holds implausible values: DatasetError naming what the
+    bytes are when another reading (big-endian float32, float64) gives plausible points, with a conversion
+    that keeps the values; else with the non-finite rows' fix when those are the only problem; else naming the
+    implausible values. Returns when the file reads as measured points after all (never: called on a problem)."""
+    q = str(path).replace("'", "\\'")
+    readings = [(">f4", "big-endian float32", f"np.fromfile('{q}', '>f4').astype('<f4').tofile('{q}')")]
+    if size % (8 * columns) == 0:
+        readings.append(("<f8", "float64", f"np.fromfile('{q}', '<f8').astype('<f4').tofile('{q}')"))
+    for dtype, what, fix in readings:
+        other = np.fromfile(path, dtype=dtype).reshape(-1, columns)
+        if other.size and not _implausible_rows(other).size:
+            raise DatasetError(f"the bytes are {what} values ({other.shape[0]} points of {columns} values, all "
+                               f"plausible), not the little-endian float32 a .bin file holds: read as float32 they "
+                               f"give NaN, inf or implausible values; convert the file (the values kept) with "
+                               f"{fix}", path=path)
+    full = np.fromfile(path, dtype="<f4").reshape(-1, columns)
+    if not np.isfinite(full).all() and not _implausible_rows(np.where(np.isfinite(full), full, 0.0)).size:
+        return  # only NaN / inf rows: the caller names them
+    bad = _implausible_rows(full)
+    raise DatasetError(f"{bad.size} of {full.shape[0]} point(s) read as little-endian float32 with {columns} values "
+                       f"a point have NaN, inf or implausible values (first at row {int(bad[0])}: "
+                       f"{_row_text(full[bad[0]])}), and no other dtype or byte order fits either: check how the "
+                       f"file was written (float32, little-endian, bin_columns in dataset.json) and re-create it",
+                       path=path)
 
 
 # --------------------------------------------------------------------------- labels

@@ -14,11 +14,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from collections.abc import Sequence
 
+import numpy as np
+
 from detbench.data.errors import DatasetError
 from detbench.data.frame import height_key
 from detbench.data.dataset import Height3Dataset, split_ids
-from detbench.data.layout import LABELS_DIR, read_info
-from detbench.data.readers import label_problems
+from detbench.data.layout import INFO_FILE, LABELS_DIR, read_info
+from detbench.data.readers import label_problems, read_points
+from detbench.data.transforms import sensor_to_ground
+
+# the road check: points 2-40 m away horizontally, the road's height their 5th percentile of z, over up to
+# ROAD_FRAMES frames with at least ROAD_MIN_POINTS such points; the declared frame is refused when it puts the
+# road more than ROAD_TOLERANCE_M off z = 0 and the other frame puts it at less than half that distance
+ROAD_FRAMES = 16
+ROAD_MIN_POINTS = 50
+ROAD_TOLERANCE_M = 0.2
 
 
 @dataclass
@@ -47,16 +57,18 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
 
     Checks dataset.json, ImageSets (duplicates, ids in both splits, a scene in both splits
     under the by-scene rule), every label (every malformed line of it), meta and points file
-    (format, values, counts), and warns about label files no split lists. A file's problem
-    is listed once. Stops collecting after `max_errors`.
+    (format, dtype and byte order, plausible values, counts), what the points say about the
+    frame they are in (`points_frame_problem`: the road's height in the declared frame), and
+    warns about label files no split lists. A file's problem is listed once. Stops collecting
+    after `max_errors`.
     """
     root = Path(root)
     rep = ValidationReport(root=str(root))
     reported: set[str] = set()  # files already listed (a missing meta file fails the scene check and its frame)
 
-    def err(e: Exception | str) -> bool:
+    def err(e: Exception | str, once: bool = True) -> bool:
         where = getattr(e, "path", None)
-        if where is not None and getattr(e, "line", None) is None and where in reported:
+        if once and where is not None and getattr(e, "line", None) is None and where in reported:
             return False
         reported.add(where)
         rep.errors.append(str(e))
@@ -128,7 +140,57 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
             if isinstance(e, DatasetError) and e.path and Path(e.path).name.startswith(fid) \
                     and Path(e.path).suffix in (".txt", ".json"):
                 break  # a shared label/meta problem: reported once, not once per height
+    for ds in datasets.values():
+        problem = points_frame_problem(ds)
+        if problem and err(DatasetError(problem, path=root / INFO_FILE), once=False):
+            return rep
     return rep
+
+
+def _road_height(points: np.ndarray) -> float | None:
+    """The road's z (metres) under `points`: the 5th percentile of z of the points 2-40 m away horizontally
+    (None with fewer than ROAD_MIN_POINTS of them)."""
+    d = np.hypot(points[:, 0], points[:, 1])
+    z = points[(d >= 2.0) & (d <= 40.0), 2]
+    return float(np.percentile(z, 5)) if z.size >= ROAD_MIN_POINTS else None
+
+
+def points_frame_problem(dataset: Height3Dataset, max_frames: int = ROAD_FRAMES) -> str | None:
+    """What the points say about the frame they are in, against dataset.json's `points_frame`: None when the
+    road lies at z = 0 in the declared frame (or the frames tell nothing), else the problem and its fix.
+
+    The origin of the ego ground frame is on the road below the sensor, so its road lies at z = 0; in the
+    sensor frame the road lies about the mounting height below. Ground-frame points declared `sensor` are
+    raised by the height once more on load (and sensor-frame points declared `ground` are left below the
+    road), which every count of points in a box then misreads."""
+    ids = dataset.frame_ids
+    if not ids:
+        return None
+    picks = sorted({ids[int(i)] for i in np.linspace(0, len(ids) - 1, min(max_frames, len(ids)))})
+    declared_z, other_z = [], []
+    for fid in picks:
+        try:
+            sensor = dataset.read_labels(fid)["sensor"]
+            raw = read_points(dataset.points_file(fid), dataset.height_info.bin_columns)
+        except (DatasetError, FileNotFoundError, ValueError):
+            continue  # the frame loop names it
+        as_sensor = sensor_to_ground(raw, sensor.height, sensor.pitch_deg)
+        declared, other = (raw, as_sensor) if dataset.height_info.points_frame == "ground" else (as_sensor, raw)
+        zd, zo = _road_height(declared), _road_height(other)
+        if zd is not None and zo is not None:
+            declared_z.append(zd)
+            other_z.append(zo)
+    if not declared_z:
+        return None
+    zd, zo = float(np.median(declared_z)), float(np.median(other_z))
+    if abs(zd) <= ROAD_TOLERANCE_M or abs(zo) >= 0.5 * abs(zd):
+        return None
+    frame = dataset.height_info.points_frame
+    other = "sensor" if frame == "ground" else "ground"
+    return (f"heights.{dataset.height_key}.points_frame is {frame!r}, but the points are in the {other} frame: "
+            f"read as {frame}-frame points, the road under them lies at z = {zd:+.2f} m in the ego ground frame "
+            f"(median of {len(declared_z)} frames; the road lies at z = 0 there), read as {other}-frame points at "
+            f"z = {zo:+.2f} m; set heights.{dataset.height_key}.points_frame to {other!r} in dataset.json")
 
 
 def _every_line(e: Exception, classes) -> list[Exception]:

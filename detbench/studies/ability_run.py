@@ -114,10 +114,15 @@ def simulated_example(args: AbilityOptions, cfg_source: dict):
 def stream_dataset(args: AbilityOptions, study: AbilityStudy) -> dict:
     """Feed `study` from a dataset on disk (all heights of each instant together)."""
     from detbench.data import DatasetError, Height3Dataset, read_info
+    from detbench.data.validate import points_frame_problem
 
     info = read_info(args.data)
     keys = [height_key(h) for h in args.heights] if args.heights else list(info.heights)
     datasets = [Height3Dataset(args.data, k, args.split, lane_width=args.lane_width) for k in keys]
+    for ds in datasets:  # points in another frame than declared would shift every count of points in a box
+        problem = points_frame_problem(ds)
+        if problem:
+            raise UserError(f"{ds.info_file}: {problem}")
     ids = datasets[0].frame_ids
     if not ids:
         raise UserError(f"{args.data}: the {args.split!r} split lists no frames; try --split all")

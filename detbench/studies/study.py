@@ -6,7 +6,10 @@ height on that height's training split (tools/train.py); (4) each evaluated on t
 height's test split, and with cross_height on the other heights' too (tools/eval.py); (5) the
 combined report, and study.md opening with the summary of detbench.studies.study_summary.
 Every stage is a tool in its own process (detbench.studies.runner); a stage whose output exists
-is skipped, so the study resumes. The run folders follow detbench.train.run_layout.
+and was computed from the same inputs (detbench.studies.stage_inputs: the data's content, the
+stage's config and settings) is skipped, so the study resumes. A stage whose inputs changed is
+recomputed (the ability study, an evaluation) or, for a training run, refused with the reason
+before any stage runs. The run folders follow detbench.train.run_layout.
 """
 from __future__ import annotations
 
@@ -24,10 +27,14 @@ from detbench.studies.cross_height import cross_height_markdown, cross_height_ma
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.runner import run_command
 from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
+from detbench.studies.stage_inputs import (
+    RECORDS_DIR, FileHashes, changes, config_digest, dataset_fingerprint, training_config, write_record,
+)
 from detbench.studies.study_summary import (
     detector_summary, detector_summary_lines, height_summary, height_summary_lines, unlearned_lines,
 )
 from detbench.train.run_config import load_run_config
+from detbench.train.checkpoint import CheckpointManager
 from detbench.train.run_layout import STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir
 from detbench.utils.cli import EXIT_USER_ERROR, UserError
 from detbench.utils.io import (
@@ -261,22 +268,61 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     print(f"dataset: {root}")
     info = read_json(root / "dataset.json") if (root / "dataset.json").is_file() else {}
 
+    # What each stage is computed from; a finished training run computed from other inputs is refused
+    # here, before any stage runs (its figures would be reported under this study's data and settings).
+    hashes = FileHashes(out / RECORDS_DIR / "file_hashes.json")
+    try:
+        data_fp = {h: dataset_fingerprint(root, [h], hashes) for h in heights}
+    except (DatasetError, FileNotFoundError, ValueError) as e:
+        raise UserError(str(e)) from None
+    sets = [x for o in args.overrides for x in ("--set", o)]
+    train_inputs = {(name, h): {"model": name, "height": h, "preset": args.preset,
+                                "config": training_config(load_run_config(name, args.preset, overrides=args.overrides)),
+                                "data_fingerprint": data_fp[h]}
+                    for name in names for h in heights}
+    stale = []
+    for (name, h), inputs in train_inputs.items():
+        run_dir = study_run_dir(out, name, h)
+        started = (run_dir / "train_summary.json").is_file() or CheckpointManager(run_dir / "checkpoints").latest()
+        diff = changes(out, _train_stage(name, h), inputs) if started else []
+        if diff:
+            stale.append(f"{run_dir} ({'; '.join(diff)})")
+    if stale:
+        more = f" (and {len(stale) - 1} more run(s))" if len(stale) > 1 else ""
+        raise UserError(f"--out {out}: the training run {stale[0]}{more} was computed from other inputs than this "
+                        f"study's (data_fingerprint: the content of the dataset's files at that height), so its "
+                        f"figures would be reported as this study's; run this study with another --out, or delete "
+                        f"that run folder to train it again")
+    hashes.save()
+
     # 2. LiDAR detection ability at every height: on the preset's own simulated stream of
     # study.ability_frames frames (counts only, no points: the paper's 8000 frames in about a
     # minute), else on every frame of the dataset.
     ability_json = out / "ability" / "ability.json"
-    if ability_json.is_file():
-        progress.skip()
-    elif ability_frames:
-        sets = [x for o in data_cfg.get("sim_overrides") or [] for x in ("--set", o)]
-        run([py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed", str(data_cfg.get("seed", 0)),
-             "--preset", str(data_cfg.get("sim_preset", "paper")), *sets,
-             "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet],
-            f"LiDAR detection ability ({ability_frames} simulated frames)", progress, "ability")
+    sim_sets = [x for o in data_cfg.get("sim_overrides") or [] for x in ("--set", o)]
+    if ability_frames:
+        ability_inputs = {"heights": heights, "simulate": ability_frames, "seed": data_cfg.get("seed", 0),
+                          "sim_preset": str(data_cfg.get("sim_preset", "paper")), "sim_overrides": sim_sets}
     else:
-        run([py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights", *map(str, heights),
-             "--out", str(out / "ability"), *quiet], "LiDAR detection ability (every frame of the dataset)",
-            progress, "ability")
+        ability_inputs = {"heights": heights, "data_fingerprint": dataset_fingerprint(root, heights, hashes)}
+        hashes.save()
+    ability_diff = changes(out, "ability", ability_inputs) if ability_json.is_file() else None
+    if ability_json.is_file() and not ability_diff:
+        progress.skip()
+    else:
+        if ability_diff:
+            print(f"note: {ability_json} was computed from other inputs ({'; '.join(ability_diff)}); "
+                  f"computing it again", flush=True)
+        if ability_frames:
+            run([py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed", str(data_cfg.get("seed", 0)),
+                 "--preset", str(data_cfg.get("sim_preset", "paper")), *sim_sets,
+                 "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet],
+                f"LiDAR detection ability ({ability_frames} simulated frames)", progress, "ability")
+        else:
+            run([py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights", *map(str, heights),
+                 "--out", str(out / "ability"), *quiet], "LiDAR detection ability (every frame of the dataset)",
+                progress, "ability")
+        write_record(out, "ability", ability_inputs)
 
     # 2b. the splits against the ability study: does the test split hold the traffic the ability tables describe?
     split_reports = split_ability_reports(root, heights, out / "splits", no_progress=args.no_progress)
@@ -286,29 +332,41 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
             print(line, file=sys.stderr)
 
     # 3-4. train and evaluate each model at each height
+    def eval_stage(name: str, h: float, t: float, ckpt: str, report: Path, what: str) -> None:
+        """Evaluate the checkpoint trained at `h` on the test split at `t`, unless `report` holds that already."""
+        inputs = {"train": config_digest(train_inputs[(name, h)]), "checkpoint": hashes.sha1(ckpt),
+                  "test_height": t, "data_fingerprint": data_fp[t],
+                  "eval": config_digest(load_run_config(name, args.preset, overrides=args.overrides)["eval"])}
+        hashes.save()
+        diff = changes(out, _eval_stage(name, h, t), inputs) if report.is_file() else None
+        if report.is_file() and not diff:
+            progress.skip()
+            return
+        if diff:
+            print(f"note: {report} was computed from other inputs ({'; '.join(diff)}); evaluating again", flush=True)
+        run([py, "tools/eval.py", "--ckpt", ckpt, *(["--test-height", str(t)] if t != h else []), "--split", "test",
+             "--out", str(report.parent), "--device", eval_device, *quiet], what, progress, "eval", name)
+        write_record(out, _eval_stage(name, h, t), inputs)
+
     reports = []
     for name in names:
         for h in heights:
             run_dir = study_run_dir(out, name, h)
             report = eval_report_path(run_dir, h)
             reports.append(report)
-            if report.is_file():
-                progress.skip()
-                progress.skip()
-                continue
             summary = run_dir / "train_summary.json"
             done = summary.is_file() and not read_json(summary).get("interrupted", False)
             if done:
                 progress.skip()
             else:
                 resume = ["--resume"] if (run_dir / "checkpoints").is_dir() else []
-                sets = [x for o in args.overrides for x in ("--set", o)]
+                write_record(out, _train_stage(name, h), train_inputs[(name, h)])  # a killed run resumes with it
                 run([py, "tools/train.py", "--model", name, "--height", str(h), "--preset", args.preset,
                      "--data", str(root), "--device", args.device, "--out", str(run_dir), *resume, *sets,
                      "--no-eval", *quiet], f"train {name} at {h:g} m", progress, "train", name)
+            write_record(out, _train_stage(name, h), train_inputs[(name, h)])
             ckpt = read_json(summary)["checkpoint"]
-            run([py, "tools/eval.py", "--ckpt", ckpt, "--split", "test", "--out", str(report.parent),
-                 "--device", eval_device, *quiet], f"evaluate {name} at {h:g} m", progress, "eval", name)
+            eval_stage(name, h, h, ckpt, report, f"evaluate {name} at {h:g} m")
 
     # 4b. the cross-height matrix: each checkpoint tested at the other heights
     cross_reports = []
@@ -322,12 +380,7 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
                     cross_reports.append(report)
                     if t == h:
                         continue
-                    if report.is_file():
-                        progress.skip()
-                        continue
-                    run([py, "tools/eval.py", "--ckpt", ckpt, "--test-height", str(t), "--split", "test",
-                         "--out", str(report.parent), "--device", eval_device, *quiet],
-                        f"evaluate {name} trained at {h:g} m on {t:g} m", progress, "eval", name)
+                    eval_stage(name, h, t, ckpt, report, f"evaluate {name} trained at {h:g} m on {t:g} m")
 
     # 5. combined report and figures
     run([py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")],
@@ -363,6 +416,7 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,
+             "data_fingerprints": {str(h): fp for h, fp in data_fp.items()},
              "ability_frames": ability_frames or None, "test_frames": test_frames, "test_scenes": test_scenes,
              "seconds_this_invocation": round(seconds, 1),
              "train_seconds": {m: round(t, 1) for m, t in train_s.items()},
@@ -436,6 +490,14 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
              "Figures: " + ", ".join(f"`{p.relative_to(out)}`" for p in sorted(out.glob("*/*.png"))), ""]
     atomic_write_text(out / "study.md", "\n".join(lines))
     return out / "study.md", seconds
+
+
+def _train_stage(name: str, h: float) -> str:
+    return f"train_{name}_h{h:g}"
+
+
+def _eval_stage(name: str, h: float, t: float) -> str:
+    return f"eval_{name}_h{h:g}_on_h{t:g}"
 
 
 __all__ = ["PRESET_CAVEATS", "Progress", "StudyOptions", "run_stage", "run_study", "study_models"]

@@ -17,7 +17,7 @@ Typical use (tools/train.py; `models` is the detector registry above this packag
     run_config["model"] = models.prepare_model_config("second", run_config["model"], train_boxes)
     model = models.build_model("second", run_config["model"])
     result = train(model, train_set, cfg, out_dir, model_name="second", run_config=run_config,
-                   data_info={"source": str(root), "height": height}, dist_info=info,
+                   data_info=training_data_info(root, height, train_set), dist_info=info,
                    resume=args.resume, eval_fn=my_eval)
     cleanup(info)
 

@@ -6,7 +6,8 @@ A checkpoint is a dict of tensors, numbers, strings, lists and dicts only:
 format "detbench-checkpoint", version 1
 model_name  str              the registered detector name, e.g. "second"
 config      dict             the full run config (after overrides)
-data        dict             where the training data came from, e.g. {"source": ..., "height": 1.8}
+data        dict             the training data: {"source": ROOT, "height": 1.8, "frames_sha1": the content
+                             fingerprint of the training frames (frames_fingerprint)}
 state       dict             TrainState: epoch (completed), step_in_epoch, global_step, seed
 model       state_dict       weights (DDP wrapper removed)
 optimizer / scheduler / scaler   state_dicts (absent in weight-only exports)
@@ -39,7 +40,7 @@ from detbench.utils.untrusted import clip, excerpt, structure_problem
 __all__ = [
     "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
     "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "check_finite_weights",
-    "config_diff", "init_from_checkpoint",
+    "config_diff", "init_from_checkpoint", "DATA_FINGERPRINT_KEY",
 ]
 
 CKPT_FORMAT = "detbench-checkpoint"
@@ -138,7 +139,8 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
     Args:
         path: the .pt file.
         model_name / config / data: when given, must match what the checkpoint recorded
-            (config compared key by key, `ignore_keys` dotted keys excepted).
+            (config compared key by key, `ignore_keys` dotted keys excepted; data by height and by the
+            training frames' content fingerprint when both record one, else by source path).
         map_location: where tensors are loaded (default CPU; `load_state_dict` moves them).
     Returns:
         The checkpoint dict (see the module doc).
@@ -181,11 +183,11 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
         raise CheckpointError(f"{path}: checkpoint is for model {ckpt['model_name']!r}, not {model_name!r}; "
                               f"use --model {ckpt['model_name']} or a checkpoint of {model_name}, or start a new "
                               f"run in another output folder")
+    ignore_keys = tuple(ignore_keys)
     if data is not None:
-        bad = config_diff(ckpt["data"], data)
-        if bad:
-            raise CheckpointError(f"{path}: checkpoint was trained on other data ({'; '.join(bad)}); resume with "
-                                  f"the same --data/--height, or start a new run in another output folder")
+        _check_same_data(path, ckpt["data"], data)
+        if _fingerprint_of(ckpt["data"]) is not None and _fingerprint_of(ckpt["data"]) == _fingerprint_of(data):
+            ignore_keys += ("data.root",)  # the same frames, moved: their content decides, not the path
     if config is not None:
         bad = config_diff(ckpt["config"], config, ignore_keys)
         if bad:
@@ -194,6 +196,31 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
                                   f"the same config file and --set options, or start a new run in another "
                                   f"output folder")
     return ckpt
+
+
+DATA_FINGERPRINT_KEY = "frames_sha1"  # the training frames' content (detbench.data.gt_database.frames_fingerprint)
+
+
+def _fingerprint_of(data: Mapping) -> str | None:
+    value = data.get(DATA_FINGERPRINT_KEY) if isinstance(data, Mapping) else None
+    return str(value) if value else None
+
+
+def _check_same_data(path: Path, saved: Mapping, now: Mapping) -> None:
+    """CheckpointError unless `now` is the data the checkpoint was trained on: the same height and, when both
+    record it, the same content fingerprint of the training frames (the path then does not matter: a dataset
+    may move). A checkpoint without a fingerprint is compared by its recorded source path."""
+    old_fp, new_fp = _fingerprint_of(saved), _fingerprint_of(now)
+    ignore = (DATA_FINGERPRINT_KEY, "source") if old_fp and new_fp else (DATA_FINGERPRINT_KEY,)
+    bad = config_diff(saved, now, ignore)
+    if bad:
+        raise CheckpointError(f"{path}: checkpoint was trained on other data ({'; '.join(bad)}); resume with "
+                              f"the same --data/--height, or start a new run in another output folder")
+    if old_fp and new_fp and old_fp != new_fp:
+        raise CheckpointError(f"{path}: the training frames at {now.get('source', '?')} are not the ones this run "
+                              f"was trained on (their content fingerprint is {new_fp[:12]}, the checkpoint's "
+                              f"{old_fp[:12]}): the dataset was re-simulated or edited in place since; resume "
+                              f"on the data the run started with, or start a new run in another output folder")
 
 
 def _damaged(path: Path, what: str) -> str:

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from detbench.data import Height3Dataset
+from detbench.data.gt_database import frames_fingerprint
 from detbench.data.regions import RANGE_NAMES
 from detbench.data.validate import check_frames
 from detbench.eval.evaluate import evaluate_predictions
@@ -22,7 +23,7 @@ from detbench.train.run_layout import RUN_FOLDER
 from detbench.utils.io import atomic_write_json, atomic_write_text, claim_folder
 
 __all__ = ["check_training_frames", "claim_run_folder", "collect_train_boxes", "eval_frames", "make_eval_fn",
-           "option_overrides", "write_summary"]
+           "option_overrides", "training_data_info", "write_summary"]
 
 
 def option_overrides(overrides, *, epochs: int | None = None, batch_size: int | None = None,
@@ -56,6 +57,15 @@ def collect_train_boxes(train_set: TrainingSet, limit: int = 400) -> np.ndarray:
     idx = np.unique(np.linspace(0, n - 1, num=min(n, limit)).astype(int)) if n else []
     boxes = [train_set.get(int(i), 0, augment=False).gt_boxes for i in idx]
     return np.concatenate(boxes) if boxes else np.zeros((0, 7), np.float32)
+
+
+def training_data_info(root: Path, height: float, train_set: TrainingSet) -> dict:
+    """What a checkpoint records of its training data and `--resume` compares: the source folder, the height and
+    the content fingerprint of the training frames (`frames_fingerprint`; the ground-truth database's, already
+    computed when it has one), so a dataset re-simulated or edited in place is told from the one trained on."""
+    db = train_set.sampler.db if train_set.sampler is not None else None
+    sha1 = (db.info.get("frames_sha1") if db is not None else None) or frames_fingerprint(train_set.frames)
+    return {"source": str(root), "height": float(height), "frames_sha1": str(sha1)}
 
 
 def check_training_frames(frames) -> None:
@@ -94,10 +104,12 @@ def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
 
 
 def write_summary(out: Path, model_name: str, height: float, preset: str, root: Path, result: TrainResult,
-                  seconds: float, init: dict | None = None) -> None:
-    """OUT/train_summary.json and .md of a run of `model_name` at `height` metres with `preset`."""
+                  seconds: float, init: dict | None = None, frames_sha1: str | None = None) -> None:
+    """OUT/train_summary.json and .md of a run of `model_name` at `height` metres with `preset` (`frames_sha1`:
+    the training frames' content fingerprint, from `training_data_info`)."""
     last = result.history[-1] if result.history else {}
     summary = {"model": model_name, "height": float(height), "preset": preset, "data": str(root),
+               "frames_sha1": frames_sha1,
                "epochs_completed": result.epochs_completed, "global_step": result.global_step,
                "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
                "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,

@@ -35,7 +35,7 @@ RUN_FOLDER = FolderKind(
 # run per model and height (`model_run_name`), each of which must itself be a run
 STUDY_FOLDER = FolderKind(
     name="a study", marker="study.json", entries=("study.json", "study.md", "ability", "combined", "cross_height",
-             "splits"),
+             "splits", "stage_inputs"),
     foreign="written by a study", unfinished="an unfinished study", key="study",
     members=((r"[a-z0-9]+(?:[_-][a-z0-9]+)*_h[0-9]+(?:\.[0-9]+)?", RUN_FOLDER),), evidence=("ability/ability.json",))
 
