@@ -226,8 +226,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         print(f"  {len(preds)} of {full['num_frames']} frames had predictions")
         for note in saved.notes:
             print(f"  {note}")
-        for w in full.get("warnings", []):
-            print(f"tools/eval.py: warning: {w}", file=sys.stderr)
+    for w in full.get("warnings", []):
+        print(f"tools/eval.py: warning: {w}", file=sys.stderr)
     print(f"  {time.perf_counter() - t0:.1f} s")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

@@ -176,12 +176,13 @@ def test_a_missing_or_nan_height_is_named_not_suggested_for_simulation(trained_r
     assert "simulate nan" not in err
 
 
-@pytest.mark.parametrize("emptied, named", [
-    ("points", "not one point lies in any of the"),
-    ("labels", "no vehicle in any range of the 12 frame(s)"),
+@pytest.mark.parametrize("emptied, named, eval_named", [
+    ("points", "not one point lies in any of the", "not one point lies in any vehicle box in the 4 frame(s)"),
+    ("labels", "no vehicle in any range of the 12 frame(s)", "no vehicle in any range in the 4 frame(s)"),
 ])
-def test_analyze_warns_when_every_points_file_or_box_is_empty(emptied, named, data_copy, tool, tmp_path):
-    """Every points file (or every label file) empty reported 'LDR 0.00' with no word."""
+def test_analyze_and_eval_warn_when_every_points_file_or_box_is_empty(emptied, named, eval_named, data_copy, tool,
+                                                                      tmp_path):
+    """Every points file (or every label file) empty reported 'LDR 0.00' (and recall 0) with no word."""
     for f in (data_copy / emptied).rglob("*"):
         if f.is_file() and emptied == "points":
             np.save(f, np.load(f)[:0])
@@ -192,3 +193,7 @@ def test_analyze_warns_when_every_points_file_or_box_is_empty(emptied, named, da
     code, out = tool("analyze", "--data", data_copy, "--out", tmp_path / "a", "--no-figures", "--bootstrap", "0",
                      "--no-progress")
     assert code == 0 and f"warning: 1.8 m: {named}" in out and f"warning: 0.5 m: {named}" in out, out[-2000:]
+    (tmp_path / "pred").mkdir()
+    code, out = tool("eval", "--data", data_copy, "--height", "1.8", "--pred", tmp_path / "pred", "--out",
+                     tmp_path / "e", "--bootstrap", "0", "--no-extras", "--no-progress")
+    assert code == 0 and f"warning: {eval_named} of the 'test' split at 1.8 m" in out, out[-2000:]
