@@ -22,7 +22,7 @@ from .ct3d import CT3D
 from .pillarnet import PillarNet
 from .pointrcnn import PointRCNN
 from .second import SECOND
-from .stages.checks import ModelConfigError, check_model_config
+from .stages import ModelConfigError, check_model_config
 
 if TYPE_CHECKING:  # detbench.train loads the whole training stack: imported for the annotations only
     from detbench.train.detector import Detector
