@@ -10,7 +10,8 @@ so a new stage's keys are covered when they follow the names below.
   *_thresh, *_iou,
   *_ratio, min_overlap, dropout,
   iou_rectifier
-  *top_k, num_points, roi_per_image   an integer >= 1
+  *top_k, num_points              an integer >= 1 (a proposal budget, proposals.*top_k and
+                                  roi_per_image, may be 0)
   num_anchor_sizes                an integer in [1, MAX_ANCHOR_SIZES]
   *strides, *channels, num_filters,   integers >= 1
   *_channels, hidden_dim, heads, fc
@@ -29,7 +30,7 @@ MAX_ANCHOR_SIZES = 16  # k-means clusters of the training boxes' sizes (num_anch
 
 _FRACTION_SUFFIXES = ("score_threshold", "nms_threshold", "iou_threshold", "_thresh", "_thresh_lo", "_iou", "_ratio")
 _FRACTION_KEYS = ("min_overlap", "dropout", "iou_rectifier")
-_COUNT_KEYS = ("num_points", "roi_per_image", "hidden_dim", "heads")
+_COUNT_KEYS = ("num_points", "hidden_dim", "heads")
 _POSITIVE_INT_LIST_SUFFIXES = ("strides", "channels", "num_filters", "fc")
 
 
@@ -84,6 +85,9 @@ def _check_key(key: str, value: Any, dotted: str, where: str) -> None:
     elif key == "num_anchor_sizes":
         if not (_is_count(value) and value <= MAX_ANCHOR_SIZES):
             raise bad(f"an integer from 1 to {MAX_ANCHOR_SIZES} (k-means clusters of the training boxes' sizes)")
+    elif (".proposals." in dotted and key.endswith("top_k")) or key == "roi_per_image":
+        if not _is_count(value, 0):  # a two-stage model's proposal budget of 0 leaves the second stage idle
+            raise bad("an integer >= 0")
     elif key.endswith("top_k") or key in _COUNT_KEYS:
         if not _is_count(value):
             raise bad("an integer >= 1")
