@@ -189,12 +189,22 @@ def parse_override(item: str) -> tuple[list[str], Any]:
         value = yaml_value(raw, f"--set {excerpt(key)}") if raw.strip() else ""
     except yaml.YAMLError:
         value = raw
-    if isinstance(value, str):  # YAML 1.1 reads 1e-3 as a string; users mean a number
+    return key.split("."), _numbers_from_strings(value)
+
+
+def _numbers_from_strings(value: Any) -> Any:
+    """`value` with number-like strings made numbers, inside lists and mappings too: YAML 1.1 reads 1e-3 and
+    1e30 as strings, and users mean numbers."""
+    if isinstance(value, list):
+        return [_numbers_from_strings(v) for v in value]
+    if isinstance(value, dict):
+        return {k: _numbers_from_strings(v) for k, v in value.items()}
+    if isinstance(value, str):
         try:
-            value = float(value) if any(c in value for c in ".eE") else int(value)
+            return float(value) if any(c in value for c in ".eE") else int(value)
         except ValueError:
             pass
-    return key.split("."), value
+    return value
 
 
 def apply_overrides(cfg: dict, overrides: Iterable[str], reference: Mapping | None = None,

@@ -22,6 +22,7 @@ from .ct3d import CT3D
 from .pillarnet import PillarNet
 from .pointrcnn import PointRCNN
 from .second import SECOND
+from .stages import ModelConfigError, check_model_config
 
 if TYPE_CHECKING:  # detbench.train loads the whole training stack: imported for the annotations only
     from detbench.train.detector import Detector
@@ -43,16 +44,22 @@ def get_model_class(name: str) -> type[Detector]:
 
 
 def prepare_model_config(name: str, model_cfg: dict, train_boxes: np.ndarray) -> dict:
-    """Fill data-derived values of `model_cfg` (a copy is returned)."""
-    return get_model_class(name).prepare_config(model_cfg, train_boxes)
+    """Fill data-derived values of `model_cfg` (a copy is returned); ModelConfigError for a value out of range."""
+    cls = get_model_class(name)
+    check_model_config(model_cfg)
+    return cls.prepare_config(model_cfg, train_boxes)
 
 
 def build_model(name: str, model_cfg: dict) -> nn.Module:
-    """The registered detector `name` (an `nn.Module` following `Detector`) built from `model_cfg`."""
-    return get_model_class(name)(model_cfg)
+    """The registered detector `name` (an `nn.Module` following `Detector`) built from `model_cfg`, whose values
+    are range-checked first (`check_model_config`: ModelConfigError naming the key)."""
+    cls = get_model_class(name)
+    check_model_config(model_cfg)
+    return cls(model_cfg)
 
 
-__all__ = ["REGISTRY", "build_model", "get_model_class", "prepare_model_config"]
+__all__ = ["REGISTRY", "ModelConfigError", "build_model", "check_model_config", "get_model_class",
+           "prepare_model_config"]
 
 
 def load_from_checkpoint(path, device="cpu"):
@@ -69,8 +76,9 @@ def load_from_checkpoint(path, device="cpu"):
     try:
         model = build_model(name, ckpt["config"]["model"])
     except (KeyError, ValueError, TypeError) as e:
-        raise CheckpointError(f"{path}: cannot rebuild model {name!r} from the checkpoint's config ({e}); "
-                              f"was it written by another detbench version?") from None
+        raise CheckpointError(f"{path}: cannot rebuild model {name!r} from the checkpoint's config ({e}); the "
+                              f"config stored in it was edited or written by another detbench version; use a "
+                              f"checkpoint as tools/train.py wrote it") from None
     load_model_weights(model, ckpt, path)
     return model.to(device).eval(), ckpt
 

@@ -16,6 +16,7 @@ IV-VI) and PNG figures (Fig. 5-7 and LDR against distance) into OUT.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -25,7 +26,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
-from detbench.utils.cli import run_main
+from detbench.utils.cli import check_out_dir, require, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -85,8 +86,28 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """UserError for a value the study cannot use, before any frame is read or simulated."""
+    for h in args.heights or ():
+        require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
+    require(args.lane_width is None or (math.isfinite(args.lane_width) and args.lane_width > 0),
+            f"--lane-width {args.lane_width}: must be a positive number of metres (e.g. 3.5)")
+    require(math.isfinite(args.distance_bin) and args.distance_bin > 0,
+            f"--distance-bin {args.distance_bin:g}: must be a positive number of metres (e.g. 10)")
+    require(args.bootstrap >= 0, f"--bootstrap {args.bootstrap}: must be an integer >= 0 (0 = no intervals)")
+    require(args.example_window >= 1, f"--example-window {args.example_window}: must be an integer >= 1")
+    require(args.frames_per_scene is None or args.frames_per_scene >= 1,
+            f"--frames-per-scene {args.frames_per_scene}: must be an integer >= 1")
+    out = check_out_dir(args.out)
+    if args.json:
+        check_out_dir(Path(args.json).parent, "--json")
+        require(not Path(args.json).is_dir(), f"--json {args.json}: is a folder; give a file path, e.g. "
+                                              f"{out / 'ability.json'}")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    check_arguments(args)
     opts = AbilityOptions(
         data=args.data, simulate=args.simulate, heights=args.heights, seed=args.seed, preset=args.preset,
         overrides=args.overrides, frames_per_scene=args.frames_per_scene, split=args.split,

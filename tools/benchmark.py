@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import subprocess
 import sys
@@ -38,7 +39,7 @@ from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, m
                                             peak_rss_mib)
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
-from detbench.utils.cli import EXIT_USER_ERROR, UserError, doc_parser, run_main
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, check_out_dir, doc_parser, require, run_main, torch_device
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
 
@@ -101,6 +102,19 @@ def worker(args) -> dict:
                             train_steps=args.train_steps, train_batch=args.train_batch)
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """UserError for a value that would time nothing or cannot run, before any model is built."""
+    for flag, v, low in (("--frames", args.frames, 1), ("--warmup", args.warmup, 0),
+                         ("--train-steps", args.train_steps, 0), ("--train-batch", args.train_batch, 1),
+                         ("--load", args.load, 0), ("--threads", args.threads, 1)):
+        require(v is None or v >= low, f"{flag} {v}: must be an integer >= {low}")
+    require(math.isfinite(args.height) and args.height > 0,
+            f"--height {args.height:g}: must be a positive number of metres")
+    if args.device != "auto":
+        torch_device(args.device)
+    check_out_dir(args.out)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if args.worker:
@@ -109,6 +123,8 @@ def main(argv=None) -> int:
     import torch
 
     from detbench.train.run_layout import eval_report_path, study_run_dir
+
+    check_arguments(args)
 
     names = args.models or sorted(models.REGISTRY)
     for name in names:

@@ -19,6 +19,7 @@ Combine several reports (models x heights) into one table and the paper's Fig. 8
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -39,7 +40,7 @@ from detbench.eval.run import (
     write_predictions,
     write_report,
 )
-from detbench.utils.cli import UserError, check_out_dir, run_main, torch_device
+from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
 
 SPLITS = ("train", "test", "all")
 
@@ -141,6 +142,11 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
     except CheckpointError as e:
         raise UserError(str(e)) from None
     trained_h = float(ck["data"].get("height", float("nan")))
+    if args.model is not None and args.model != ck["model_name"]:
+        raise UserError(f"--model {args.model}: --ckpt {args.ckpt} is a {ck['model_name']} checkpoint; leave --model "
+                        f"out (the report takes the checkpoint's model) or give --model {ck['model_name']}")
+    if not math.isfinite(trained_h) and args.height is None:
+        raise UserError(f"--ckpt {args.ckpt}: records no training height (data.height); give --height H in metres")
     if args.height is None:
         args.height = trained_h
     elif abs(args.height - trained_h) > 1e-6:
@@ -158,8 +164,22 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         args.out = run_dir_of_checkpoint(args.ckpt) / eval_dir_name(args.height, args.split, args.stage)
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """UserError for a value that would zero or void the result: no frames per pass, a threshold no score or
+    IoU can reach, a negative bootstrap, a height that is not a positive number of metres."""
+    require(args.batch_size >= 1, f"--batch-size {args.batch_size}: must be an integer >= 1 (frames per forward pass)")
+    require(math.isfinite(args.score_threshold) and 0 <= args.score_threshold <= 1,
+            f"--score-threshold {args.score_threshold:g}: must be a score in [0, 1]; predictions below it are dropped")
+    require(math.isfinite(args.iou_threshold) and 0 < args.iou_threshold <= 1,
+            f"--iou-threshold {args.iou_threshold:g}: must be an IoU in (0, 1], e.g. 0.7")
+    require(args.bootstrap >= 0, f"--bootstrap {args.bootstrap}: must be an integer >= 0 (0 = no intervals)")
+    for flag, h in (("--height", args.height), ("--test-height", args.test_height)):
+        require(h is None or (math.isfinite(h) and h > 0), f"{flag} {h}: must be a positive number of metres")
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
     """Evaluate one prediction folder (or checkpoint) at one height and split; exit status."""
+    check_arguments(args)
     if args.test_height is not None and args.ckpt is None:
         raise UserError("--test-height goes with --ckpt (test a model trained at one height on another)")
     if args.ckpt is not None:
@@ -206,8 +226,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
         print(f"  {len(preds)} of {full['num_frames']} frames had predictions")
         for note in saved.notes:
             print(f"  {note}")
-        for w in full.get("warnings", []):
-            print(f"tools/eval.py: warning: {w}", file=sys.stderr)
+    for w in full.get("warnings", []):
+        print(f"tools/eval.py: warning: {w}", file=sys.stderr)
     print(f"  {time.perf_counter() - t0:.1f} s")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0

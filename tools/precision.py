@@ -21,6 +21,7 @@ Units: metres, radians, seconds per frame; AP@R40 and recall are fractions in [0
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -31,7 +32,7 @@ import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before
 from detbench.config import shipped_default
 from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,
                                       checkpoint_precision_report, precision_frames, precision_summary_lines)
-from detbench.utils.cli import UserError, run_main
+from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -63,8 +64,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    import torch
-
     import models
     from detbench.data.errors import DatasetError
     from detbench.train.checkpoint import CheckpointError
@@ -74,12 +73,13 @@ def main(argv=None) -> int:
         raise UserError("--frames must be >= 0 (0 = all) and --batch-size >= 1")
     if not 0.0 < args.match_iou <= 1.0:
         raise UserError(f"--match-iou must lie in (0, 1], got {args.match_iou}")
-    try:
-        device = torch.device(args.device)
-    except RuntimeError as e:
-        raise UserError(f"--device {args.device!r}: {e}") from None
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {args.device}: CUDA is not available on this machine; use --device cpu")
+    require(math.isfinite(args.score_threshold) and 0 <= args.score_threshold <= 1,
+            f"--score-threshold {args.score_threshold:g}: must be a score in [0, 1]; detections below it are dropped")
+    require(args.height is None or (math.isfinite(args.height) and args.height > 0),
+            f"--height {args.height}: must be a positive number of metres")
+    if args.out is not None:
+        check_out_dir(args.out)
+    device = torch_device(args.device)
     try:
         model, ck = models.load_from_checkpoint(args.ckpt, device)
     except CheckpointError as e:

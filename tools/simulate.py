@@ -73,6 +73,13 @@ def main(argv=None) -> int:
     from detbench.sim.dataset import plan_frames, write_simulation
     from detbench.sim.run import RunSummary, run_lidars, simulation_source
 
+    from detbench.data.frame import height_key
+
+    for h in args.heights or ():
+        try:
+            height_key(h)
+        except ValueError as e:
+            raise UserError(f"--heights {h:g}: {e}") from None
     try:
         cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
         frames, fps = plan_frames(args.frames, args.scenes, args.frames_per_scene,

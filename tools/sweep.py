@@ -24,6 +24,7 @@ correlations are fractions or coefficients in [-1, 1]; S-MIG in bits; times in s
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -34,7 +35,7 @@ from detbench import runtime  # noqa: F401  (first detbench import: thread-runti
 from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
-from detbench.utils.cli import run_main
+from detbench.utils.cli import UserError, check_out_dir, require, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -85,8 +86,28 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def check_arguments(args: argparse.Namespace) -> None:
+    """UserError for a value the sweep cannot use, before anything is simulated."""
+    from detbench.data.frame import height_key
+
+    for h in args.heights or ():
+        try:
+            height_key(h)
+        except ValueError as e:
+            raise UserError(f"--heights {h:g}: {e}") from None
+    for flag, v in (("--distance-bin", args.distance_bin), ("--voxel", args.voxel),
+                    ("--evidence-scale", args.evidence_scale)):
+        require(v is None or (math.isfinite(v) and v > 0), f"{flag} {v}: must be a positive number")
+    require(args.correlation_replicates >= 1,
+            f"--correlation-replicates {args.correlation_replicates}: must be an integer >= 1")
+    check_out_dir(args.out)
+    if args.json:
+        check_out_dir(Path(args.json).parent, "--json")
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    check_arguments(args)
     out = Path(args.out)
     json_path = Path(args.json) if args.json else out / "sweep.json"
     if args.from_json:

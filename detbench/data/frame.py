@@ -37,6 +37,9 @@ def height_key(height: float) -> str:
     if not math.isfinite(h) or h <= 0:
         raise ValueError(f"mounting height must be a positive number of metres, got {height!r}")
     s = f"{h:.3f}".rstrip("0")
+    if s == "0.":  # keys are written to the millimetre: a smaller height would be the key 0.0
+        raise ValueError(f"mounting height {height!r} m is below 1 mm, the resolution heights are written in; "
+                         f"give a height of at least 0.001 m")
     return s + "0" if s.endswith(".") else s
 
 

@@ -164,8 +164,9 @@ class DatasetInfo:
         """The HeightInfo of `height` (metres or key); unknown heights list the available ones."""
         try:
             key = height if isinstance(height, str) and height in self.heights else height_key(float(height))
-        except (TypeError, ValueError):
-            key = str(height)
+        except (TypeError, ValueError) as e:
+            raise DatasetError(f"height {height!r} is not a mounting height ({e}); give one of the dataset's "
+                               f"heights: {', '.join(self.heights) or '(none)'} (metres)", path=path or None) from None
         if key not in self.heights:
             raise DatasetError(
                 f"no height {key} m in this dataset; available heights: "

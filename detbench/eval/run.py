@@ -101,7 +101,24 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
                                                     score_threshold=settings.score_threshold)
         if full["frame_check"]["warning"]:
             full["warnings"] = [full["frame_check"]["warning"]]
+    empty = empty_input_warning(full)
+    if empty:
+        full.setdefault("warnings", []).append(empty)
     return full
+
+
+def empty_input_warning(report: dict) -> str | None:
+    """The warning for a report whose figures mean nothing: no labelled vehicle in any range, or vehicles without
+    one point inside any (empty or misread point files); None otherwise."""
+    cells = [r["all"] for r in report["results"].values()]
+    where = f"the {report['num_frames']} frame(s) of the {report['split']!r} split at {report['height']:g} m"
+    if not any(c["total"] for c in cells):
+        return (f"no vehicle in any range in {where}: every label file is empty or holds no vehicle box, so "
+                f"recall and AP are undefined; check the labels")
+    if not any(c["lidar_detected"] for c in cells):
+        return (f"not one point lies in any vehicle box in {where}, so every LDR is 0 and no vehicle is evaluated; "
+                f"the point files are probably empty or misread (run tools/validate.py on the dataset)")
+    return None
 
 
 def report_title(model: str | None, height: float, split: str, stage: str = "refined") -> str:

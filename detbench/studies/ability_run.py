@@ -148,6 +148,22 @@ def stream_dataset(args: AbilityOptions, study: AbilityStudy) -> dict:
     return src
 
 
+def empty_input_warnings(report: dict) -> list[str]:
+    """What makes an LDR meaningless rather than low: a height with no labelled vehicle in any frame, or with
+    vehicles but not one point inside any of them (empty or misread point files)."""
+    out = []
+    for h, ranges in report["heights"].items():
+        cells = [ranges[r]["all"] for r in RANGE_NAMES]
+        if not any(c["total"] for c in cells):
+            out.append(f"{h} m: no vehicle in any range of the {report['num_frames']} frame(s): every label file is "
+                       f"empty or holds no vehicle box, so there is no LDR to report; check the labels")
+        elif not any(c["detected"] for c in cells):
+            out.append(f"{h} m: not one point lies in any of the {max(c['total'] for c in cells)} vehicle box(es), so "
+                       f"every LDR is 0.00; the point files are probably empty or misread (run tools/validate.py on "
+                       f"the dataset)")
+    return out
+
+
 def run_ability(args: AbilityOptions) -> tuple[dict, ExampleFrames | None, float]:
     """Count every frame of the source at every height: (the report for ability.json, the frame for the
     bird's-eye figure or None, the seconds the counting took). UserError names the fix for a bad option."""
@@ -171,6 +187,9 @@ def run_ability(args: AbilityOptions) -> tuple[dict, ExampleFrames | None, float
         raise UserError(str(e)) from None
     seconds = time.perf_counter() - t0
     report = study.report(source=source)
+    for w in empty_input_warnings(report):
+        report.setdefault("warnings", []).append(w)
+        print(f"warning: {w}", file=sys.stderr)
     report["extras"]["run"] = {"seconds": round(seconds, 2),
                                "frames_per_second": round(study.num_frames / seconds, 1) if seconds > 0 else None}
     example = None

@@ -6,6 +6,7 @@ A checkpoint is a dict of tensors, numbers, strings, lists and dicts only:
 format "detbench-checkpoint", version 1
 model_name  str              the registered detector name, e.g. "second"
 config      dict             the full run config (after overrides)
+config_digest str            SHA-256 of `config` (canonical JSON): a config edited after saving is refused
 data        dict             the training data: {"source": ROOT, "height": 1.8, "frames_sha1": the content
                              fingerprint of the training frames (frames_fingerprint)}
 state       dict             TrainState: epoch (completed), step_in_epoch, global_step, seed
@@ -20,9 +21,12 @@ File names in OUT/checkpoints/: `epoch_003.pt` after 3 complete epochs;
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import pickle
 import re
+import warnings
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -40,7 +44,7 @@ from detbench.utils.untrusted import clip, excerpt, structure_problem
 __all__ = [
     "CKPT_FORMAT", "CKPT_VERSION", "CheckpointError", "TrainState", "CheckpointManager",
     "save_checkpoint", "load_checkpoint", "restore_training", "load_model_weights", "check_finite_weights",
-    "config_diff", "init_from_checkpoint", "DATA_FINGERPRINT_KEY",
+    "config_diff", "config_digest", "init_from_checkpoint", "DATA_FINGERPRINT_KEY",
 ]
 
 CKPT_FORMAT = "detbench-checkpoint"
@@ -69,6 +73,12 @@ class TrainState:
         return cls(**{k: int(d[k]) for k in ("epoch", "step_in_epoch", "global_step", "seed")})
 
 
+def config_digest(config: Mapping) -> str:
+    """SHA-256 (hex) of `config` as canonical JSON (sorted keys): what a checkpoint records of its config."""
+    text = json.dumps(config, sort_keys=True, separators=(",", ":"), default=str, allow_nan=True)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
 def unwrap_model(model: nn.Module) -> nn.Module:
     """The module inside a DistributedDataParallel / DataParallel wrapper (or `model` itself)."""
     return model.module if hasattr(model, "module") and isinstance(model.module, nn.Module) else model
@@ -88,6 +98,7 @@ def save_checkpoint(path: str | os.PathLike, *, model: nn.Module, state: TrainSt
         "version": CKPT_VERSION,
         "model_name": str(model_name),
         "config": dict(config),
+        "config_digest": config_digest(config),
         "data": dict(data),
         "state": state.to_dict(),
         "model": unwrap_model(model).state_dict(),
@@ -179,6 +190,15 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
         if problem or not isinstance(ckpt[part], Mapping):
             raise CheckpointError(f"{path}: the checkpoint's {part} is not read: {problem or 'not a mapping'}; it "
                                   f"was not written by tools/train.py from a config file: pass another checkpoint")
+    if "config_digest" not in ckpt:
+        warnings.warn(f"{path}: records no config digest (written by an older detbench), so an edit of its stored "
+                      f"config cannot be detected; re-save it with this version to have it checked", stacklevel=2)
+    elif (not isinstance(ckpt["config"], Mapping)
+          or ckpt["config_digest"] != config_digest(ckpt["config"])):
+        raise CheckpointError(f"{path}: the config stored in this checkpoint was changed after it was written (it "
+                              f"no longer matches its recorded digest), so the weights would run with settings "
+                              f"they were not trained with (e.g. another voxel_size or point_cloud_range); use the "
+                              f"checkpoint as tools/train.py wrote it, or train with the new config")
     if model_name is not None and ckpt["model_name"] != model_name:
         raise CheckpointError(f"{path}: checkpoint is for model {ckpt['model_name']!r}, not {model_name!r}; "
                               f"use --model {ckpt['model_name']} or a checkpoint of {model_name}, or start a new "

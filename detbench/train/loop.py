@@ -105,18 +105,33 @@ class TrainConfig:
         """Parse the `train` section (missing keys: TRAIN_DEFAULTS); ConfigError on unknown keys or bad values."""
         v = section_with_defaults(d, TRAIN_DEFAULTS, where)
         cfg = cls(**{f.name: _as_field_type(f.type, v[f.name], f"{where}.{f.name}") for f in fields(cls)})
+        for f in fields(cls):
+            value = getattr(cfg, f.name)
+            if f.type in ("float", "tuple[float, float]") and not all(map(math.isfinite, _as_tuple(value))):
+                raise ConfigError(f"{where}: {f.name} must be finite (no NaN or inf), got {value!r}")
         checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
                   ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
                   ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
-                  ("pct_start", 0 < cfg.pct_start < 1, "in (0, 1)"), ("div_factor", cfg.div_factor > 0, "> 0"),
-                  ("final_div_factor", cfg.final_div_factor > 0, "> 0"), ("grad_clip", cfg.grad_clip >= 0, ">= 0"),
+                  ("pct_start", 0 < cfg.pct_start < 1, "in (0, 1)"), ("grad_clip", cfg.grad_clip >= 0, ">= 0"),
                   ("eval_every", cfg.eval_every >= 1, ">= 1"), ("log_every", cfg.log_every >= 1, ">= 1"),
                   ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0"),
-                  ("max_nonfinite_steps", cfg.max_nonfinite_steps >= 1, ">= 1")]
+                  ("max_nonfinite_steps", cfg.max_nonfinite_steps >= 1, ">= 1"),
+                  ("div_factor", cfg.div_factor >= 1, ">= 1 (the schedule starts at lr / div_factor)"),
+                  ("final_div_factor", cfg.final_div_factor >= 1,
+                   ">= 1 (the schedule ends at lr / div_factor / final_div_factor)"),
+                  ("betas", all(0 <= b < 1 for b in cfg.betas), "two numbers in [0, 1)"),
+                  ("momentum_range", all(0 <= m < 1 for m in cfg.momentum_range)
+                   and cfg.momentum_range[0] <= cfg.momentum_range[1],
+                   "[low, high] with 0 <= low <= high < 1 (Adam's beta1, cycled opposite to the lr)")]
+
         for key, ok, need in checks:
             if not ok:
                 raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
         return cfg
+
+
+def _as_tuple(value: Any) -> tuple:
+    return tuple(value) if isinstance(value, tuple) else (value,)
 
 
 def _as_field_type(annotation: str, value: Any, key: str) -> Any:

@@ -9,19 +9,21 @@ PointRCNN: point sampling and PointNet++ backbone (pointnet2) -> point head (poi
            (pointrcnn_head) -> refinement, loss and prediction (two_stage)
 CT3D:      SECOND's stages -> proposals and target sampling (two_stage) -> channel-wise
            transformer head (ct3d_head) -> refinement, loss and prediction (two_stage)
-Shared by all: the grid (grid.VoxelGrid), losses as plain functions (losses), BatchNorm
+Shared by all: the range checks of a model config (checks.check_model_config), the grid
+(grid.VoxelGrid, with the cap on a tensor's memory), losses as plain functions (losses), BatchNorm
 settings (norm). Every stage is exported here; helpers stay importable from their modules.
 """
 from .anchor_head import AnchorGenerator, AnchorHead, AnchorHeadOutput, assign_targets
 from .backbone2d import BEVBackbone
 from .backbone3d import SparseBackbone8x
 from .bev import HeightCompression
+from .checks import MAX_ANCHOR_SIZES, ModelConfigError, check_model_config
 from .center_head import CenterHead, CenterHeadOutput, build_center_targets, decode_regression
 from .ct3d_head import (
     ChannelWiseAttention, ChannelWiseDecoderLayer, CT3DRoIHead, CylinderPoints, cylinder_radius,
     encode_proposal_points, gather_cylinder_points,
 )
-from .grid import VoxelGrid
+from .grid import VoxelGrid, check_memory, max_tensor_bytes
 from .norm import dense_bn, sparse_bn
 from .pillar_encoder import DynamicPillarEncoder
 from .pillarnet_neck import SpatialSemanticNeck
@@ -45,10 +47,11 @@ __all__ = [
     "BEVBackbone",
     "SparseBackbone8x",
     "HeightCompression",
+    "MAX_ANCHOR_SIZES", "ModelConfigError", "check_model_config",
     "CenterHead", "CenterHeadOutput", "build_center_targets", "decode_regression",
     "ChannelWiseAttention", "ChannelWiseDecoderLayer", "CT3DRoIHead", "CylinderPoints", "cylinder_radius",
     "encode_proposal_points", "gather_cylinder_points",
-    "VoxelGrid",
+    "VoxelGrid", "check_memory", "max_tensor_bytes",
     "dense_bn", "sparse_bn",
     "DynamicPillarEncoder",
     "SpatialSemanticNeck",

@@ -22,7 +22,7 @@ import torch.nn as nn
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou_bev, limit_period, normalize_heading
 
-from .grid import VoxelGrid
+from .grid import VoxelGrid, check_memory
 from .losses import add_sin_difference, sigmoid_focal_loss, weighted_cross_entropy, weighted_smooth_l1
 from .postprocess import select_detections
 
@@ -51,6 +51,7 @@ class AnchorGenerator:
         sizes = torch.tensor(self.sizes, dtype=torch.float32, device=device)  # (S, 3)
         rots = torch.tensor(self.rotations, dtype=torch.float32, device=device)  # (R,)
         s, r = sizes.shape[0], rots.shape[0]
+        check_memory(4.0 * h * w * s * r * 7, f"the anchors of a {w} x {h} BEV map ({s} size(s) x {r} rotation(s))")
         yy, xx = torch.meshgrid(ys, xs, indexing="ij")  # (H, W)
         out = torch.zeros(h, w, s, r, 7, dtype=torch.float32, device=device)
         out[..., 0] = xx[:, :, None, None]

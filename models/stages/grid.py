@@ -8,7 +8,31 @@ with a message that says which numbers to change.
 """
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass
+
+# the largest tensor a model may ask for (bytes): a config whose grid or anchors would need more is refused before
+# anything is allocated; DETBENCH_MAX_TENSOR_GB raises or lowers it
+MAX_TENSOR_GB_DEFAULT = 16.0
+
+
+def max_tensor_bytes() -> int:
+    """The cap on one tensor's size in bytes: DETBENCH_MAX_TENSOR_GB (GiB) or 16 GiB."""
+    raw = os.environ.get("DETBENCH_MAX_TENSOR_GB", "")
+    try:
+        gb = float(raw) if raw else MAX_TENSOR_GB_DEFAULT
+    except ValueError:
+        gb = MAX_TENSOR_GB_DEFAULT
+    return int(gb * 2**30)
+
+
+def check_memory(nbytes: float, what: str) -> None:
+    """ValueError when a tensor of `nbytes` (`what` it holds) is above the cap, before it is allocated."""
+    cap = max_tensor_bytes()
+    if nbytes > cap:
+        raise ValueError(f"{what} would need {nbytes / 2**30:,.1f} GiB, above the {cap / 2**30:g} GiB a tensor may "
+                         f"take (DETBENCH_MAX_TENSOR_GB); make the voxel_size larger or the point_cloud_range smaller")
 
 
 
@@ -22,6 +46,8 @@ class VoxelGrid:
         if len(r) != 6 or len(v) != 3:
             raise ValueError(f"point_cloud_range needs 6 numbers (x0 y0 z0 x1 y1 z1) and voxel_size 3 (vx vy vz); "
                              f"got {list(r)} and {list(v)}")
+        if not all(map(math.isfinite, r + v)):
+            raise ValueError(f"point_cloud_range and voxel_size must be finite numbers, got {list(r)} and {list(v)}")
         if any(s <= 0 for s in v):
             raise ValueError(f"voxel_size must be positive, got {list(v)}")
         for axis, (lo, hi, s) in enumerate(zip(r[:3], r[3:], v)):
@@ -34,6 +60,9 @@ class VoxelGrid:
                                  f"of {s:g} m ({n:.4f}); change the range or the voxel size")
         object.__setattr__(self, "point_cloud_range", r)
         object.__setattr__(self, "voxel_size", v)
+        nx, ny, nz = self.grid_size
+        check_memory(4.0 * nx * ny * nz, f"the voxel grid {nx} x {ny} x {nz} (point_cloud_range {list(r)}, "
+                                         f"voxel_size {list(v)}) at one float32 per voxel")
 
     @property
     def grid_size(self) -> tuple[int, int, int]:
