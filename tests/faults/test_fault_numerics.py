@@ -46,5 +46,5 @@ def test_device_path_gives_nan_never_zero():
 
 def test_impossible_height_is_a_user_error(tool, tmp_path):
     code, err = tool("analyze", "--simulate", 2, "--heights", 0, "--out", tmp_path, "--no-figures", "--no-progress")
-    assert code == 2 and "--heights: a LiDAR height must be a positive number of metres, got 0.0" in err
+    assert code == 2 and "--heights 0: a mounting height is a positive number of metres" in err
     assert "Traceback" not in err and not list(tmp_path.iterdir())

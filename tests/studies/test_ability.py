@@ -341,7 +341,7 @@ def test_paired_height_difference_is_tight_when_heights_move_together():
 def test_uncertainty_needs_two_scenes_and_frames_without_scene_count_alone():
     one = _scene_study([0.5]).report()["extras"]["uncertainty"]
     assert one["num_clusters"] == 1 and "note" in one
-    assert one["heights"]["0.5"]["small"]["all"] == {"ci95": None, "scene_std": None}
+    assert one["heights"]["0.5"]["small"]["all"] == {"ci95": None, "scene_std": None, "vehicles_per_frame_ci95": None}
     off = _scene_study([0.5, 0.7], bootstrap=0).report()["extras"]["uncertainty"]
     assert off["heights"]["0.5"]["small"]["all"]["ci95"] is None
     with pytest.raises(ValueError, match="bootstrap"):
