@@ -70,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.sim import HighwaySimulator, load_sim_config
-    from detbench.sim.dataset import plan_frames, write_simulation
+    from detbench.sim.dataset import check_space, estimate_dataset_bytes, human_bytes, plan_frames, write_simulation
     from detbench.sim.run import RunSummary, run_lidars, simulation_source
 
     from detbench.data.frame import height_key
@@ -98,6 +98,15 @@ def main(argv=None) -> int:
                          overrides=args.overrides)
     for note in recover_staged(out):
         print(f"note: {note}", file=sys.stderr)
+    size = estimate_dataset_bytes(lidars, frames)
+    try:
+        free = check_space(out, size, what=f"the dataset ({frames} frames x {len(lidars)} heights)",
+                           fix="free some space there, give --out on a larger filesystem, or simulate fewer "
+                               "--frames or --heights")
+    except DiskFullError as e:
+        raise UserError(f"--out {e}") from None
+    print(f"simulating {frames} frames x {len(lidars)} heights into {out}: about {human_bytes(size)} on disk "
+          f"({human_bytes(free)} free)")
     try:
         write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
                          test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,

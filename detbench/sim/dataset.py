@@ -9,7 +9,9 @@ length, heights, seed, split) and reused afterwards. Generation goes to a tempor
 `.tmp-sim-...-<pid>` that is renamed into place when complete, so an interrupted run never
 leaves a half dataset that later runs would trust; a failed generation (a full disk) removes
 its folder, and one whose process was killed is removed by the next `default_dataset` call.
-`write_simulation` (every simulated dataset, tools/simulate.py's included) builds beside its
+`estimate_dataset_bytes` and `check_space` size a dataset before it is simulated, so a run the
+disk cannot hold stops at once instead of after hours. `write_simulation` (every simulated dataset,
+tools/simulate.py's included) builds beside its
 `root` and swaps the finished dataset in whole (`detbench.utils.io.staged_folder`), so a kill
 during `--overwrite` leaves the old dataset as it was.
 """
@@ -31,7 +33,7 @@ from detbench.data.layout import DATASET_FOLDER
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
-from detbench.utils.io import check_replaceable, pid_alive, recover_staged, staged_folder
+from detbench.utils.io import DiskFullError, check_replaceable, pid_alive, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
@@ -63,6 +65,61 @@ def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default
     elif scenes is not None and frames > scenes * fps:
         raise ValueError(f"--frames {frames} does not fit in --scenes {scenes} of {fps} frames; raise one of them")
     return int(frames), int(fps)
+
+
+# Bytes on disk per simulated instant, measured on this tree: tools/simulate.py --frames 4 (paper preset, seed 0,
+# heights 0.5 1.0 1.8; 128 channels x 480 azimuth steps = 61440 rays each) wrote 37.4k / 35.0k / 34.8k points per
+# frame (61 / 57 / 57 % of the rays; points/ 6.88 MB in all) and labels/ + meta/ of 1.8 kB + 2.0 kB per instant.
+POINT_BYTES = 16           # x, y, z, intensity as float32
+POINTS_FILE_BYTES = 128    # the .npy header of one points file
+RETURN_FRACTION = 0.65     # share of a LiDAR's rays that return a point (measured <= 0.61, rounded up)
+INSTANT_BYTES = 4096       # labels/<id>.txt + meta/<id>.json (+ the ImageSets line) of one instant, rounded up
+SPACE_MARGIN = 1.10        # free space must exceed the estimate by this factor ...
+SPACE_RESERVE = 64 << 20   # ... plus this many bytes, for dataset.json, the summary and everything else on the disk
+
+
+def estimate_dataset_bytes(lidars: Sequence, frames: int) -> int:
+    """About how many bytes a simulated dataset of `frames` instants at every LiDAR of `lidars` takes on disk:
+    per instant, each LiDAR's channels x h_samples rays times the measured `RETURN_FRACTION` times 16 bytes,
+    plus the labels and meta of the instant (`INSTANT_BYTES`). A LiDAR cannot write more than its rays, so
+    `RETURN_FRACTION` = 1 would be an upper bound."""
+    per_instant = INSTANT_BYTES + sum(
+        POINTS_FILE_BYTES + POINT_BYTES * math.ceil(RETURN_FRACTION * int(lid.channels) * int(lid.h_samples))
+        for lid in lidars)
+    return int(frames) * per_instant
+
+
+def human_bytes(n: float) -> str:
+    """`n` bytes as "1.5 GB", "12.0 TB" (powers of 1000, as df -H)."""
+    for unit in ("B", "kB", "MB", "GB", "TB", "PB"):
+        if abs(n) < 1000 or unit == "PB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000.0
+    return f"{n:.1f} PB"
+
+
+def existing_parent(path: str | os.PathLike) -> Path:
+    """`path` if it exists, else its nearest existing parent folder (the filesystem a new folder there lands on)."""
+    p = Path(path).expanduser().absolute()
+    for cand in (p, *p.parents):
+        if cand.exists():
+            return cand
+    return Path(p.anchor)
+
+
+def check_space(root: str | os.PathLike, nbytes: int, *, what: str, fix: str) -> int:
+    """Raise DiskFullError when the filesystem `root` is built on (the nearest existing parent of its
+    staging folder beside it) has less free space than `nbytes` times `SPACE_MARGIN` plus `SPACE_RESERVE`;
+    the message names that folder, the estimate, the free space and `fix`. Returns the free bytes."""
+    where = existing_parent(Path(root).expanduser().absolute().parent)
+    free = shutil.disk_usage(where).free
+    need = int(nbytes * SPACE_MARGIN) + SPACE_RESERVE
+    if free < need:
+        err = DiskFullError(f"{root}: {what} needs about {human_bytes(nbytes)} on disk but the filesystem of "
+                            f"{where} has {human_bytes(free)} free; {fix}")
+        err.path, err.reason = Path(root), "not enough free space"
+        raise err
+    return free
 
 
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
@@ -198,6 +255,10 @@ def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path
     if (final / "dataset.json").is_file():
         return final
     remove_abandoned_builds(final.parent)
+    check_space(final, estimate_dataset_bytes([lidar_preset(float(h)) for h in cfg["heights"]], int(cfg["frames"])),
+                what=f"the simulated default dataset ({cfg['frames']} frames x {len(cfg['heights'])} heights)",
+                fix="free some space there, point $DETBENCH_CACHE (or data.cache_dir) at a larger disk, or lower "
+                    "data.frames")
     tmp = final.parent / f".tmp-{name}-{os.getpid()}"
     if tmp.exists():
         shutil.rmtree(tmp)

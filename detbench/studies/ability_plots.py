@@ -22,14 +22,15 @@ from matplotlib.patches import Rectangle
 
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_NAMES, RANGES
 from detbench.studies.ability import ExampleFrames
-from detbench.utils.figures import save_figure
+from detbench.utils.figures import LEGEND_SMALL, save_figure, series_colours
 
 _PALETTE = ["#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22"]
 _RANGE_COLOURS = {"small": "#f5d800", "moderate": "#2ca02c", "large": "#3b7dd8"}
 
 
 def _colours(heights: list[str]) -> dict[str, str]:
-    return {h: _PALETTE[i % len(_PALETTE)] for i, h in enumerate(heights)}
+    """One distinct colour per height: the palette for a few, a sequential colour map for many."""
+    return dict(zip(heights, series_colours(len(heights), _PALETTE)))
 
 
 def _ci(report: dict, h: str, r: str, lv: str):
@@ -41,12 +42,20 @@ def _ci(report: dict, h: str, r: str, lv: str):
         return None
 
 
-def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, list]:
+def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, list, float]:
     """Two panels, (a) number detected with the total as a grey bar, (b) LDR; `cell(h, g)` -> dict;
-    `ci(h, g)` -> (lo, hi) or None draws the LDR's 95 % interval as an error bar."""
+    `ci(h, g)` -> (lo, hi) or None draws the LDR's 95 % interval as an error bar. Returns the figure, the
+    axes and the top of the area the axes may fill (a fraction of the height; the legend is above it)."""
     heights = list(report["heights"])
     col = _colours(heights)
-    fig = Figure(figsize=(11, 4.4))
+    n_entries = len(heights) + 1
+    if n_entries <= LEGEND_SMALL:  # one row of entries, as drawn for the paper's three heights
+        ncol, font, legend_in = n_entries, 9, 0.0
+    else:  # many heights: rows of entries in a smaller font, the figure taller by their height
+        ncol, font = 10, 7  # 10 columns leave the top right corner to the frame count
+        legend_in = math.ceil(n_entries / ncol) * 0.16
+    fig = Figure(figsize=(11, 4.4 + legend_in))
+    area_top = 0.93 if not legend_in else 1.0 - (0.12 + legend_in) / (4.4 + legend_in)
     ax_n, ax_l = fig.subplots(1, 2)
     nb = len(heights) + 1
     width = 0.8 / nb
@@ -82,15 +91,15 @@ def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, li
     if drew_ci:
         ax_l.set_xlabel("error bars: 95 % interval of the LDR, bootstrap over scenes", fontsize=8)
     handles, labels = ax_n.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper center", ncol=len(labels), fontsize=9, frameon=False,
+    fig.legend(handles, labels, loc="upper center", ncol=ncol, fontsize=font, frameon=False,
                bbox_to_anchor=(0.5, 1.0))
-    return fig, [ax_n, ax_l]
+    return fig, [ax_n, ax_l], area_top
 
 
 def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "all") -> Path:
     """Paper Fig. 6: detected vehicles (a) and LDR (b) per height in each range, at `level`."""
     groups = list(RANGE_NAMES)
-    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, r: report["heights"][h][r][level],
+    fig, (ax_n, ax_l), top = _grouped(report, groups, lambda h, r: report["heights"][h][r][level],
                                  lambda h, r: _ci(report, h, r, level))
     labels = [f"{r}\n0-{RANGES[r][1]:g} m, |y|<={RANGES[r][2]:g} m" for r in groups]
     for ax in (ax_n, ax_l):
@@ -99,21 +108,21 @@ def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "a
     ax_n.set_title(f"(a) LiDAR-detected vehicles by range ({what})", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by range ({what})", fontsize=10)
     fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
-    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.tight_layout(rect=(0, 0, 1, top))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
 def plot_ability_by_level(report: dict, path: str | os.PathLike, range_name: str = "large") -> Path:
     """Paper Fig. 7: detected vehicles (a) and LDR (b) per height and importance level in one range."""
     groups = list(LEVELS)
-    fig, (ax_n, ax_l) = _grouped(report, groups, lambda h, lv: report["heights"][h][range_name][lv],
+    fig, (ax_n, ax_l), top = _grouped(report, groups, lambda h, lv: report["heights"][h][range_name][lv],
                                  lambda h, lv: _ci(report, h, range_name, lv))
     for ax in (ax_n, ax_l):
         ax.set_xticklabels([LEVEL_LABELS[g] for g in groups])
     ax_n.set_title(f"(a) LiDAR-detected vehicles by importance ({range_name} range)", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by importance ({range_name} range)", fontsize=10)
     fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
-    fig.tight_layout(rect=(0, 0, 1, 0.93))
+    fig.tight_layout(rect=(0, 0, 1, top))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
 
@@ -132,7 +141,12 @@ def plot_ldr_vs_distance(report: dict, path: str | os.PathLike) -> Path:
     ax.set_ylabel("LDR = detected / total")
     ax.set_ylim(0, 1.05)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=9)
+    if len(heights) <= LEGEND_SMALL:
+        ax.legend(fontsize=9)
+    else:  # many heights: columns of entries beside the axes, inside the figure after tight_layout
+        ax.legend(fontsize=7, ncol=math.ceil(len(heights) / 18), loc="upper left", bbox_to_anchor=(1.01, 1.0),
+                  borderaxespad=0.0)
+        fig.set_figwidth(8 + 1.1 * math.ceil(len(heights) / 18))
     ax.set_title(f"LiDAR detection rate against distance ({report['num_frames']} frames; {dist['region']})",
                  fontsize=9)
     if heights:

@@ -6,6 +6,8 @@ from pathlib import Path
 
 from detbench.utils.io import atomic_save
 
+LEGEND_SMALL = 10  # up to this many series keep the palette and the legend as drawn for a few heights
+
 
 def save_figure(fig, path: str | os.PathLike, *, dpi: int = 150, fmt: str | None = None, tight: bool = True,
                 facecolor=None) -> Path:
@@ -24,4 +26,26 @@ def save_figure(fig, path: str | os.PathLike, *, dpi: int = 150, fmt: str | None
     return path
 
 
-__all__ = ["save_figure"]
+def series_colours(n: int, palette=None, cmap: str = "viridis") -> list[str]:
+    """`n` distinct colours, one per series (e.g. per height): the first n of `palette` (default matplotlib's
+    colour cycle, 10 colours) when it has enough, else `cmap` sampled evenly at n points (interpolated between
+    its colours, so they stay distinct for any n; in order, which suits ordered series such as heights)."""
+    import numpy as np
+    from matplotlib import colormaps, rcParams
+    from matplotlib.colors import to_hex
+
+    if palette is None:
+        palette = rcParams["axes.prop_cycle"].by_key().get("color", [])
+    palette = list(palette)
+    if n <= len(palette):
+        return palette[:n]
+    table = colormaps[cmap](np.linspace(0.0, 1.0, 256))[:, :3]
+    at = np.linspace(0.0, 0.92, n) * 255  # the top of viridis is too pale to read on white
+    rgb = np.stack([np.interp(at, np.arange(256), table[:, c]) for c in range(3)], axis=1)
+    colours = [to_hex(c) for c in rgb]
+    if len(set(colours)) < n:  # more series than 24-bit steps along the map: keep full precision
+        return [tuple(float(v) for v in c) for c in rgb]
+    return colours
+
+
+__all__ = ["LEGEND_SMALL", "save_figure", "series_colours"]
