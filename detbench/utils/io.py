@@ -330,13 +330,19 @@ def check_replaceable(dest: str | os.PathLike, overwrite: bool, kind: FolderKind
         removes = f" ({kind.removes})" if kind.removes else ""
         raise FolderNotReplaceable(f"{dest / kind.marker}: {kind.name} already exists here; choose another {out} "
                                    f"or pass {flag} to replace it{removes}")
+    _refuse_foreign(dest, entries, kind, f"; {flag} replaces the whole folder, so move {{it}} elsewhere first or "
+                                         f"choose another {out}")
+    return [str(dest / e) for e in entries]
+
+
+def _refuse_foreign(dest: Path, entries: list[str], kind: FolderKind, tail: str) -> None:
+    """FolderNotReplaceable naming the entries of `dest` that are not `kind`'s own; `tail` ends the message,
+    its `{it}` reads "it" or "them"."""
     foreign = [e for e in entries if not _own_entry(dest, e, kind)]
     if foreign:
         one = len(foreign) == 1
-        raise FolderNotReplaceable(f"{dest}: holds {_listing(foreign)}, "
-                                   f"which {'is' if one else 'are'} not {kind.foreign}; {flag} replaces the whole "
-                                   f"folder, so move {'it' if one else 'them'} elsewhere first or choose another {out}")
-    return [str(dest / e) for e in entries]
+        raise FolderNotReplaceable(f"{dest}: holds {_listing(foreign)}, which {'is' if one else 'are'} not "
+                                   f"{kind.foreign}" + tail.format(it="it" if one else "them"))
 
 
 def check_claimable(dest: str | os.PathLike, kind: FolderKind, *, out: str = "--out") -> None:
@@ -355,12 +361,8 @@ def check_claimable(dest: str | os.PathLike, kind: FolderKind, *, out: str = "--
         return
     if not _is_kind(dest, kind):
         raise _not_this_kind(dest, kind, _listing(entries), out)
-    foreign = [e for e in entries if not _own_entry(dest, e, kind)]
-    if foreign:
-        one = len(foreign) == 1
-        raise FolderNotReplaceable(f"{dest}: holds {_listing(foreign)}, which {'is' if one else 'are'} not "
-                                   f"{kind.foreign}, and no {OWNER_FILE} says that the rest is detbench's; move "
-                                   f"{'it' if one else 'them'} elsewhere first or choose another {out}")
+    _refuse_foreign(dest, entries, kind, f", and no {OWNER_FILE} says that the rest is detbench's; move {{it}} "
+                                         f"elsewhere first or choose another {out}")
 
 
 def clear_folder(dest: str | os.PathLike, kind: FolderKind, *, flag: str, out: str = "--out") -> list[str]:
