@@ -100,6 +100,7 @@ def _figures(monkeypatch, tmp_path, n):
     return saved
 
 
+@pytest.mark.slow  # about a minute on 2 CPU cores: it draws and saves the ability figures at 50 heights
 def test_fifty_heights_get_fifty_colours_and_a_legend_inside_the_figure(monkeypatch, tmp_path):
     from matplotlib.colors import to_hex
 
