@@ -158,26 +158,25 @@ def study_models(preset: str, requested: list[str] | None, overrides: list[str],
     return names, ([] if requested else sorted(set(registry.REGISTRY) - set(names)))
 
 
-def split_ability_reports(root: Path, heights: list[float], out: Path, *, no_progress: bool = True) -> dict:
+def split_ability_reports(root: Path, heights: list[float], out: Path, fingerprint: str, *,
+                          no_progress: bool = True) -> dict:
     """{"train": report, "test": report}: the ability study counted on each split of the dataset at `root`
-    (hit counts of its points, as tools/analyze.py --data), kept in `out`/<split>.json and reused while the
-    dataset's dataset.json is unchanged."""
+    (hit counts of its points, as tools/analyze.py --data), kept in `out`/splits/<split>.json. A kept report
+    is reused while its stage record (detbench.studies.stage_inputs: the heights and the data's content
+    `fingerprint`) still holds."""
     from detbench.studies.ability_run import AbilityOptions, run_ability
 
-    stamp = (Path(root) / "dataset.json").stat().st_mtime_ns if (Path(root) / "dataset.json").is_file() else None
+    inputs = {"heights": list(heights), "data_fingerprint": fingerprint}
     reports = {}
     for split in ("train", "test"):
-        path = out / f"{split}.json"
-        if path.is_file():
-            cached = read_json(path)
-            if cached.get("extras", {}).get("dataset_stamp") == stamp:
-                reports[split] = cached
-                continue
-        report, _, _ = run_ability(AbilityOptions(data=str(root), split=split, heights=list(heights),
-                                                  no_figures=True, no_progress=no_progress))
-        report["extras"]["dataset_stamp"] = stamp
-        atomic_write_json(path, report)
-        reports[split] = report
+        path = out / "splits" / f"{split}.json"
+        if path.is_file() and not changes(out, f"split_{split}", inputs):
+            reports[split] = read_json(path)
+            continue
+        reports[split], _, _ = run_ability(AbilityOptions(data=str(root), split=split, heights=list(heights),
+                                                          no_figures=True, no_progress=no_progress))
+        atomic_write_json(path, reports[split])
+        write_record(out, f"split_{split}", inputs)
     return reports
 
 
@@ -325,7 +324,9 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         write_record(out, "ability", ability_inputs)
 
     # 2b. the splits against the ability study: does the test split hold the traffic the ability tables describe?
-    split_reports = split_ability_reports(root, heights, out / "splits", no_progress=args.no_progress)
+    split_reports = split_ability_reports(root, heights, out, dataset_fingerprint(root, heights, hashes),
+                                          no_progress=args.no_progress)
+    hashes.save()
     split_checks = {name: compare_splits(rep, read_json(ability_json)) for name, rep in split_reports.items()}
     for name, result in split_checks.items():
         for line in split_check_warnings(result, f"{name} split", "ability study"):
