@@ -206,3 +206,51 @@ def test_inference_input_follows_the_same_preparation():
     expected, _, _ = crop_model_input(frame.points, frame.boxes, PCR, CFG)
     assert np.array_equal(dropped, expected) and len(dropped) < len(frame.points) / 2
     assert np.array_equal(frame_sample(frame, PCR).points, crop_to_range(frame.points, frame.boxes, PCR)[0])
+
+
+def test_evaluation_uses_the_checkpoints_road_setting():
+    """checkpoint_predictions (tools/eval.py's path) prepares frames with the road setting stored in the
+    checkpoint's config: a model trained without road sees none at evaluation; a config without the
+    section (a model trained on every point) sees every point."""
+    from detbench.train.inference import checkpoint_predictions
+    from tests.helpers import TinyDetector
+
+    class Recording(TinyDetector):
+        seen: list
+
+        def forward(self, batch):
+            self.seen.append(int(batch.points.shape[0]))
+            return super().forward(batch)
+
+    frame = _flat_frame()
+    model = Recording()
+    counts = {}
+    for name, cfg in (("drop", {"model": {"point_cloud_range": PCR}, "road": {"drop": True}}),
+                      ("none", {"model": {"point_cloud_range": PCR}})):
+        model.seen = []
+        preds = checkpoint_predictions(model, {"config": cfg, "model_name": "tiny"}, [frame], progress=False)
+        assert list(preds) == [frame.frame_id]
+        counts[name] = model.seen[0]
+    assert counts["none"] == len(crop_to_range(frame.points, frame.boxes, PCR)[0])
+    assert counts["drop"] == len(crop_model_input(frame.points, frame.boxes, PCR, CFG)[0]) < counts["none"] / 2
+
+
+def test_augmented_samples_lose_exactly_the_road_after_pasting(tmp_path):
+    """With ground-truth sampling, flip, rotation and scaling (which keep the road at z = 0), a sample
+    with drop true is its drop-false twin (same seed, epoch, index) without the points below the margin:
+    the pasted vehicles' copied road goes too, their bodies stay, and no box is dropped."""
+    from detbench.data.gt_database import build_gt_database
+    from tests.helpers import FRAMES, PC_RANGE
+
+    aug = AugmentConfig.from_dict({"gt_sampling": {"enabled": True, "sample_count": 4, "filter_by_min_points": 5}})
+    db = build_gt_database(FRAMES, tmp_path / "db", progress=False)
+    on = TrainingSet(FRAMES, PC_RANGE, augment=aug, gt_database=db, seed=3, road=CFG)
+    off = TrainingSet(FRAMES, PC_RANGE, augment=aug, gt_database=db, seed=3, road=RoadConfig.off())
+    pasted = 0
+    for epoch, index in ((0, 0), (1, 3), (2, 5)):
+        a, b = on[(epoch, index)], off[(epoch, index)]
+        assert np.array_equal(a.gt_boxes, b.gt_boxes)
+        pasted += len(b.gt_boxes) - len(off.get(index, epoch, augment=False).gt_boxes)
+        assert np.array_equal(a.points, b.points[b.points[:, 2] >= CFG.margin])
+        assert (b.points[:, 2] < CFG.margin).sum() > 100  # there was road to drop
+    assert pasted > 0
