@@ -65,7 +65,10 @@ def main(argv=None) -> int:
         raise UserError(str(e)) from None
     numba.set_num_threads(1)
     torch.set_num_threads(1)
-    root = default_dataset({**cfg["data"], "root": args.data} if args.data else cfg["data"])
+    try:
+        root = default_dataset({**cfg["data"], "root": args.data} if args.data else cfg["data"])
+    except FileNotFoundError as e:
+        raise UserError(f"--data {e}") from None
     heights = args.heights
     if heights is None:
         from detbench.data import read_info

@@ -93,3 +93,12 @@ def test_main_writes_reports(tmp_path):
     s = rep["heights"]["1"]
     assert s["frames"] == 2 and s["true_road_labelled_share"] > 0.99 and s["vehicles_emptied"] == 0
     assert (out / "bench_road.md").read_text().startswith("# The road model")
+
+
+def test_bad_input_is_a_clear_error(tmp_path, capsys):
+    from detbench.utils.cli import run_main
+
+    assert run_main(bench.main, ["--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
+    assert "no dataset.json" in capsys.readouterr().err
+    assert run_main(bench.main, ["--set", "road.margn=1", "--out", str(tmp_path / "o")]) == 2
+    assert "did you mean 'margin'" in capsys.readouterr().err
