@@ -254,3 +254,13 @@ def test_augmented_samples_lose_exactly_the_road_after_pasting(tmp_path):
         assert np.array_equal(a.points, b.points[b.points[:, 2] >= CFG.margin])
         assert (b.points[:, 2] < CFG.margin).sum() > 100  # there was road to drop
     assert pasted > 0
+
+
+def test_noisy_road_is_still_road():
+    """A real LiDAR's range noise (2 cm in z here) on a curved road: the road stays road, bodies stay bodies."""
+    points, is_ground, is_car = scene(curved)
+    points[is_ground, 2] += np.random.default_rng(4).normal(0.0, 0.02, is_ground.sum()).astype(np.float32)
+    mask, fit = road_mask(points, CFG)
+    assert surface_error(fit, curved) < 0.05
+    assert mask[is_ground].mean() > 0.99, f"road points labelled road: {mask[is_ground].mean():.4f}"
+    assert not mask[is_car].any()
