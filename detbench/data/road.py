@@ -1,19 +1,24 @@
 """The road model: a per-frame estimate of the road surface, which labels the points that are road.
 
-Most returns of a highway scan are road (about 90 % of a simulated frame). A detector that voxelises or
-samples them spends its budget on nothing, so a model's config may drop them (`road.drop`) before its
-input is built; `crop_model_input` is the one preparation of every point cloud a model sees (training
-samples, inference, benchmarks): the crop to the model's range, then the road removal.
+Most returns of a highway scan are road (over 90 % of a simulated frame's points in a model's range). A
+detector that voxelises or samples them spends its budget on nothing, so a model's config may drop them
+(`road.drop`) before its input is built; `crop_model_input` is the one preparation of every point cloud
+a model sees (training samples, inference, benchmarks): the crop to the model's range, then the road
+removal.
 
 The fit (`fit_road`), in the frame's own coordinates, with no assumption that the road is z = 0:
 1. candidates: the lowest point of each occupied BEV cell (`cell` metres square). A vehicle hides the
    road under it, so a cell it covers offers its body, which the fit then rejects as an outlier.
 2. the surface is fitted per x band (`band_length` metres), each band as
-   z = a + b x + c y + d y^2: a plane (pitch b, roll c) with a crown term d. RANSAC over the band's
-   candidates (and half a band either side, so neighbours agree) picks the hypothesis with the most
-   candidates within `inlier` metres, among those whose slope stays under `max_slope_deg` across the
-   band; a least-squares fit to every point of the band window within `inlier` of it (twice, the
-   second time around the first refit) removes the minimal sample's noise.
+   z = a + b x + c y + d y^2: a plane (pitch b, roll c) with a crown term d, band by band from the
+   sensor outwards. RANSAC over the band's candidates (and half a band either side, so neighbours
+   agree) tries planes through 3 candidates (with the nearer band's crown) and keeps the one with the
+   most candidates within `inlier` metres, among those whose slope stays under `max_slope_deg` across
+   the window. A least-squares fit to every point of the window within `inlier` of it (twice, the
+   second time around the first refit) removes the minimal sample's noise; `smoothness` points' worth
+   of weight holds its pitch, roll and crown to the nearer band's, which fixes what the points leave
+   free: a far band's road is one or two scan rings, which fix its height along the ring but not its
+   slope, and an unheld slope sends the extrapolated surface metres off.
 3. the bands are blended linearly in x between band centres, so the surface is continuous; a band
    with fewer than `min_points` candidate inliers takes its nearest fitted neighbour's surface
    (the nearer one to the sensor on a tie). No band fitted: no surface, and no point is road.
