@@ -107,6 +107,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="report.json files (each with model and height) to merge into one table "
                            "(combined.md/.csv/.json) and figures (fig8_by_height.png, "
                            "fig9_recall_by_range.png, fig10_recall_by_level.png)")
+    comb.add_argument("--with-variants", action="store_true",
+                      help="with --combine: admit cross-height reports (a checkpoint tested at another height than "
+                           "it was trained at) and first-stage-only reports (--stage proposals), each as a "
+                           "separately labelled column, e.g. 'second [trained at 0.5 m]'; without it they are "
+                           "refused, since the paper's Table VII holds each model at its own height, whole")
     comb.add_argument("--no-figures", action="store_true", help="with --combine: write no PNG figures")
     comb.add_argument("--range", dest="range_name", default="large", choices=("small", "moderate", "large"),
                       help="with --combine: range shown in the by-height and by-level figures")
@@ -244,7 +249,8 @@ def run_combine(args: argparse.Namespace) -> int:
     if any(v is not None for v in (args.data, args.height, args.pred, args.ckpt)):
         raise UserError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
     check_out_dir(args.out)
-    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name)
+    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name,
+                                       with_variants=args.with_variants)
     print(f"combined {len(args.combine)} reports: models {', '.join(comb['models'])}; heights "
           f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
     print("wrote " + ", ".join(str(p) for p in paths))
