@@ -45,6 +45,10 @@ from detbench.utils.cli import UserError, check_out_dir, require, run_main, torc
 SPLITS = ("train", "test", "all")
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults after each option; the examples laid out as written."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line options (see --help)."""
     p = argparse.ArgumentParser(
@@ -53,7 +57,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "importance level (All/Top3/Top6), restricted to LiDAR-detected vehicles, as in the "
                     "Height3 paper. Either evaluate one prediction folder (--data, --height, --pred) or "
                     "combine finished reports (--combine).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpFormatter,
+        epilog="examples:\n"
+               "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt     # its own height\n"
+               "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt --test-height 0.5\n"
+               "  python tools/eval.py --data data/sim --height 1.8 --pred PRED_DIR --out runs/eval_second_1.8\n"
+               "  python tools/eval.py --combine runs/study_quick/*_h*/eval_*_test/report.json --out runs/combined\n"
+               "--ckpt writes OUT/report.json, report.md, report.csv and OUT/pred/ (default OUT: the run folder's\n"
+               "eval_h<height>_<split>, with _proposals for --stage proposals). --combine refuses cross-height and\n"
+               "first-stage-only reports unless --with-variants. Units: metres, radians; recall, AP@R40 and LDR\n"
+               "are fractions in [0, 1].",
     )
     src = p.add_argument_group("evaluate one model at one height")
     src.add_argument("--data", type=Path, help="dataset root in the Height3 layout (docs/data-format.md)")
