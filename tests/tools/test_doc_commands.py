@@ -217,6 +217,28 @@ def test_python_examples_in_the_guides_run(tmp_path, monkeypatch):
     assert validate([str(tmp_path / "data" / "mine")]) == 0
 
 
+def test_relative_links_in_the_docs_exist():
+    broken = []
+    for path in DOCS:
+        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", path.read_text(encoding="utf-8")):
+            if "://" not in target and not (path.parent / target).exists():
+                broken.append(f"{path.name}: {target}")
+    assert not broken, broken
+    for name in ("LICENSE", "CITATION.cff"):
+        assert (ROOT / name).is_file(), name
+
+
+def test_citation_file_states_the_paper_and_the_license():
+    import yaml
+
+    cff = yaml.safe_load((ROOT / "CITATION.cff").read_text(encoding="utf-8"))
+    assert cff["cff-version"] == "1.2.0" and cff["license"] == "MIT" and cff["authors"]
+    paper = cff["preferred-citation"]
+    assert paper["title"].startswith("Forehead or Headlights") and paper["authors"] and paper["type"] == "article"
+    assert "MIT" in (ROOT / "LICENSE").read_text() and 'license = { text = "MIT" }' in (
+        ROOT / "pyproject.toml").read_text()
+
+
 # ------------------------------------------------------------------ run for real (slow)
 
 def _run(argv: list[str], cwd: Path) -> str:
