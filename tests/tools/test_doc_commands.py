@@ -173,6 +173,43 @@ def test_doc_command_parses(where, line, cmd, capsys):
                              f"{capsys.readouterr().err.strip().splitlines()[-1:]}") from e
 
 
+def help_commands() -> list[tuple[str, str]]:
+    """(tool, command) of every example in the tools' --help texts and module docstrings."""
+    found = []
+    for name in sorted(p.stem for p in (ROOT / "tools").glob("[a-z]*.py")):
+        mod = importlib.import_module(f"tools.{name}")
+        text = (mod.build_parser().format_help() if hasattr(mod, "build_parser") else "") + "\n" + (mod.__doc__ or "")
+        lines = [ln.strip() for ln in text.splitlines()]
+        joined, cur = [], ""
+        for ln in lines:
+            cur = f"{cur} {ln}" if cur else ln
+            if cur.endswith("\\"):
+                cur = cur[:-1].rstrip()
+                continue
+            joined.append(cur)
+            cur = ""
+        for ln in joined:
+            if re.match(r"(python3? |torchrun )", ln):
+                found.extend((name, c) for c in _segments(ln) if _target(c) is not None)
+    return list(dict.fromkeys(found))
+
+
+HELP_COMMANDS = help_commands()
+
+
+@pytest.mark.parametrize("tool,cmd", HELP_COMMANDS, ids=[f"{t}:{i}" for i, (t, _) in enumerate(HELP_COMMANDS)])
+def test_help_example_parses(tool, cmd, capsys):
+    module, argv = _target(cmd)
+    argv = _argv(argv)
+    if argv is None or module.startswith("?"):
+        pytest.skip("elided command (`...`)")
+    try:
+        parse_with_tool(module, argv)
+    except SystemExit as e:
+        raise AssertionError(f"tools/{tool}.py --help shows `{cmd}`, which {module}'s parser refuses: "
+                             f"{capsys.readouterr().err.strip().splitlines()[-1:]}") from e
+
+
 def test_a_wrong_flag_fails_the_parse(capsys):
     # the check can fail: a flag no tool has, a choice that does not exist
     with pytest.raises(SystemExit):
