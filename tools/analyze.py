@@ -26,7 +26,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
-from detbench.utils.cli import check_out_dir, require, run_main
+from detbench.utils.cli import add_sim_preset_argument, check_out_dir, require, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -46,11 +46,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="LiDAR mounting heights in metres (default: 0.5 1.0 1.8 for --simulate, every height of "
                          "the dataset for --data)")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (--simulate; default 0)")
-    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default: paper)")
+    add_sim_preset_argument(ap)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable (e.g. --set traffic.density_per_km_lane=25)")
     ap.add_argument("--frames-per-scene", type=int, default=None,
-                    help="frames per simulated scene at 2 Hz (default: the preset's, 200 as in the paper)")
+                    help="frames per simulated scene at 2 Hz (default: the --sim-preset's, 200 as in the paper)")
     ap.add_argument("--split", choices=("train", "test", "all"), default="all",
                     help="dataset split to analyse (--data; default all, as the paper's Table IV)")
     ap.add_argument("--lane-width", type=float, default=None,
@@ -109,7 +109,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     check_arguments(args)
     opts = AbilityOptions(
-        data=args.data, simulate=args.simulate, heights=args.heights, seed=args.seed, preset=args.preset,
+        data=args.data, simulate=args.simulate, heights=args.heights, seed=args.seed, preset=args.sim_preset,
         overrides=args.overrides, frames_per_scene=args.frames_per_scene, split=args.split,
         lane_width=args.lane_width, thresholds=args.thresholds, distance_bin=args.distance_bin,
         no_figures=args.no_figures, example_frame=args.example_frame, points=args.points,

@@ -9,7 +9,9 @@ or cache loading is excluded), per call on the whole batch of --frames scans:
   - the four feature-propagation levels back to --points (three_nn_interpolate, C channels);
   - RoI point pooling of --rois car-sized RoIs per scan (512 points, 1.0 m extra, C features).
 The load average of the machine is recorded before and after (the machine may be shared);
-OMP_WAIT_POLICY defaults to PASSIVE (detbench/runtime.py; set it in the environment to measure otherwise).
+The thread runtimes are detbench's (detbench/runtime.py): GOMP_SPINCOUNT=3000 (a waiting OpenMP thread spins
+briefly, then sleeps), OMP_NUM_THREADS = cores - 1, NUMBA_THREADING_LAYER=omp; a variable set in the
+environment wins (e.g. OMP_WAIT_POLICY=PASSIVE to measure with threads that sleep at once).
 Writes bench_points.json and bench_points.md to --out.
 
 Usage: python tools/bench_points.py [--out DIR] [--frames N] [--points N] [--samples N] ...  (see --help)
@@ -42,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--frames", type=int, default=1, help="scans per batch (default %(default)s)")
     ap.add_argument("--points", type=int, default=D.points, help="points per scan (default %(default)s, PointRCNN)")
     ap.add_argument("--samples", type=int, default=D.samples, help="FPS samples per scan (default %(default)s)")
-    ap.add_argument("--channels", type=int, default=D.channels, help="feature channels C for propagation and pooling")
+    ap.add_argument("--channels", type=int, default=D.channels,
+                    help="feature channels C for propagation and pooling (default %(default)s)")
     ap.add_argument("--rois", type=int, default=D.rois, help="RoIs per scan for RoI pooling (default %(default)s)")
     ap.add_argument("--source", choices=["synthetic", "sim", "auto"], default="synthetic",
                     help="scans: the built-in synthetic 1.8 m scan (default, quick), detbench.sim (slower to "

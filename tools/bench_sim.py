@@ -27,7 +27,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 from detbench import runtime  # noqa: F401  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.config import ConfigError
-from detbench.utils.cli import UserError, check_out_dir, require, run_main
+from detbench.utils.cli import UserError, add_sim_preset_argument, check_out_dir, require, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -37,10 +37,10 @@ def build_parser() -> argparse.ArgumentParser:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=300, help="frames (instants) per measured run (default 300)")
     ap.add_argument("--frames-per-scene", type=int, default=None,
-                    help="frames per scene (default: the preset's, 200); scene set-up time is included")
+                    help="frames per scene (default: the --sim-preset's, 200); scene set-up time is included")
     ap.add_argument("--heights", type=float, nargs="+", default=[0.5, 1.0, 1.8], metavar="H",
                     help="LiDAR mounting heights in metres (default 0.5 1.0 1.8, the paper's Table II sensors)")
-    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default paper)")
+    add_sim_preset_argument(ap)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
@@ -66,12 +66,12 @@ def main(argv=None) -> int:
     from detbench.sim import lidar_preset, load_sim_config
 
     try:
-        cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
+        cfg = load_sim_config(args.sim_preset, overrides=tuple(args.overrides))
         lidars = [lidar_preset(h) for h in args.heights]
     except (ConfigError, ValueError) as e:
         raise UserError(str(e)) from None
     report = run_sim_bench(cfg, lidars, frames=args.frames, frames_per_scene=args.frames_per_scene, seed=args.seed,
-                           mode=args.mode, load=args.load, progress=not args.no_progress, preset=args.preset,
+                           mode=args.mode, load=args.load, progress=not args.no_progress, preset=args.sim_preset,
                            overrides=args.overrides, heights=args.heights, started=t_import)
     out = Path(args.out)
     atomic_write_json(out / "bench_sim.json", report)

@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--models", nargs="+", default=None, help="detectors (default: all registered)")
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
-                    help="model size to build when no checkpoint is given (default cpu)")
+                    help="training budget, configs/presets/NAME.yaml: the model size to build when no checkpoint is "
+                         "given (default cpu)")
     ap.add_argument("--study", default=None, metavar="DIR",
                     help="a tools/study.py output: use its trained checkpoints and join their reports")
     ap.add_argument("--height", type=float, default=1.8, help="LiDAR height of the frames (and of --study runs)")

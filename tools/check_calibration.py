@@ -24,7 +24,7 @@ the arguments and writes the report.
 
 Examples:
   python tools/check_calibration.py --seeds 0 1 2 3 4 5   # the full check: six seeds, 8000 frames each
-  python tools/check_calibration.py --preset v1            # calibration v1 (the default is v2)
+  python tools/check_calibration.py --sim-preset v1        # calibration v1 (the default is v2)
   python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 0
   python tools/check_calibration.py --set traffic.density_per_km_lane=10 --strict
 
@@ -43,7 +43,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.studies.calibration_check import CalibrationOptions, check_calibration
-from detbench.utils.cli import UserError
+from detbench.utils.cli import UserError, add_sim_preset_argument
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -58,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--block-frames", type=int, default=0,
                     help="also check each block of this many consecutive frames (default 0 = no blocks); "
                          "a multiple of the frames per scene")
-    ap.add_argument("--frames-per-scene", type=int, default=None, help="frames per scene (default: the preset's, 200)")
+    ap.add_argument("--frames-per-scene", type=int, default=None,
+                    help="frames per scene (default: the --sim-preset's, 200)")
     ap.add_argument("--tolerance", type=float, default=0.05, help="allowed |LDR - paper| per seed (default 0.05)")
     ap.add_argument("--pooled-tolerance", type=float, default=0.03,
                     help="allowed |LDR - paper| of the seeds pooled (default 0.03)")
@@ -70,9 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="allowed |second-in-lane LDR - paper| (default 0.07)")
     ap.add_argument("--pair-tolerance", type=float, default=0.03,
                     help="allowed |LDR(0.5 m) - LDR(1.0 m)| in each cell (default 0.03)")
-    ap.add_argument("--preset", default="paper",
-                    help="simulator preset from configs/sim.yaml (default paper, calibration v2; "
-                         "v1 is calibration v1); the report names the preset's calibration")
+    add_sim_preset_argument(ap, detail=", calibration v2; v1 is calibration v1; the report names the preset's "
+                                       "calibration")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable")
     ap.add_argument("--out", default="runs/check_calibration", help="output folder for the JSON and Markdown")
@@ -87,7 +87,8 @@ def main(argv=None) -> int:
         seeds=args.seeds, frames=args.frames, block_frames=args.block_frames, frames_per_scene=args.frames_per_scene,
         tolerance=args.tolerance, pooled_tolerance=args.pooled_tolerance, allowed_misses=args.allowed_misses,
         total_tolerance=args.total_tolerance, second_tolerance=args.second_tolerance,
-        pair_tolerance=args.pair_tolerance, preset=args.preset, overrides=args.overrides, no_progress=args.no_progress)
+        pair_tolerance=args.pair_tolerance, preset=args.sim_preset, overrides=args.overrides,
+        no_progress=args.no_progress)
     try:
         report, md, failed = check_calibration(opts)
     except UserError as e:

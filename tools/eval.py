@@ -45,6 +45,10 @@ from detbench.utils.cli import UserError, check_out_dir, require, run_main, torc
 SPLITS = ("train", "test", "all")
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults after each option; the examples laid out as written."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line options (see --help)."""
     p = argparse.ArgumentParser(
@@ -53,7 +57,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "importance level (All/Top3/Top6), restricted to LiDAR-detected vehicles, as in the "
                     "Height3 paper. Either evaluate one prediction folder (--data, --height, --pred) or "
                     "combine finished reports (--combine).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=_HelpFormatter,
+        epilog="examples:\n"
+               "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt     # its own height\n"
+               "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt --test-height 0.5\n"
+               "  python tools/eval.py --data data/sim --height 1.8 --pred PRED_DIR --out runs/eval_second_1.8\n"
+               "  python tools/eval.py --combine runs/study_quick/*_h*/eval_*_test/report.json --out runs/combined\n"
+               "--ckpt writes OUT/report.json, report.md, report.csv and OUT/pred/ (default OUT: the run folder's\n"
+               "eval_h<height>_<split>, with _proposals for --stage proposals). --combine refuses cross-height and\n"
+               "first-stage-only reports unless --with-variants. Units: metres, radians; recall, AP@R40 and LDR\n"
+               "are fractions in [0, 1].",
     )
     src = p.add_argument_group("evaluate one model at one height")
     src.add_argument("--data", type=Path, help="dataset root in the Height3 layout (docs/data-format.md)")
@@ -107,6 +120,11 @@ def build_parser() -> argparse.ArgumentParser:
                       help="report.json files (each with model and height) to merge into one table "
                            "(combined.md/.csv/.json) and figures (fig8_by_height.png, "
                            "fig9_recall_by_range.png, fig10_recall_by_level.png)")
+    comb.add_argument("--with-variants", action="store_true",
+                      help="with --combine: admit cross-height reports (a checkpoint tested at another height than "
+                           "it was trained at) and first-stage-only reports (--stage proposals), each as a "
+                           "separately labelled column, e.g. 'second [trained at 0.5 m]'; without it they are "
+                           "refused, since the paper's Table VII holds each model at its own height, whole")
     comb.add_argument("--no-figures", action="store_true", help="with --combine: write no PNG figures")
     comb.add_argument("--range", dest="range_name", default="large", choices=("small", "moderate", "large"),
                       help="with --combine: range shown in the by-height and by-level figures")
@@ -244,7 +262,8 @@ def run_combine(args: argparse.Namespace) -> int:
     if any(v is not None for v in (args.data, args.height, args.pred, args.ckpt)):
         raise UserError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
     check_out_dir(args.out)
-    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name)
+    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name,
+                                       with_variants=args.with_variants)
     print(f"combined {len(args.combine)} reports: models {', '.join(comb['models'])}; heights "
           f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
     print("wrote " + ", ".join(str(p) for p in paths))

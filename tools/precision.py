@@ -11,7 +11,8 @@ NaN / inf values in the raw outputs, and seconds per frame. The computation is
 inference at reduced precision").
 
 Examples:
-  python tools/precision.py --ckpt runs/second_h1.8/checkpoints/epoch_020.pt
+  python tools/precision.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt   # the last checkpoint of
+      # python tools/train.py --model second --height 1.8 --preset cpu (4 epochs; epoch_EEE.pt after EEE epochs)
   python tools/precision.py --ckpt CKPT --frames 0 --precisions float32 bfloat16 --out runs/precision
   python tools/precision.py --ckpt CKPT --device cuda            # float16 and bfloat16 on the GPU
 

@@ -23,7 +23,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.config import ConfigError, shipped_default
-from detbench.utils.cli import UserError, run_main
+from detbench.utils.cli import UserError, add_sim_preset_argument, run_main
 from detbench.utils.io import DiskFullError, recover_staged
 
 
@@ -41,8 +41,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--scenes", type=int, default=None, metavar="K",
                     help="number of scenes (default: enough scenes for --frames)")
     ap.add_argument("--frames-per-scene", type=int, default=None, metavar="F",
-                    help="frames per scene, saved at the preset's frame rate (2 Hz, so 0.5 s apart). "
-                         "Default: the preset's (200 as in the paper), or frames/scenes when both are given")
+                    help="frames per scene, saved at the --sim-preset's frame rate (2 Hz, so 0.5 s apart). "
+                         "Default: the --sim-preset's (200 as in the paper), or frames/scenes when both are given")
     ap.add_argument("--heights", type=float, nargs="+", default=None, metavar="H",
                     help="LiDAR mounting heights in metres (default 0.5 1.0 1.8). 0.5, 1.0 and 1.8 are the "
                          "paper's Table II sensors; other heights take the 1.0 m specification")
@@ -50,12 +50,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="LiDAR presets instead of --heights, e.g. h3-1.8 ideal-l8 xpeng-g9 (Table I); their "
                          "heights must differ")
     ap.add_argument("--seed", type=int, default=0, help="random seed (same seed and config: identical files)")
-    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default: paper)")
+    add_sim_preset_argument(ap)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="config override, repeatable, e.g. --set traffic.density_per_km_lane=15 "
                          "(unknown keys are errors)")
     ap.add_argument("--range-noise", type=float, default=None, metavar="M",
-                    help="standard deviation of the range noise in metres for every LiDAR (default: preset's, 0)")
+                    help="standard deviation of the range noise in metres for every LiDAR "
+                         "(default: the --sim-preset's, 0)")
     ap.add_argument("--dropout", type=float, default=None, metavar="P",
                     help="probability in [0, 1] that a return is dropped, for every LiDAR (default 0)")
     ap.add_argument("--test-fraction", type=float, default=shipped_default("data.test_fraction"),
@@ -81,7 +82,7 @@ def main(argv=None) -> int:
         except ValueError as e:
             raise UserError(f"--heights {h:g}: {e}") from None
     try:
-        cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
+        cfg = load_sim_config(args.sim_preset, overrides=tuple(args.overrides))
         frames, fps = plan_frames(args.frames, args.scenes, args.frames_per_scene,
                                   int(cfg["scene"]["frames_per_scene"]))
         if args.lidars and args.heights:
@@ -92,9 +93,9 @@ def main(argv=None) -> int:
         raise UserError(str(e)) from None
 
     out = Path(args.out)
-    source = simulation_source(cfg, lidars, preset=args.preset, seed=args.seed, overrides=args.overrides,
+    source = simulation_source(cfg, lidars, preset=args.sim_preset, seed=args.seed, overrides=args.overrides,
                                frames=frames, frames_per_scene=fps)
-    summary = RunSummary(out, lidars, frames=frames, frames_per_scene=fps, seed=args.seed, preset=args.preset,
+    summary = RunSummary(out, lidars, frames=frames, frames_per_scene=fps, seed=args.seed, preset=args.sim_preset,
                          overrides=args.overrides)
     for note in recover_staged(out):
         print(f"note: {note}", file=sys.stderr)

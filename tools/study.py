@@ -43,12 +43,13 @@ from detbench.utils.cli import doc_parser, run_main
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--preset", default="quick", choices=preset_names(),
-                    help="quick (real figures for SECOND, PillarNet and CT3D: the whole study in about 30 min on 2 CPU "
-                         "cores), "
-                         "smoke (a minute; proves the pipeline, learns nothing: tests and CI), cpu (~10 min per model "
-                         "and height on 2 cores), paper (the paper's scale; a GPU). Default quick")
-    ap.add_argument("--models", nargs="+", default=None, help=f"detectors (default all: "
-                                                               f"{', '.join(sorted(models.REGISTRY))})")
+                    help="training budget, configs/presets/NAME.yaml (data, epochs, model widths): quick (real "
+                         "figures: the whole study in about 30 min on 2 CPU cores), smoke (a minute; proves the "
+                         "pipeline, learns nothing: tests and CI), cpu (~10 min per model and height on 2 cores), "
+                         "paper (the paper's scale; a GPU). Default quick")
+    ap.add_argument("--models", nargs="+", default=None,
+                    help=f"detectors, any of {', '.join(sorted(models.REGISTRY))} (default: the preset's "
+                         f"study.models, configs/presets/NAME.yaml; every one when that list is empty)")
     ap.add_argument("--heights", type=float, nargs="+", default=None,
                     help="mounting heights in metres (default: the preset's data.heights, 0.5 1.0 1.8)")
     ap.add_argument("--data", default=None, metavar="ROOT", help="a dataset on disk instead of the simulated default")

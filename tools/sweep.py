@@ -35,7 +35,7 @@ from detbench import runtime  # noqa: F401  (first detbench import: thread-runti
 from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
-from detbench.utils.cli import UserError, check_out_dir, require, run_main
+from detbench.utils.cli import UserError, add_sim_preset_argument, check_out_dir, require, run_main
 from detbench.utils.io import atomic_write_json, atomic_write_text
 
 
@@ -46,7 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--frames", type=int, default=8000,
                     help="instants to simulate (each at every height; default 8000)")
     ap.add_argument("--frames-per-scene", type=int, default=None,
-                    help="frames per scene at 2 Hz (default: the simulator preset's, 200 as in the paper); scenes are "
+                    help="frames per scene at 2 Hz (default: the --sim-preset's, 200 as in the paper); scenes are "
                          "the units of the bootstrap")
     ap.add_argument("--heights", type=float, nargs="+", default=None, metavar="H",
                     help="mounting heights in metres (default 0.3 0.4 ... 2.2)")
@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="override, repeatable: sensor.FIELD=VALUE changes the sensor (e.g. sensor.channels=64, "
                          "sensor.pitch_deg=2.5, sensor.vfov_deg=[-15,10]); any other key is a simulator config key "
                          "(configs/sim.yaml, e.g. traffic.density_per_km_lane=20)")
-    ap.add_argument("--preset", default="paper", help="simulator preset from configs/sim.yaml (default paper)")
+    add_sim_preset_argument(ap)
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (default 0)")
     ap.add_argument("--bootstrap", type=int, default=1000, metavar="B",
                     help="replicates of the scene bootstrap behind the 95 %% intervals (default 1000; 0 = none)")
@@ -116,7 +116,7 @@ def main(argv=None) -> int:
     else:
         report = run_sweep(SweepOptions(
             frames=args.frames, frames_per_scene=args.frames_per_scene, heights=args.heights, lidar=args.lidar,
-            overrides=args.overrides, preset=args.preset, seed=args.seed, bootstrap=args.bootstrap,
+            overrides=args.overrides, preset=args.sim_preset, seed=args.seed, bootstrap=args.bootstrap,
             distance_bin=args.distance_bin, evidence_scale=args.evidence_scale, voxel=args.voxel,
             no_smig=args.no_smig, no_progress=args.no_progress))
     if args.detector_reports:

@@ -63,7 +63,8 @@ from detbench.utils.cli import doc_parser, run_main
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--preset", default="smoke", choices=preset_names(),
-                    help="the point every knob starts from (models trained at that preset's size and schedule); "
+                    help="training budget, configs/presets/NAME.yaml: the point every knob starts from (models "
+                         "trained at that preset's size and schedule); "
                          "default smoke")
     ap.add_argument("--models", nargs="+", default=None,
                     help=f"detectors (default all: {', '.join(models.REGISTRY)})")

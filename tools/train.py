@@ -47,7 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--data", default=None, metavar="ROOT",
                     help="dataset root (docs/data-format.md); default: the simulated default dataset")
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
-                    help="smoke: proves the pipeline in a minute or two; cpu: learns for real in about 10 min on "
+                    help="training budget, configs/presets/NAME.yaml (data, epochs, model widths). "
+                         "smoke: proves the pipeline in a minute or two; cpu: learns for real in about 10 min on "
                          "2 CPU cores; paper: the paper's scale (8000 frames, full model; a GPU). Default cpu")
     ap.add_argument("--config", default=None, help="a config file instead of configs/<model>.yaml")
     ap.add_argument("--epochs", type=int, default=None, help="override train.epochs")

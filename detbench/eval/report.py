@@ -212,11 +212,51 @@ def summary_lines(report: dict) -> list[str]:
 # several reports (models x heights)
 # --------------------------------------------------------------------------------------------
 
+def report_variant(report: dict) -> str | None:
+    """What sets a report apart from a model tested at its own training height with its whole pipeline: "trained
+    at H m" (a cross-height evaluation), "first stage alone" (a two-stage model's proposals), both joined by "; ",
+    or None. Read from the report's "trained_height", "height" and "stage" (tools/eval.py --ckpt writes them)."""
+    bits = []
+    trained = report.get("trained_height")
+    if trained is not None and report.get("height") is not None and not math.isnan(float(trained)) \
+            and abs(float(trained) - float(report["height"])) > 1e-6:
+        bits.append(f"trained at {float(trained):g} m")
+    if report.get("stage", "refined") != "refined":
+        bits.append("first stage alone")
+    return "; ".join(bits) or None
+
+
+def label_variants(reports: Sequence[dict]) -> list[dict]:
+    """Copies of `reports` in which each variant (`report_variant`) is a model of its own: "second [trained at
+    0.5 m]", "ct3d [first stage alone]", so a combined table shows it as a separately labelled column."""
+    out = []
+    for rep in reports:
+        variant = report_variant(rep)
+        if variant is None:
+            out.append(rep)
+            continue
+        labelled = {k: v for k, v in rep.items() if k not in ("trained_height", "stage")}
+        labelled["model"] = f"{rep.get('model')} [{variant}]"
+        labelled["variant_of"] = {"model": rep.get("model"), "trained_height": rep.get("trained_height"),
+                                  "stage": rep.get("stage", "refined")}
+        out.append(labelled)
+    return out
+
+
 def _entries(reports: Sequence[dict], sources: Sequence[str] | None = None) -> list[dict]:
     if not reports:
         raise ValueError("no reports to combine; give at least one report")
     if sources is not None and len(sources) != len(reports):
         raise ValueError(f"{len(sources)} source names for {len(reports)} reports")
+    names = [str(sources[i]) if sources is not None else f"report {i}" for i in range(len(reports))]
+    variants = [f"{where} ({v})" for where, rep in zip(names, reports)
+                if isinstance(rep, dict) and (v := report_variant(rep))]
+    if variants:
+        raise ValueError(
+            f"{len(variants)} of the {len(reports)} reports are not a model tested at its training height with its "
+            f"whole pipeline, so they do not belong in the paper's Table VII: {'; '.join(variants)}. Leave them out "
+            f"(e.g. combine runs/*/eval_h<H>_test/report.json of each run's own height), or give --with-variants "
+            f"(tools/eval.py --combine) to show each as a separately labelled column")
     entries = []
     seen = {}
     first = None
@@ -455,6 +495,6 @@ def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "
 
 __all__ = [
     "check_report", "report_to_markdown", "report_to_csv", "report_rows", "summary_lines",
-    "combine_reports", "combined_markdown", "combined_csv",
+    "combine_reports", "combined_markdown", "combined_csv", "label_variants", "report_variant",
     "plot_by_height", "plot_by_range", "plot_by_level", "METRIC_FIELDS",
 ]

@@ -13,8 +13,8 @@ from pathlib import Path
 from detbench.data import Height3Dataset, split_ids
 from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
-from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, plot_by_height, plot_by_level,
-                                  plot_by_range, report_to_csv, report_to_markdown)
+from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, label_variants, plot_by_height,
+                                  plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
 from detbench.utils.cli import UserError
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
@@ -139,10 +139,12 @@ def write_report(report: dict, out: Path, title: str) -> list[Path]:
     return paths
 
 
-def combine_report_files(report_paths, out: Path, *, figures: bool = True,
-                         range_name: str = "large") -> tuple[dict, list[Path]]:
+def combine_report_files(report_paths, out: Path, *, figures: bool = True, range_name: str = "large",
+                         with_variants: bool = False) -> tuple[dict, list[Path]]:
     """Merge finished report.json files into out/combined.json, .md, .csv and (with `figures`) the paper's
-    Fig. 8-10, the by-height and by-level ones at `range_name`; (the combined dict, the written paths)."""
+    Fig. 8-10, the by-height and by-level ones at `range_name`; (the combined dict, the written paths).
+    Cross-height and first-stage-only reports are refused unless `with_variants`, which shows each as a model
+    of its own ("second [trained at 0.5 m]", `label_variants`)."""
     out = Path(out)
     reports, sources = [], []
     for path in report_paths:
@@ -151,6 +153,8 @@ def combine_report_files(report_paths, out: Path, *, figures: bool = True,
         except (FileNotFoundError, ValueError) as e:
             raise UserError(str(e)) from None
         sources.append(str(path))
+    if with_variants:
+        reports = label_variants(reports)
     try:
         comb = combine_reports(reports, sources)
         md = combined_markdown(reports, sources=sources)

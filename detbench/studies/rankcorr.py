@@ -213,8 +213,9 @@ def load_detector_reports(paths: Sequence[str | Path]) -> tuple[dict, list[dict]
 
     A report tested at another height than it was trained at ("trained_height" differs: a
     cross-height cell) is skipped and listed, as it says nothing about the height it was
-    trained for. Raises ValueError naming the file for anything that is not such a report, or
-    for a model and height given twice. Returns (figures, skipped [{"source", "reason"}])."""
+    trained for; so is a two-stage model's first stage alone ("stage": "proposals"). Raises
+    ValueError naming the file for anything that is not such a report, or for a model and
+    height given twice. Returns (figures, skipped [{"source", "reason"}])."""
     from detbench.eval.report import check_report
     from detbench.utils.io import read_json
 
@@ -238,6 +239,10 @@ def load_detector_reports(paths: Sequence[str | Path]) -> tuple[dict, list[dict]
         if th is not None and height_key(float(th)) != hk:
             skipped.append({"source": str(p), "reason": f"cross-height: trained at {height_key(float(th))} m, "
                                                          f"tested at {hk} m"})
+            continue
+        if rep.get("stage", "refined") != "refined":
+            skipped.append({"source": str(p), "reason": f"first stage alone (--stage {rep['stage']}): not the "
+                                                         f"detector's output"})
             continue
         model = str(rep["model"])
         if hk in figures.get(model, {}):

@@ -19,7 +19,8 @@ from collections.abc import Callable, Sequence
 from detbench.utils.io import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
-__all__ = ["EXIT_USER_ERROR", "UserError", "check_out_dir", "require", "run_main", "torch_device"]
+__all__ = ["EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "check_out_dir", "require", "run_main",
+           "torch_device"]
 
 EXIT_USER_ERROR = 2
 
@@ -56,6 +57,27 @@ def doc_parser(doc: str, **kwargs) -> argparse.ArgumentParser:
     head, _, rest = doc.partition("\n\n")
     return argparse.ArgumentParser(description=head, epilog=rest, formatter_class=argparse.RawDescriptionHelpFormatter,
                                    **kwargs)
+
+
+class _DeprecatedSimPreset(argparse.Action):
+    """`--preset NAME` where it names a simulator calibration: stored as --sim-preset, with a note on stderr."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"note: {parser.prog}: {option_string} {values} is a deprecated spelling of --sim-preset {values} "
+              f"(a simulator calibration from configs/sim.yaml; --preset in train, study, benchmark and tradeoff "
+              f"is a training budget); it is accepted for one release, write --sim-preset", file=sys.stderr)
+        setattr(namespace, self.dest, values)
+
+
+def add_sim_preset_argument(parser: argparse.ArgumentParser, default: str = "paper", detail: str = "") -> None:
+    """`--sim-preset NAME` (dest `sim_preset`): a simulator calibration, a preset of configs/sim.yaml, not a
+    training budget (configs/presets/*.yaml, the --preset of train, study, benchmark and tradeoff). `--preset`
+    is kept as its deprecated spelling for one release: accepted, with a note on stderr."""
+    parser.add_argument("--sim-preset", dest="sim_preset", default=default, metavar="NAME",
+                        help=f"simulator calibration: a preset of configs/sim.yaml (default {default}){detail}; "
+                             f"not a training budget")
+    parser.add_argument("--preset", dest="sim_preset", action=_DeprecatedSimPreset, metavar="NAME",
+                        help="deprecated spelling of --sim-preset, accepted for one release")
 
 
 def require(ok: bool, message: str) -> None:

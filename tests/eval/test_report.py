@@ -11,12 +11,14 @@ from detbench.eval.report import (
     combine_reports,
     combined_csv,
     combined_markdown,
+    label_variants,
     plot_by_height,
     plot_by_level,
     plot_by_range,
     report_rows,
     report_to_csv,
     report_to_markdown,
+    report_variant,
     summary_lines,
 )
 
@@ -143,3 +145,32 @@ def test_figures(tmp_path):
     assert plot_by_height([make_report("M", 1.0, 1)], tmp_path / "one.png").exists()
     np.testing.assert_equal(sorted(p.name for p in tmp_path.glob("*.png")),
                             ["empty.png", "fig10.png", "fig8.png", "fig9.png", "one.png"])
+
+
+def test_combine_refuses_cross_height_and_first_stage_reports_unless_labelled():
+    """A checkpoint tested at another height, or a two-stage model's first stage alone, is not a Table VII cell:
+    combining it silently would put it in its model's column at the test height. It is refused, naming the
+    file and the flag; label_variants makes each a model of its own."""
+    reps = reports_grid()
+    diag = dict(reps[0], trained_height=0.5, stage="refined")          # PointRCNN trained and tested at 0.5 m
+    cross = dict(reps[2], model="CT3D", trained_height=1.8)             # CT3D trained at 1.8 m, tested at 1.0 m
+    first = dict(reps[5], stage="proposals", trained_height=1.8)        # CT3D's first stage at 1.8 m
+    assert report_variant(diag) is None and report_variant(reps[0]) is None
+    assert report_variant(cross) == "trained at 1.8 m"
+    assert report_variant(first) == "first stage alone"
+    assert report_variant(dict(cross, stage="proposals")) == "trained at 1.8 m; first stage alone"
+    kept = [diag, reps[1], reps[3], reps[4]]
+    with pytest.raises(ValueError) as e:
+        combine_reports(kept + [cross, first], sources=["a", "b", "c", "d", "x/cross.json", "y/first.json"])
+    msg = str(e.value)
+    assert "x/cross.json (trained at 1.8 m)" in msg and "y/first.json (first stage alone)" in msg
+    assert "--with-variants" in msg and "2 of the 6 reports" in msg
+    with pytest.raises(ValueError, match="--with-variants"):
+        combined_markdown([cross])
+    labelled = label_variants(kept + [cross, first])
+    assert labelled[0] is diag                                           # the diagonal is unchanged
+    comb = combine_reports(labelled)
+    assert comb["models"] == ["PointRCNN", "CT3D", "CT3D [trained at 1.8 m]", "CT3D [first stage alone]"]
+    assert labelled[4]["variant_of"] == {"model": "CT3D", "trained_height": 1.8, "stage": "refined"}
+    header = next(line for line in combined_markdown(labelled).splitlines() if line.startswith("| Range"))
+    assert "1.0 m CT3D [trained at 1.8 m]" in header and "1.8 m CT3D [first stage alone]" in header

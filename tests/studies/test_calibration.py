@@ -166,11 +166,11 @@ def test_tiny_run_writes_json_and_markdown(tmp_path, tool):
 
 
 def test_judges_the_preset_it_is_given(tmp_path, tool):
-    # --preset v1 judges calibration v1's world: its id in the report, and other traffic than the default's
+    # --sim-preset v1 judges calibration v1's world: its id in the report, and other traffic than the default's
     runs = {}
     for preset in ("paper", "v1"):
         out = tmp_path / preset
-        assert tool.main(["--seeds", "0", "--frames", "20", "--frames-per-scene", "20", "--preset", preset,
+        assert tool.main(["--seeds", "0", "--frames", "20", "--frames-per-scene", "20", "--sim-preset", preset,
                           "--out", str(out), "--no-progress"]) == 0
         runs[preset] = json.loads((out / "calibration.json").read_text())
     assert runs["v1"]["preset"] == "v1" and runs["v1"]["calibration"] == "v1"

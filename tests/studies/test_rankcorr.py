@@ -125,8 +125,11 @@ def test_correlate_sweep_with_detector_reports(tmp_path):
     cross.write_text(json.dumps(_eval_report("second", 0.5, 0.1, trained=1.8)))
     other = tmp_path / "pillar_2.5.json"
     other.write_text(json.dumps(_eval_report("pillarnet", 2.5, 0.4)))
-    figures, skipped = load_detector_reports(paths + [cross, other])
-    assert sorted(figures["second"]) == sorted(hs) and len(skipped) == 1 and "cross-height" in skipped[0]["reason"]
+    first = tmp_path / "first_stage.json"
+    first.write_text(json.dumps({**_eval_report("second", 1.0, 0.05, trained=1.0), "stage": "proposals"}))
+    figures, skipped = load_detector_reports(paths + [cross, other, first])
+    assert sorted(figures["second"]) == sorted(hs) and len(skipped) == 2 and "cross-height" in skipped[0]["reason"]
+    assert skipped[1]["source"] == str(first) and "first stage alone" in skipped[1]["reason"]
     corr = correlate_sweep(_sweep(hs), figures, replicates=200)
     rows = [r for r in corr["rows"] if r["model"] == "second"]
     assert len(rows) == 2 * 9 * 2  # metrics x cells x scores

@@ -143,7 +143,7 @@ def test_sweep_accumulates_counts_scores_and_intervals():
 def _run(tmp_path, *extra, name="out"):
     tool = tools.sweep
     out = tmp_path / name
-    assert tool.main(["--frames", "24", "--frames-per-scene", "4", "--seed", "0", "--preset", "dense",
+    assert tool.main(["--frames", "24", "--frames-per-scene", "4", "--seed", "0", "--sim-preset", "dense",
                       "--bootstrap", "200", "--no-progress", "--out", str(out), *extra]) == 0
     return json.loads((out / "sweep.json").read_text()), out
 

@@ -134,6 +134,15 @@ def test_combine_cli(tmp_path, capsys):
     assert run_main(tool.main, ["--combine", str(tmp_path / "bad.json"), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "bad.json: no 'model'" in err and "--model" in err
+    # a cross-height report (trained at 0.5 m, tested at 1.8 m) is refused by name; --with-variants labels it
+    cross = dict(json.loads(paths[0].read_text()), height=1.8, trained_height=0.5, stage="refined")
+    atomic_write_json(tmp_path / "cross" / "report.json", cross)
+    argv = ["--combine", *map(str, paths), str(tmp_path / "cross" / "report.json"), "--out", str(out), "--no-figures"]
+    assert run_main(tool.main, argv) == 2
+    err = capsys.readouterr().err
+    assert "cross/report.json (trained at 0.5 m)" in err and "--with-variants" in err
+    assert run_main(tool.main, [*argv, "--with-variants"]) == 0
+    assert json.loads((out / "combined.json").read_text())["models"] == ["A", "B", "A [trained at 0.5 m]"]
 
 
 # ------------------------------------------------------------------ end to end on a tiny dataset

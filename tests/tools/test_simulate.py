@@ -64,7 +64,7 @@ def test_bench_sim_small_run(tmp_path):
 
 
 def test_v1_preset_is_the_former_default_key_for_key():
-    # `--preset v1` must reproduce calibration v1's data: its config is pinned by the digest of calibration v1's
+    # `--sim-preset v1` must reproduce calibration v1's data: its config is pinned by the digest of calibration v1's
     # config, so an edit of the v1 preset or of a top-level key it inherits fails here
     import hashlib
 
