@@ -25,18 +25,19 @@ def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
-def test_a_failed_study_stage_keeps_the_users_error_apart_from_a_bug(status, expected):
-    from detbench.studies.study import run_stage
+def test_a_failed_study_job_keeps_the_users_error_apart_from_a_bug(status, expected, tmp_path):
+    from detbench.studies.jobs import Job, LocalExecutor, run_graph
     from detbench.utils.cli import run_main
 
     def main(_argv):
-        run_stage([sys.executable, "-c", f"import sys; sys.exit({status})"], "train second at 1.8 m")
+        cmd = [sys.executable, "-c", f"import sys; sys.exit({status})"]
+        run_graph([Job("train_second_h1.8", "train", "train second 1.8 m", lambda: cmd)], LocalExecutor(1), tmp_path)
         return 0
 
     try:
         code = run_main(main, [])
     except SystemExit as e:  # a bug's SystemExit is not caught by run_main: its code is the message
-        assert "train second at 1.8 m failed" in str(e.code) and "run the same command again" in str(e.code)
+        assert "train second 1.8 m failed" in str(e.code) and "run the same command again" in str(e.code)
         code = 1
     assert code == expected
 
