@@ -1,9 +1,9 @@
 """The study's job graph on Ray: each job a Ray task that asks for one CPU (or one GPU) and runs the job's command.
 
 detbench.studies.jobs.run_graph drives the graph as with the local executor; this executor only
-submits a job once its dependencies have finished, as a Ray remote task requesting num_cpus=1 (or
-num_gpus=1; Ray sets CUDA_VISIBLE_DEVICES for it), and Ray picks the worker machine. The task runs
-the job's command as a subprocess there, in the same checkout path, writing into the study's
+submits a job once its dependencies have finished, as a Ray remote task requesting num_cpus=1 (and
+num_gpus=1 for a job on the GPU; Ray sets CUDA_VISIBLE_DEVICES for it), and Ray picks the worker
+machine. The task runs the job's command as a subprocess there, in the same checkout path, writing into the study's
 folder: that folder (and the dataset) must be one all workers share (NFS or similar). The task
 function is pickled by value and imports only the standard library, so a worker needs Ray and
 the project's Python environment, not this module. Why Ray: docs/cluster.md.
@@ -92,13 +92,13 @@ class RayExecutor:
         self.env = dict(JOB_ENV)
         if os.environ.get("PYTHONPATH"):  # the checkout the driver imports, at the same path on every worker
             self.env["PYTHONPATH"] = os.environ["PYTHONPATH"]
-        opts = {"num_gpus": 1, "num_cpus": 1} if gpu else {"num_cpus": 1}
-        self.task = ray.remote(max_retries=0, **opts)(_job_task(STOP_GRACE_S))
+        self.task = ray.remote(max_retries=0, num_cpus=1)(_job_task(STOP_GRACE_S))
         self.refs: dict[str, object] = {}  # job id -> ObjectRef
 
     def start(self, job: Job, cmd: list[str]) -> None:
         assert job.log is not None
-        self.refs[job.id] = self.task.remote(cmd, self.cwd, self.env, str(job.log))
+        task = self.task.options(num_gpus=1) if job.gpu else self.task  # a GPU job: one GPU (and one CPU)
+        self.refs[job.id] = task.remote(cmd, self.cwd, self.env, str(job.log))
 
     def wait(self, timeout: float) -> list[tuple[str, int]]:
         if not self.refs:

@@ -230,10 +230,10 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     hashes.save()
 
     # 2-5. the job graph: the ability study, each training, its evaluations, the combined report
+    gpu = args.device.startswith("cuda") or (args.device == "auto" and _cuda_available())
     jobs, reports, cross_reports, seed_reports = _study_jobs(
         args, out, names, heights, seeds, root, data_cfg, ability_frames, hashes, train_inputs, data_fp,
-        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary)
-    gpu = args.device.startswith("cuda") or (args.device == "auto" and _cuda_available())
+        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu)
     executor = _executor(args, gpu, repo)
     counts = job_counts(jobs)
     where = ("Ray" if args.executor == "ray" else "this machine") + (" (GPUs)" if gpu else "")
@@ -361,7 +361,7 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
 
 def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[float], seeds: list[int], root: Path,
                 data_cfg: dict, ability_frames: int, hashes: FileHashes, train_inputs: dict, data_fp: dict, *,
-                tag, seed_sets, run_dir_of, primary: int):
+                tag, seed_sets, run_dir_of, primary: int, gpu: bool):
     """The study's job graph: (jobs, the primary seed's report paths at the trained height, the cross-height
     report paths (primary seed), {(model, height): [report path per seed]}).
 
@@ -372,7 +372,6 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
     py = sys.executable
     quiet = ["--no-progress"] if args.no_progress else []
     eval_device = "cpu" if args.device == "auto" else args.device
-    gpu = args.device.startswith("cuda")
     jobs: list[Job] = []
 
     # the LiDAR detection ability at every height: on the preset's own simulated stream of
@@ -463,6 +462,7 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
             for seed in seeds:
                 jobs.append(train_job(name, h, seed))
                 job, report = eval_job(name, h, seed, h, f"evaluate {name} {h:g} m{seed_words(seed)}")
+                jobs.append(job)  # right after its training: with one job at a time, train then evaluate
                 evals.append(job)
                 seed_reports.setdefault((name, h), []).append(report)
                 if seed == primary:
@@ -476,9 +476,9 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
                         cross_reports.append(eval_report_path(run_dir_of(name, h, primary), t))
                         continue
                     job, report = eval_job(name, h, primary, t, f"evaluate {name} trained at {h:g} m on {t:g} m")
+                    jobs.append(job)
                     evals.append(job)
                     cross_reports.append(report)
-    jobs += evals
     combine_cmd = [py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")]
     jobs.append(Job("combine", "combine", "combine reports", lambda: combine_cmd,
                     deps=tuple(j.id for j in evals if j.kind == "eval"), outputs=(out / "combined",)))
