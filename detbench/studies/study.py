@@ -137,6 +137,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     if bad_heights:
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
     with ExitStack() as held:
         try:
@@ -510,20 +511,32 @@ def _cuda_available() -> bool:
     return torch.cuda.is_available()
 
 
-def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
-    """The executor of the study's jobs: local (--jobs N at once, default one per free CPU core or per GPU)
-    or Ray (--executor ray --address ADDR; --jobs caps the jobs at once)."""
+def _check_executor_options(args: StudyOptions) -> None:
+    """UserError for --jobs, --executor, --address or --seeds that cannot work (before anything is created)."""
     if args.jobs is not None and args.jobs < 1:
         raise UserError(f"--jobs {args.jobs}: the number of jobs at once is at least 1 (leave it out for one per "
                         f"free CPU core, or one per GPU with --device cuda)")
+    if args.executor not in ("local", "ray"):
+        raise UserError(f"--executor {args.executor}: one of local, ray")
+    if args.address and args.executor != "ray":
+        raise UserError(f"--address {args.address} names a Ray cluster: add --executor ray")
+    if args.executor == "ray":
+        from detbench.studies.ray_executor import import_ray
+
+        import_ray()  # not installed: the install command
+    bad = [s for s in (args.seeds or []) if s < 0]
+    if bad:
+        raise UserError(f"--seeds {' '.join(map(str, bad))}: a training seed is a whole number >= 0, "
+                        f"e.g. --seeds 0 1 2")
+
+
+def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
+    """The executor of the study's jobs: local (--jobs N at once, default one per free CPU core or per GPU)
+    or Ray (--executor ray --address ADDR; --jobs caps the jobs at once)."""
     if args.executor == "ray":
         from detbench.studies.ray_executor import RayExecutor
 
         return RayExecutor(address=args.address, cwd=repo, gpu=gpu, slots=args.jobs)
-    if args.executor != "local":
-        raise UserError(f"--executor {args.executor}: one of local, ray")
-    if args.address:
-        raise UserError("--address names a Ray cluster: use it with --executor ray")
     devices = cuda_devices() if gpu else None
     return LocalExecutor(args.jobs or default_jobs("cuda" if gpu else "cpu"), cwd=repo, devices=devices)
 

@@ -21,7 +21,19 @@ def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
     assert code == 2 and "unknown config key 'train.epohcs'" in err and "epochs" in err
     code, err = tool("study", "--data", tmp_path / "nope", "--out", tmp_path / "s4")
     assert code == 2 and f"--data {tmp_path / 'nope'}: no such folder" in err
-    assert not any((tmp_path / s).exists() for s in ("s2", "s3", "s4"))
+    code, err = tool("study", "--jobs", "0", "--out", tmp_path / "s5")
+    assert code == 2 and "--jobs 0: the number of jobs at once is at least 1" in err
+    code, err = tool("study", "--address", "auto", "--out", tmp_path / "s6")
+    assert code == 2 and "--address auto names a Ray cluster: add --executor ray" in err
+    code, err = tool("study", "--seeds", "0", "-1", "--out", tmp_path / "s7")
+    assert code == 2 and "--seeds -1: a training seed is a whole number >= 0" in err
+    assert not any((tmp_path / s).exists() for s in ("s2", "s3", "s4", "s5", "s6", "s7"))
+
+
+def test_the_ray_executor_without_ray_names_the_install_command(tool, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    code, err = tool("study", "--executor", "ray", "--out", tmp_path / "s")
+    assert code == 2 and "pip install .[cluster]" in err and not (tmp_path / "s").exists()
 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
