@@ -46,6 +46,11 @@ The combination, and why:
   Welch-Satterthwaite; a model with one seed takes the other's seed variance (the df of the one
   measured); with one seed each there is no seed term. A model is called ahead only when the
   combined interval excludes 0; otherwise the lead is "not resolved".
+- **Leads between heights** (`seed_height_summary`): one model at two heights, the same way. The
+  heights of a study share their test scenes (the same traffic), so recall is still paired over
+  scenes, each height over its own LiDAR-detected vehicles: replicate b gives the difference of
+  the two heights' resampled ratios. The trainings at two heights count as independent (Welch),
+  which errs wide where a seed starts both from the same weights.
 
 Reports of one group (model, height) and all models at one height must come from the same test
 split (same scenes, same LiDAR-detected counts, same IoU and score thresholds, same bootstrap
@@ -350,29 +355,46 @@ def _welch(cell_a: dict, cell_b: dict, n_a: int, n_b: int, confidence: float) ->
     return t, t * math.sqrt(var)
 
 
+def _scene_quadrature(diff: float, ca: dict, cb: dict) -> list | None:
+    """Unpaired scene interval of mean_a - mean_b: the two scene intervals' sides in quadrature."""
+    if not ca["scene_ci95"] or not cb["scene_ci95"]:
+        return None
+    a_lo, a_hi = ca["mean"] - ca["scene_ci95"][0], ca["scene_ci95"][1] - ca["mean"]
+    b_lo, b_hi = cb["mean"] - cb["scene_ci95"][0], cb["scene_ci95"][1] - cb["mean"]
+    return [round(diff - math.hypot(max(a_lo, 0.0), max(b_hi, 0.0)), 6),
+            round(diff + math.hypot(max(a_hi, 0.0), max(b_lo, 0.0)), 6)]
+
+
 def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: dict, comb_b: dict, r: str, lv: str, metric: str,
           confidence: float) -> dict | None:
-    """mean_a - mean_b in one cell with its scene term, seed term and combined interval."""
+    """mean_a - mean_b in one cell with its scene term, seed term and combined interval. a and b are
+    two models at one height (the same LiDAR-detected vehicles) or one model at two heights (the same
+    test scenes, other LiDAR-detected vehicles)."""
     ca, cb = comb_a["results"][r][lv][metric], comb_b["results"][r][lv][metric]
     if ca["mean"] is None or cb["mean"] is None:
         return None
     diff = float(np.mean([x["results"][r][lv][metric] for x in rep_a])
                  - np.mean([x["results"][r][lv][metric] for x in rep_b]))
+    ua, ub = rep_a[0].get("uncertainty"), rep_b[0].get("uncertainty")
+    paired = bool(ua) and bool(ub) and list(ua["clusters"]) == list(ub["clusters"])
     scene_ci, method = None, None
-    if metric == "recall" and rep_a[0].get("uncertainty"):
-        det = _det(rep_a[0], r, lv)
+    if metric == "recall" and paired:
+        da, db = _det(rep_a[0], r, lv), _det(rep_b[0], r, lv)
         ta, tb = _mean_tp(rep_a, r, lv), _mean_tp(rep_b, r, lv)
-        diff = float((ta.sum() - tb.sum()) / det.sum())  # det.sum() > 0: the recall means exist
-        if len(det) >= 2:
-            w = scene_bootstrap_weights(len(det), LEAD_REPLICATES, LEAD_SEED)
-            scene_ci = percentile_interval(bootstrap_ratios(w, ta - tb, det), confidence)
-            method = "paired scene bootstrap (the same scenes for both models and every seed)"
-    elif metric == "ap_r40" and ca["scene_ci95"] and cb["scene_ci95"]:
-        a_lo, a_hi = ca["mean"] - ca["scene_ci95"][0], ca["scene_ci95"][1] - ca["mean"]
-        b_lo, b_hi = cb["mean"] - cb["scene_ci95"][0], cb["scene_ci95"][1] - cb["mean"]
-        scene_ci = [round(diff - math.hypot(max(a_lo, 0.0), max(b_hi, 0.0)), 6),
-                    round(diff + math.hypot(max(a_hi, 0.0), max(b_lo, 0.0)), 6)]
-        method = "the two models' scene intervals in quadrature (unpaired: AP needs per-frame ranks; errs wide)"
+        same_det = np.array_equal(da, db)
+        # da.sum(), db.sum() > 0: both recall means exist
+        diff = float((ta.sum() - tb.sum()) / da.sum()) if same_det else float(ta.sum() / da.sum() - tb.sum() / db.sum())
+        if len(da) >= 2:
+            w = scene_bootstrap_weights(len(da), LEAD_REPLICATES, LEAD_SEED)
+            boot = (bootstrap_ratios(w, ta - tb, da) if same_det
+                    else bootstrap_ratios(w, ta, da) - bootstrap_ratios(w, tb, db))
+            scene_ci = percentile_interval(boot, confidence)
+            method = "paired scene bootstrap (the same scenes for both and every seed)"
+    else:
+        scene_ci = _scene_quadrature(diff, ca, cb)
+        if scene_ci is not None:
+            why = "AP needs per-frame ranks" if metric == "ap_r40" else "the test scenes differ"
+            method = f"the two scene intervals in quadrature (unpaired: {why}; errs wide)"
     t, q = _welch(ca, cb, comb_a["num_seeds"], comb_b["num_seeds"], confidence)
     ci = _add_seed_term(diff, scene_ci, q, (-1.0, 1.0))
     ahead = bool(ci) and (ci[0] > 0 or ci[1] < 0)
@@ -385,6 +407,7 @@ def _groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
     if not isinstance(groups, Mapping) or not groups:
         raise ValueError("groups: give a non-empty dict {(model, height): [report of each training seed]}")
     by_height: dict[float, dict[str, list[dict]]] = {}
+    first = None
     for key, reports in groups.items():
         try:
             model, height = key
@@ -400,6 +423,12 @@ def _groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
             if rep.get("height") is not None and abs(float(rep["height"]) - height) > 1e-9:
                 raise ValueError(f"{_name(where, i, rep)}: the report is at height {float(rep['height']):g} m, not "
                                  f"{height:g} m; group each height's reports under its own height")
+        if first is None:
+            first = (where, _settings(reports[0]))
+        elif _settings(reports[0]) != first[1]:
+            raise ValueError(f"{where}: evaluated with (iou_kind, iou_threshold, score_threshold) = "
+                             f"{_settings(reports[0])}, but {first[0]} with {first[1]}; evaluate every model and "
+                             f"height alike")
         if model in by_height.setdefault(height, {}):
             raise ValueError(f"groups: {where} is given twice; give each (model, height) once")
         by_height[height][model] = reports
@@ -410,11 +439,27 @@ def _groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
     return dict(sorted(by_height.items()))
 
 
-def _ranked(comb: dict[str, dict], cell: tuple[str, str], first: str, second: str) -> list[str]:
+def _leader(name: str, items: dict, cell: tuple[str, str], metric: str, other: str) -> dict:
+    """Ranking of `items` ({key: (reports, seed_combined)}) by the seed mean of `metric` in `cell` (ties:
+    `other`), with the lead of the first over the second."""
     r, lv = cell
-    models = [m for m in comb if comb[m]["results"][r][lv][first]["mean"] is not None]
-    return sorted(models, key=lambda m: (-comb[m]["results"][r][lv][first]["mean"],
-                                         -(comb[m]["results"][r][lv][second]["mean"] or 0.0)))
+
+    def mean(k, m):
+        return items[k][1]["results"][r][lv][m]["mean"]
+
+    ranked = sorted((k for k in items if mean(k, metric) is not None),
+                    key=lambda k: (-mean(k, metric), -(mean(k, other) or 0.0)))
+    entry = {"range": r, "level": lv,
+             "ranking": [{name: k, "mean": mean(k, metric), "ci95": items[k][1]["results"][r][lv][metric]["ci95"],
+                          "num_seeds": items[k][1]["num_seeds"]} for k in ranked],
+             "best": ranked[0] if ranked else None, "runner_up": ranked[1] if len(ranked) > 1 else None, "lead": None}
+    if len(ranked) > 1:
+        (ra, ca), (rb, cb) = items[ranked[0]], items[ranked[1]]
+        entry["lead"] = _lead(ra, rb, ca, cb, r, lv, metric, ca["confidence"])
+    return entry
+
+
+WHAT = (("recall", RECALL_CELL, "ap_r40"), ("ap_r40", AP_CELL, "recall"))
 
 
 def seed_summary(groups: Mapping) -> dict:
@@ -431,23 +476,28 @@ def seed_summary(groups: Mapping) -> dict:
     """
     out = {}
     for h, models in _groups(groups).items():
-        comb = {m: seed_combined(reps, f"{m} at {h:g} m") for m, reps in models.items()}
-        cell_out = {"models": comb}
-        for metric, cell, other in (("recall", RECALL_CELL, "ap_r40"), ("ap_r40", AP_CELL, "recall")):
-            r, lv = cell
-            ranked = _ranked(comb, cell, metric, other)
-            entry = {"range": r, "level": lv, "ranking": [
-                {"model": m, "mean": comb[m]["results"][r][lv][metric]["mean"],
-                 "ci95": comb[m]["results"][r][lv][metric]["ci95"], "num_seeds": comb[m]["num_seeds"]}
-                for m in ranked], "best": ranked[0] if ranked else None,
-                "runner_up": ranked[1] if len(ranked) > 1 else None, "lead": None}
-            if len(ranked) > 1:
-                a, b = ranked[0], ranked[1]
-                entry["lead"] = _lead(models[a], models[b], comb[a], comb[b], r, lv, metric,
-                                      comb[a]["confidence"])
-            cell_out[metric] = entry
-        out[h] = cell_out
+        items = {m: (reps, seed_combined(reps, f"{m} at {h:g} m")) for m, reps in models.items()}
+        out[h] = {"models": {m: c for m, (_, c) in items.items()},
+                  **{metric: _leader("model", items, cell, metric, other) for metric, cell, other in WHAT}}
     return out
+
+
+def seed_height_summary(groups: Mapping) -> dict:
+    """Per model tested at two or more heights, the height at which it leads in recall (large range)
+    and AP@R40 (small range), all vehicles, with the lead over the runner-up height.
+
+    The heights of a study share their test scenes (the same traffic), so the recall lead is paired
+    over those scenes (each height with its own LiDAR-detected vehicles); the trainings at two heights
+    count as independent, so the seed term is Welch's as between models. Scenes that differ between
+    the heights fall back to the two scene intervals in quadrature. Returns {model: {"recall": lead,
+    "ap_r40": lead}} laid out as in `seed_summary`, with "height" (metres) in place of "model".
+    """
+    by_model: dict[str, dict[float, tuple]] = {}
+    for h, models in _groups(groups).items():
+        for m, reps in models.items():
+            by_model.setdefault(m, {})[h] = (reps, seed_combined(reps, f"{m} at {h:g} m"))
+    return {m: {metric: _leader("height", items, cell, metric, other) for metric, cell, other in WHAT}
+            for m, items in by_model.items() if len(items) > 1}
 
 
 # --------------------------------------------------------------------------------------------
@@ -470,35 +520,40 @@ def _seeds_text(seeds: Sequence) -> str:
     return ", ".join(str(s) for s in seeds)
 
 
-def _lead_sentence(h: float, metric: str, entry: dict) -> str:
+def _lead_sentence(prefix: str, key: str, metric: str, entry: dict) -> str:
+    """One sentence on a ranking of models (key "model") or heights (key "height")."""
     r, lv = entry["range"], entry["level"]
     what = f"{METRIC_WORDS[metric]} ({r} range, {'All' if lv == 'all' else lv.capitalize()} vehicles)"
+
+    def name(e: dict) -> str:
+        return f"{e[key]:g} m" if key == "height" else str(e[key])
+
     if not entry["ranking"]:
-        return f"At {h:g} m no model has a {what}: nothing is evaluated in that range."
+        return f"{prefix}, {what}: nothing is evaluated in that range."
     best = entry["ranking"][0]
     if entry["runner_up"] is None:
-        return (f"At {h:g} m only {best['model']} has a {what}: {_f(best['mean'])} {_ci(best['ci95'])}; "
-                f"there is no other model to compare with.")
+        return f"{prefix}, {what}: only {name(best)} has a figure, {_f(best['mean'])} {_ci(best['ci95'])}."
     lead = entry["lead"]
     runner = entry["ranking"][1]
-    head = (f"At {h:g} m, {what}: {best['model']} {_f(best['mean'])} against {runner['model']} "
-            f"{_f(runner['mean'])}, lead {_f(lead['diff'], signed=True)} {_ci(lead['ci95'], signed=True)}")
+    head = (f"{prefix}, {what}: {name(best)} {_f(best['mean'])} against {name(runner)} {_f(runner['mean'])}, "
+            f"lead {_f(lead['diff'], signed=True)} {_ci(lead['ci95'], signed=True)}")
     terms = f"scene term {_ci(lead['scene_ci95'], signed=True)}"
     if lead["seed_half_width"] is not None:
         terms += f", seed term +-{_f(lead['seed_half_width'])}"
     else:
         terms += ", seed spread not measured (one seed each)"
     if lead["verdict"] == "ahead":
-        return f"{head} ({terms}): **{best['model']} is ahead**."
+        return f"{head} ({terms}): **{name(best)} is ahead**."
     if lead["verdict"] == "not resolved":
         return f"{head} ({terms}): not resolved, the interval includes 0."
-    return f"{head}: no interval (evaluate with --bootstrap), so no model is called ahead."
+    return f"{head}: no interval (evaluate with --bootstrap), so none is called ahead."
 
 
 def seed_markdown(groups: Mapping) -> list[str]:
     """Markdown lines for study.md: per height a table of every model's seed mean per range (All
     vehicles) for recall and AP@R40 with the interval of scenes and seeds, the seed spread and the
-    scene-only interval beside it, then the sentences of `seed_summary`."""
+    scene-only interval beside it, then the sentences of `seed_summary` and, for models tested at
+    two or more heights, of `seed_height_summary`."""
     summary = seed_summary(groups)
     seeds_used = sorted({s for h in summary.values() for c in h["models"].values() for s in c["seeds"]},
                         key=lambda s: (not isinstance(s, int), s if isinstance(s, int) else 0, str(s)))
@@ -531,13 +586,19 @@ def seed_markdown(groups: Mapping) -> list[str]:
                 lines.append("| " + " | ".join(row) + " |")
         lines.append("")
         for metric in METRICS:
-            lines.append(_lead_sentence(h, metric, cell[metric]))
+            lines.append(_lead_sentence(f"At {h:g} m", "model", metric, cell[metric]))
         lines.append("")
-    lines.append("A model is called ahead only where the 95 % interval of its lead (the paired scene bootstrap for "
-                 "recall, the two models' scene intervals in quadrature for AP@R40, each plus both models' seed "
-                 "spread with a Student-t factor) excludes 0.")
+    by_model = seed_height_summary(groups)
+    if by_model:
+        lines += ["**Heights, per model**", ""]
+        for m, cell in by_model.items():
+            lines += [_lead_sentence(f"For {m}", "height", metric, cell[metric]) for metric in METRICS]
+        lines.append("")
+    lines.append("A model (or height) is called ahead only where the 95 % interval of its lead excludes 0: the "
+                 "scene term (paired over the same test scenes for recall; for AP@R40 the two scene intervals in "
+                 "quadrature) plus both sides' seed spread with a Student-t factor.")
     return lines
 
 
-__all__ = ["seed_combined", "seed_summary", "seed_markdown", "student_t_quantile", "METRICS", "CONFIDENCE",
-           "LEAD_REPLICATES", "LEAD_SEED", "RECALL_CELL", "AP_CELL"]
+__all__ = ["seed_combined", "seed_summary", "seed_height_summary", "seed_markdown", "student_t_quantile", "METRICS",
+           "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "RECALL_CELL", "AP_CELL"]
