@@ -286,3 +286,17 @@ def test_the_interval_covers_the_expected_recall_over_scenes_and_seeds_where_one
         hit1 += ci1[0] <= truth <= ci1[1]
     assert hit3 / trials >= 0.93, (hit3, hit1, trials)
     assert hit1 / trials <= 0.85, (hit3, hit1, trials)
+
+
+def test_without_a_scene_bootstrap_there_is_no_interval_and_no_model_is_called_ahead():
+    def bare(rep):
+        return {k: v for k, v in copy.deepcopy(rep).items() if k != "uncertainty"}
+
+    a = [bare(r) for r in _seeds("second", (0.9, 0.88))]
+    b = [bare(r) for r in _seeds("pillarnet", (0.3, 0.32))]
+    c = seed_combined(a)["results"]["large"]["all"]["recall"]
+    assert c["sd"] > 0 and c["scene_ci95"] is None and c["ci95"] is None
+    lead = seed_summary({("second", 1.8): a, ("pillarnet", 1.8): b})[1.8]["recall"]["lead"]
+    assert lead["diff"] > 0.4 and lead["verdict"] == "no interval" and not lead["ahead"]
+    assert "no interval (evaluate with --bootstrap)" in "\n".join(seed_markdown({("second", 1.8): a,
+                                                                                ("pillarnet", 1.8): b}))
