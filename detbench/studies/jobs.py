@@ -139,9 +139,9 @@ class GraphProgress:
     the longest chain of dependencies still to run) and the remaining work spread over `slots`
     workers. A job's duration is the mean measured duration of finished jobs of the same kind and
     model; a kind not measured for that model borrows the mean of that kind (a guess, said so until
-    every model has run each kind once); a training or evaluation with no measurement at all leaves
-    the time left unknown until the first one finishes. Short kinds (data, ability, combine) count
-    only once measured."""
+    every model has run each kind once), a cross-height evaluation that of an evaluation; a training
+    or evaluation with no measurement at all leaves the time left unknown until the first one
+    finishes. Short kinds (data, ability, combine) count only once measured."""
 
     def __init__(self, jobs: list[Job], slots: int, *, stream=None):
         self.jobs = {j.id: j for j in jobs}
@@ -161,6 +161,8 @@ class GraphProgress:
         same = [t for (k, _), ts in self.measured.items() if k == job.kind for t in ts]
         if same:
             return sum(same) / len(same), True
+        if job.kind == "cross_eval":  # an evaluation at another height costs about what one at its own does
+            return self.estimate(Job(job.id, "eval", job.what, job.prepare, model=job.model))[0], True
         return (None, True) if job.kind in ("train", "eval", "cross_eval") else (0.0, False)
 
     def left_s(self, now: float | None = None) -> tuple[float | None, bool]:

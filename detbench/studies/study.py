@@ -29,6 +29,7 @@ from detbench.data.layout import read_info
 from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
 from detbench.studies.jobs import LOGS_DIR, Job, LocalExecutor, cuda_devices, default_jobs, job_counts, run_graph
 from detbench.studies.registry import ModelRegistry
+from detbench.studies.seeds import seed_height_summary, seed_markdown, seed_summary
 from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
 from detbench.studies.stage_inputs import (
     RECORDS_DIR, FileHashes, changes, config_digest, dataset_fingerprint, training_config, write_record,
@@ -330,6 +331,9 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
              "|y| <= 15 m), at 3D IoU >= 0.7 and score >= 0.1; intervals from a bootstrap over test scenes, the "
              "lead paired over the same scenes.", "", source_detect, "",
              *detector_summary_lines(report_dicts), "",
+             *([f"**Over the training seeds** {', '.join(map(str, seeds))} (the lines above are seed {primary}'s "
+                f"alone): each model and height's mean over seeds, its interval holding both the test-scene "
+                f"bootstrap and the seed-to-seed spread.", "", *seed_lines] if seed_lines else []),
              *unlearned_lines(report_dicts),
              *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
                 f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""]
@@ -352,7 +356,6 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
              "## 2. Detectors on the LiDAR-detected vehicles (test split)", "",
              embed(out / "combined" / "combined.md", source_detect), "",
              *cross_lines,
-             *seed_lines,
              "Per-run reports with 95 % intervals: " + ", ".join(
                  f"`{r.parent.relative_to(out)}/report.md`" for r in reports), "",
              "Figures: " + ", ".join(f"`{p.relative_to(out)}`" for p in sorted(out.glob("*/*.png"))), ""]
@@ -491,18 +494,18 @@ def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, f
     the interval holding seed spread and scene bootstrap next to the single-seed scene bootstrap interval."""
     if len(seeds) < 2:
         return []
-    groups = {key: [read_json(p) for p in paths] for key, paths in seed_reports.items()}
-    # PLUG-IN POINT (detbench.studies.seeds, branch `seeds`): seed_summary(groups) for study.json and
-    # seed_markdown(groups) for study.md. Until that module is merged, the section lists the runs per seed.
-    try:
-        from detbench.studies.seeds import seed_markdown, seed_summary
-    except ImportError:
-        study["seeds"] = {"seeds": seeds, "reports": {f"{m} {h:g}": [str(p) for p in paths]
-                                                      for (m, h), paths in seed_reports.items()}}
-        return ["## Seeds", "", f"Each model and height trained with seeds {', '.join(map(str, seeds))}; the "
-                "statistics over seeds need detbench.studies.seeds.", ""]
-    study["seeds"] = {"seeds": seeds, **seed_summary(groups)}
-    return ["## Seeds", "", *seed_markdown(groups), ""]
+    groups = {}
+    for key, paths in seed_reports.items():
+        groups[key] = []
+        for seed, path in zip(seeds, paths):
+            rep = read_json(path)
+            rep.setdefault("train_seed", seed)  # how the seed statistics name each run
+            groups[key].append(rep)
+    # detbench.studies.seeds: the seed mean per model and height with the interval of scenes and seeds, next to
+    # the scene-only interval; a model or height called ahead only where that interval of its lead excludes 0
+    study["seeds"] = {"seeds": seeds, "by_height": {f"{h:g}": cell for h, cell in seed_summary(groups).items()},
+                      "by_model": seed_height_summary(groups)}
+    return [*seed_markdown(groups), ""]
 
 
 def _cuda_available() -> bool:

@@ -179,3 +179,11 @@ def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp
     assert proc.returncode != 0 and "KeyboardInterrupt" in out
     assert (tmp_path / "checkpoint").read_text() == "step 3" and not (tmp_path / "done").exists()
     assert "interrupted: stopping train m" in out and "run the same command again to resume" in out
+
+
+def test_a_cross_height_evaluation_borrows_the_time_of_an_evaluation():
+    jobs = [job("train_a", [], model="a"), job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
+            job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a")]
+    prog = GraphProgress(jobs, slots=1)
+    prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0]}
+    assert prog.left_s() == (pytest.approx(120.0), True)

@@ -60,3 +60,25 @@ def test_the_study_on_a_local_ray_instance_matches_the_local_executor(tiny_datas
         ray.shutdown()
     assert (tmp_path / "ray" / "logs" / "train_second_h0.5.log").is_file()
     assert on_ray == local
+
+
+@pytest.mark.slow
+def test_seeds_train_each_run_once_per_seed_and_the_report_gives_the_spread(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "seeds"
+    got = study(tiny_dataset, out, [0.5], jobs=2, seeds=[0, 1])
+    # seed 0 is the config's train.seed: today's folder; seed 1 its own, trained with --set train.seed=1
+    assert (out / "second_h0.5" / "eval_h0.5_test" / "report.json").is_file()
+    assert (out / "second_h0.5_s1" / "eval_h0.5_test" / "report.json").is_file()
+    rec = json.loads((out / "stage_inputs" / "train_second_h0.5_s1.json").read_text())
+    assert rec["inputs"]["config"]["train"]["seed"] == 1
+    assert json.loads((out / "stage_inputs" / "train_second_h0.5.json").read_text())["inputs"]["config"]["train"][
+        "seed"] == 0
+    assert got["seeds"]["seeds"] == [0, 1] and "0.5" in got["seeds"]["by_height"]
+    comb = got["seeds"]["by_height"]["0.5"]["models"]["second"]
+    assert comb["num_seeds"] == 2 and comb["seeds"] == [0, 1]
+    md = (out / "study.md").read_text()
+    assert "**Over the training seeds** 0, 1" in md and "seed sd" in md and "scene-only" in md
+    # the same command again: every job is kept
+    capsys.readouterr()
+    study(tiny_dataset, out, [0.5], jobs=2, seeds=[0, 1])
+    assert "start train" not in capsys.readouterr().out
