@@ -41,7 +41,7 @@ TAIL_LINES = 20  # lines of a failed job's log printed with its path
 # output (the log is current while the job runs). The same for every number of jobs at once.
 JOB_ENV = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
-KINDS = ("data", "ability", "split_check", "train", "eval", "cross_eval", "combine")
+KINDS = ("ability", "train", "eval", "cross_eval", "combine")  # the data and the splits' counts come before the graph
 
 
 @dataclass

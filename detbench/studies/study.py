@@ -279,7 +279,8 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         for h, seed in ((h, seed) for h in heights for seed in seeds):
             summ = read_json(run_dir_of(name, h, seed) / "train_summary.json")
             train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
-    train_words = ("Training time (the runs' own, summed over heights; resumed invocations included): "
+    train_words = (f"Training time (the runs' own, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
+                   "resumed invocations included): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,
