@@ -76,9 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
     ap.add_argument("--jobs", type=int, default=None, metavar="N",
                     help="jobs at once (default: one per free CPU core, i.e. the cores this process may use minus "
-                         "the 1-minute load average, at least 1; one per GPU with --device cuda; with --executor ray "
-                         "the cluster's CPUs or GPUs). Each job has one torch thread whatever N, so results do not "
-                         "depend on it. E.g. --jobs 2")
+                         "the cores busy over half a second at the start (/proc/stat), at least 1; one per GPU with "
+                         "--device cuda; with --executor ray the cluster's CPUs or GPUs). Each job has one torch "
+                         "thread whatever N, so results do not depend on it. E.g. --jobs 2")
     ap.add_argument("--executor", choices=("local", "ray"), default="local",
                     help="local (default): the jobs as processes of this machine; ray: each job a Ray task asking "
                          "for 1 CPU (or 1 GPU with --device cuda) on whichever worker Ray picks (pip install "

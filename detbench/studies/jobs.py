@@ -86,18 +86,42 @@ def check_graph(jobs: list[Job]) -> None:
         done.update(ready)
 
 
+def _cpu_times() -> tuple[float, float] | None:
+    """(busy, total) jiffies of every CPU since boot, from /proc/stat (None where there is none)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            fields = [float(x) for x in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle + iowait
+    return sum(fields) - idle, sum(fields)
+
+
+def busy_cores(window_s: float = 0.5) -> float:
+    """Cores kept busy by every process now: the busy share of CPU time over `window_s` seconds (/proc/stat)
+    times the machine's cores; where /proc/stat is missing, the 1-minute load average."""
+    a = _cpu_times()
+    if a is not None:
+        time.sleep(window_s)
+        b = _cpu_times()
+        if b is not None and b[1] > a[1]:
+            return (b[0] - a[0]) / (b[1] - a[1]) * (os.cpu_count() or 1)
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return 0.0
+
+
 def free_cpus() -> int:
-    """CPU cores free for jobs: the cores this process may run on (sched_getaffinity) minus the 1-minute
-    load average rounded to the nearest whole core (what other processes keep busy), at least 1."""
+    """CPU cores free for jobs: the cores this process may run on (sched_getaffinity) minus the cores other
+    processes keep busy now (`busy_cores`, rounded to the nearest whole core), at least 1. Measured over half a
+    second rather than by the 1-minute load average, which lags: right after a study ended it still counts
+    that study's jobs as busy."""
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux
         cores = os.cpu_count() or 1
-    try:
-        busy = int(round(os.getloadavg()[0]))
-    except OSError:
-        busy = 0
-    return max(1, cores - busy)
+    return max(1, cores - int(round(busy_cores())))
 
 
 def cuda_devices() -> list[str]:
@@ -459,4 +483,4 @@ def job_counts(jobs: Iterable[Job]) -> dict[str, int]:
 
 
 __all__ = ["GraphProgress", "GraphResult", "JOB_ENV", "Job", "KINDS", "LOGS_DIR", "LocalExecutor", "TAIL_LINES",
-           "check_graph", "cuda_devices", "default_jobs", "free_cpus", "job_counts", "run_graph", "tail"]
+           "busy_cores", "check_graph", "cuda_devices", "default_jobs", "free_cpus", "job_counts", "run_graph", "tail"]
