@@ -390,13 +390,13 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
         ability_cmd = [py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed",
                        str(data_cfg.get("seed", 0)), "--preset", str(data_cfg.get("sim_preset", "paper")), *sim_sets,
                        "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet]
-        ability_what = f"LiDAR detection ability ({ability_frames} simulated frames)"
+        ability_what = f"ability study ({ability_frames} simulated frames)"
     else:
         ability_inputs = {"heights": heights, "data_fingerprint": dataset_fingerprint(root, heights, hashes)}
         hashes.save()
         ability_cmd = [py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights",
                        *map(str, heights), "--out", str(out / "ability"), *quiet]
-        ability_what = "LiDAR detection ability (every frame of the dataset)"
+        ability_what = "ability study (every frame)"
 
     def ability_prepare() -> list[str] | None:
         diff = changes(out, "ability", ability_inputs) if ability_json.is_file() else None
