@@ -14,6 +14,17 @@ Examples:
   python tools/study.py --preset paper --device cuda   # the paper's scale
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
+  python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per free CPU core)
+  python tools/study.py --preset quick --models second pillarnet --seeds 0 1   # each run once per seed
+  python tools/study.py --preset smoke --executor ray  # the jobs as tasks of a local Ray instance
+  python tools/study.py --preset paper --device cuda --executor ray --address auto --out /shared/nfs/study
+
+Jobs: every training, evaluation, the ability study and the combined report is a job that runs
+as soon as the jobs it needs have finished (a training needs the data, its evaluation the
+training, the report all of them), each in its own process with one torch thread, so a study's
+figures do not depend on how many run at once. Each job's output goes to OUT/logs/<job>.log (and
+to the terminal too with --jobs 1); a failed job prints its log's last lines and stops the study
+(the running trainings write a checkpoint first), as does Ctrl-C.
 
 The study resumes: a stage whose output exists and was computed from the same inputs (the
 data's content, the config, the heights) is skipped, an interrupted training run is resumed
@@ -21,7 +32,8 @@ from its last checkpoint. A rerun with other inputs computes the ability study a
 evaluations again and refuses a finished training run computed from other inputs, naming it
 and what changed. Delete OUT (or pass --fresh) to start over.
 Writes OUT/study.md and OUT/study.json, OUT/ability/, OUT/<model>_h<height>/ (training run
-and eval_*/ report) and OUT/combined/ (table and figures).
+and eval_*/ report; OUT/<model>_h<height>_s<seed>/ for each --seeds seed other than the
+config's train.seed), OUT/combined/ (table and figures) and OUT/logs/ (one log per job).
 """
 from __future__ import annotations
 
@@ -63,6 +75,24 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--fresh", action="store_true",
                     help="empty OUT first instead of resuming (only a study's folder: any other is refused)")
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    ap.add_argument("--jobs", type=int, default=None, metavar="N",
+                    help="jobs at once (default: one per free CPU core, i.e. the cores this process may use minus "
+                         "the cores busy over half a second at the start (/proc/stat), at least 1; one per GPU with "
+                         "--device cuda; with --executor ray the cluster's CPUs or GPUs). Each job has one torch "
+                         "thread whatever N, so results do not depend on it. E.g. --jobs 2")
+    ap.add_argument("--executor", choices=("local", "ray"), default="local",
+                    help="local (default): the jobs as processes of this machine; ray: each job a Ray task asking "
+                         "for 1 CPU (or 1 GPU with --device cuda) on whichever worker Ray picks (pip install "
+                         ".[cluster]). With ray, OUT and --data must be folders every worker shares (NFS), and "
+                         "every worker has this checkout at the same path. E.g. --executor ray --address auto")
+    ap.add_argument("--address", default=None, metavar="ADDR",
+                    help="with --executor ray: the cluster, 'auto' (the one `ray start` started here) or host:port "
+                         "of its head; left out: a local Ray instance on this machine. E.g. --address 10.0.0.1:6379")
+    ap.add_argument("--seeds", type=int, nargs="+", default=None, metavar="S",
+                    help="train each model and height once per seed (--set train.seed=S; default: the config's "
+                         "train.seed only). The config's own seed keeps the run folder <model>_h<height>, the "
+                         "others get <model>_h<height>_s<S>; study.md gives each figure as the mean over seeds "
+                         "with an interval holding seed spread and scene bootstrap. E.g. --seeds 0 1 2")
     return ap
 
 
@@ -71,7 +101,8 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     opts = StudyOptions(preset=args.preset, models=args.models, heights=args.heights, data=args.data,
                         device=args.device, out=args.out, overrides=args.overrides, cross_height=args.cross_height,
-                        fresh=args.fresh, no_progress=args.no_progress)
+                        fresh=args.fresh, no_progress=args.no_progress, jobs=args.jobs, executor=args.executor,
+                        address=args.address, seeds=args.seeds)
     md, seconds = run_study(opts, registry=models, repo=ROOT)
     print(f"\nstudy done in {seconds / 60:.1f} min: {md}")
     return 0

@@ -10,6 +10,7 @@ placement                    training-free placement scores from ray coverage an
 rankcorr                     rank correlation of placement scores with trained detectors' figures
 cross_height                 detectors trained at one height and tested at the others
 study_summary                the answers that open a study's report (best height, best model)
+seeds                        figures over several training seeds: the mean, its interval over scenes and seeds
 study                        the whole study: its stages, progress line and study.md (tools/study.py)
 tradeoff                     the trade study's Pareto flags, planner, cost model, report and figures
 tradeoff_points              the trade study's knobs and points

@@ -5,11 +5,14 @@ LiDAR detection-ability study at every height (tools/analyze.py); (3) each detec
 height on that height's training split (tools/train.py); (4) each evaluated on the same
 height's test split, and with cross_height on the other heights' too (tools/eval.py); (5) the
 combined report, and study.md opening with the summary of detbench.studies.study_summary.
-Every stage is a tool in its own process (detbench.studies.runner); a stage whose output exists
-and was computed from the same inputs (detbench.studies.stage_inputs: the data's content, the
-stage's config and settings) is skipped, so the study resumes. A stage whose inputs changed is
-recomputed (the ability study, an evaluation) or, for a training run, refused with the reason
-before any stage runs. The run folders follow detbench.train.run_layout.
+The data and the splits' counts are made in this process; every other stage is a job of a graph
+(detbench.studies.jobs: a tool in its own process, its log in OUT/logs/), run as soon as the
+jobs it needs have finished, several at once on this machine or on a Ray cluster
+(detbench.studies.ray_executor). With --seeds each model and height is trained once per seed.
+A stage whose output exists and was computed from the same inputs (detbench.studies.stage_inputs:
+the data's content, the stage's config and settings) is skipped, so the study resumes. A stage
+whose inputs changed is recomputed (the ability study, an evaluation) or, for a training run,
+refused with the reason before any stage runs. The run folders follow detbench.train.run_layout.
 """
 from __future__ import annotations
 
@@ -24,8 +27,9 @@ from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
+from detbench.studies.jobs import LOGS_DIR, Job, LocalExecutor, cuda_devices, default_jobs, job_counts, run_graph
 from detbench.studies.registry import ModelRegistry
-from detbench.studies.runner import run_command
+from detbench.studies.seeds import seed_height_summary, seed_markdown, seed_summary
 from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
 from detbench.studies.stage_inputs import (
     RECORDS_DIR, FileHashes, changes, config_digest, dataset_fingerprint, training_config, write_record,
@@ -36,7 +40,7 @@ from detbench.studies.study_summary import (
 from detbench.train.run_config import load_run_config
 from detbench.train.checkpoint import CheckpointManager
 from detbench.train.run_layout import STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir
-from detbench.utils.cli import EXIT_USER_ERROR, UserError
+from detbench.utils.cli import UserError
 from detbench.utils.io import (
     FolderNotReplaceable, atomic_write_json, atomic_write_text, check_replaceable, claim_folder, clear_folder,
     read_json,
@@ -71,80 +75,10 @@ class StudyOptions:
     cross_height: bool = False
     fresh: bool = False  # empty OUT (a study's folder) first instead of resuming
     no_progress: bool = False
-
-
-class Progress:
-    """The study's progress line: stage k of n, the model and height, elapsed and time left.
-
-    Time left is the sum, over the stages still to run, of the measured time of finished
-    stages of the same kind and model (training of SECOND at another height, say); a kind
-    not measured yet borrows the mean of the measured trainings (or evaluations), scaled by
-    nothing: it is said to be a guess until every model has run once.
-    """
-
-    def __init__(self, stages: list[tuple[str, str | None]]):
-        self.stages = stages  # (kind, model) per stage, in order
-        self.done: dict[tuple[str, str | None], list[float]] = {}
-        self.k = 0
-        self.t0 = time.perf_counter()
-
-    def left_s(self) -> tuple[float | None, bool]:
-        """Seconds left for the stages not yet finished (the one starting now included)."""
-        rest = self.stages[self.k:]
-        total, guess = 0.0, False
-        for kind, model in rest:
-            own = self.done.get((kind, model))
-            if own:
-                total += sum(own) / len(own)
-                continue
-            same_kind = [t for (k2, _), ts in self.done.items() if k2 == kind for t in ts]
-            if not same_kind:
-                if kind in ("train", "eval"):
-                    return None, True
-                continue  # data, ability, combine: short next to training
-
-            total += sum(same_kind) / len(same_kind)
-            guess = True
-        return total, guess
-
-    def start(self, what: str) -> None:
-        elapsed = (time.perf_counter() - self.t0) / 60.0
-        left, guess = self.left_s()  # before counting this stage: it has still to run
-        self.k += 1
-        if left is None:
-            eta = "time left: measured after the first training"
-        else:
-            eta = ("under a minute left" if left < 60 else f"about {left / 60.0:.0f} min left") + \
-                (" (a guess: some model has not run this kind of stage yet)" if guess else "")
-        print(f"\n=== [{self.k}/{len(self.stages)}] {what} | {elapsed:.1f} min elapsed, {eta}", flush=True)
-
-    def finish(self, kind: str, model: str | None, seconds: float) -> None:
-        self.done.setdefault((kind, model), []).append(seconds)
-
-    def skip(self) -> None:
-        self.k += 1
-
-
-def run_stage(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
-              model: str | None = None, *, cwd: str | os.PathLike | None = None) -> None:
-    """Run one stage as its own process in `cwd` (its output streams through); stop the study if it
-    fails: UserError when the stage ended on the user's error (exit 2), else SystemExit."""
-    if progress is not None:
-        progress.start(what)
-    else:
-        print(f"\n=== {what}", flush=True)
-    print(f"$ {' '.join(cmd)}", flush=True)
-    t0 = time.perf_counter()
-    proc = run_command(cmd, cwd=cwd)
-    if proc.returncode != 0:
-        msg = (f"study: {what} failed (exit {proc.returncode}); fix the error above and run the same "
-               f"command again: finished stages are kept and skipped")
-        # a stage that stopped on the user's error (exit 2) is the user's error here too; anything else is a bug
-        raise UserError(msg) if proc.returncode == EXIT_USER_ERROR else SystemExit(msg)
-    seconds = time.perf_counter() - t0
-    if progress is not None:
-        progress.finish(kind, model, seconds)
-    print(f"=== {what}: done in {seconds:.0f} s", flush=True)
+    jobs: int | None = None  # jobs at once; None: one per free CPU core (or per GPU), or the Ray cluster's
+    executor: str = "local"  # local or ray
+    address: str | None = None  # the Ray cluster (None: a local Ray instance)
+    seeds: list[int] | None = None  # training seeds; None: the config's train.seed
 
 
 def study_models(preset: str, requested: list[str] | None, overrides: list[str], *,
@@ -204,6 +138,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     if bad_heights:
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
     with ExitStack() as held:
         try:
@@ -224,35 +159,18 @@ def _note(text: str) -> None:
 def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[str], base_cfg: dict, *,
                 repo: str | os.PathLike) -> tuple[Path, float]:
     """The study's stages in OUT (claimed and locked by `run_study`), then study.md and study.json."""
-    py = sys.executable
-
-    def run(cmd: list[str], what: str, progress: Progress | None = None, kind: str = "other",
-            model: str | None = None) -> None:
-        run_stage(cmd, what, progress, kind, model, cwd=repo)
-
     heights = args.heights or [float(h) for h in base_cfg["data"]["heights"]]
-    quiet = ["--no-progress"] if args.no_progress else []
     t_start = time.perf_counter()
     study_cfg = dict(base_cfg.get("study") or {})
     ability_frames = 0 if args.data else int(study_cfg.get("ability_frames", 0) or 0)
-    eval_device = "cpu" if args.device == "auto" else args.device
+    ability_json = out / "ability" / "ability.json"
 
     add_left_out = f"--models {' '.join(sorted(set(names) | set(left_out)))}"  # the study with them
     if left_out:
         print(f"note: the {args.preset} preset's study leaves out {', '.join(left_out)} (study.models in "
               f"configs/presets/{args.preset}.yaml); add it with {add_left_out}", flush=True)
 
-    # The plan, for the progress line and its time left.
-    stages: list[tuple[str, str | None]] = [("data", None), ("ability", None)]
-    for name in names:
-        for _h in heights:
-            stages += [("train", name), ("eval", name)]
-    if args.cross_height:
-        stages += [("eval", name) for name in names for _h in heights for _t in heights if _t != _h]
-    stages.append(("combine", None))
-    progress = Progress(stages)
-
-    # 1. data
+    # 1. data (in this process, before the graph: every job reads it)
     from detbench.sim.dataset import default_dataset
 
     data_cfg = dict(base_cfg["data"])
@@ -260,12 +178,25 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         data_cfg["root"] = str(Path(args.data).resolve())
     else:
         data_cfg["heights"] = sorted(set(map(float, data_cfg["heights"])) | set(heights))
-    progress.start(f"dataset ({args.preset} preset)")
-    t0 = time.perf_counter()
+    print(f"\n=== dataset ({args.preset} preset)", flush=True)
     root = default_dataset(data_cfg, progress=not args.no_progress)
-    progress.finish("data", None, time.perf_counter() - t0)
     print(f"dataset: {root}")
     info = read_json(root / "dataset.json") if (root / "dataset.json").is_file() else {}
+
+    # The training seeds: the config's own train.seed keeps the run folder `model_hH`; each other seed
+    # trains into `model_hH_sS` (run_layout.model_run_name) with --set train.seed=S.
+    default_seed = int(base_cfg["train"]["seed"])
+    seeds = list(dict.fromkeys(int(x) for x in args.seeds)) if args.seeds else [default_seed]
+    primary = seeds[0]  # its reports make the combined report and the detector summary
+
+    def tag(seed: int) -> int | None:
+        return None if seed == default_seed else seed
+
+    def seed_sets(seed: int) -> list[str]:
+        return [] if tag(seed) is None else [f"train.seed={seed}"]
+
+    def run_dir_of(name: str, h: float, seed: int) -> Path:
+        return study_run_dir(out, name, h, tag(seed))
 
     # What each stage is computed from; a finished training run computed from other inputs is refused
     # here, before any stage runs (its figures would be reported under this study's data and settings).
@@ -274,16 +205,16 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         data_fp = {h: dataset_fingerprint(root, [h], hashes) for h in heights}
     except (DatasetError, FileNotFoundError, ValueError) as e:
         raise UserError(str(e)) from None
-    sets = [x for o in args.overrides for x in ("--set", o)]
-    train_inputs = {(name, h): {"model": name, "height": h, "preset": args.preset,
-                                "config": training_config(load_run_config(name, args.preset, overrides=args.overrides)),
-                                "data_fingerprint": data_fp[h]}
-                    for name in names for h in heights}
+    train_inputs = {(name, h, seed): {"model": name, "height": h, "preset": args.preset,
+                                      "config": training_config(load_run_config(
+                                          name, args.preset, overrides=[*args.overrides, *seed_sets(seed)])),
+                                      "data_fingerprint": data_fp[h]}
+                    for name in names for h in heights for seed in seeds}
     stale = []
-    for (name, h), inputs in train_inputs.items():
-        run_dir = study_run_dir(out, name, h)
+    for (name, h, seed), inputs in train_inputs.items():
+        run_dir = run_dir_of(name, h, seed)
         started = (run_dir / "train_summary.json").is_file() or CheckpointManager(run_dir / "checkpoints").latest()
-        diff = changes(out, _train_stage(name, h), inputs) if started else []
+        diff = changes(out, _train_stage(name, h, tag(seed)), inputs) if started else []
         if diff:
             stale.append(f"{run_dir} ({'; '.join(diff)})")
     if stale:
@@ -294,98 +225,33 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
                         f"that run folder to train it again")
     hashes.save()
 
-    # 2. LiDAR detection ability at every height: on the preset's own simulated stream of
-    # study.ability_frames frames (counts only, no points: the paper's 8000 frames in about a
-    # minute), else on every frame of the dataset.
-    ability_json = out / "ability" / "ability.json"
-    sim_sets = [x for o in data_cfg.get("sim_overrides") or [] for x in ("--set", o)]
-    if ability_frames:
-        ability_inputs = {"heights": heights, "simulate": ability_frames, "seed": data_cfg.get("seed", 0),
-                          "sim_preset": str(data_cfg.get("sim_preset", "paper")), "sim_overrides": sim_sets}
-    else:
-        ability_inputs = {"heights": heights, "data_fingerprint": dataset_fingerprint(root, heights, hashes)}
-        hashes.save()
-    ability_diff = changes(out, "ability", ability_inputs) if ability_json.is_file() else None
-    if ability_json.is_file() and not ability_diff:
-        progress.skip()
-    else:
-        if ability_diff:
-            print(f"note: {ability_json} was computed from other inputs ({'; '.join(ability_diff)}); "
-                  f"computing it again", flush=True)
-        if ability_frames:
-            run([py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed", str(data_cfg.get("seed", 0)),
-                 "--preset", str(data_cfg.get("sim_preset", "paper")), *sim_sets,
-                 "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet],
-                f"LiDAR detection ability ({ability_frames} simulated frames)", progress, "ability")
-        else:
-            run([py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights", *map(str, heights),
-                 "--out", str(out / "ability"), *quiet], "LiDAR detection ability (every frame of the dataset)",
-                progress, "ability")
-        write_record(out, "ability", ability_inputs)
-
-    # 2b. the splits against the ability study: does the test split hold the traffic the ability tables describe?
+    # The splits counted like the ability study (in this process; compared with it after the graph).
+    print("\n=== the train and test splits counted like the ability study", flush=True)
     split_reports = split_ability_reports(root, heights, out, dataset_fingerprint(root, heights, hashes),
                                           no_progress=args.no_progress)
     hashes.save()
+
+    # 2-5. the job graph: the ability study, each training, its evaluations, the combined report
+    gpu = args.device.startswith("cuda") or (args.device == "auto" and _cuda_available())
+    jobs, reports, cross_reports, seed_reports = _study_jobs(
+        args, out, names, heights, seeds, root, data_cfg, ability_frames, hashes, train_inputs, data_fp,
+        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu)
+    executor = _executor(args, gpu, repo)
+    counts = job_counts(jobs)
+    where = ("Ray" if args.executor == "ray" else "this machine") + (" (GPUs)" if gpu else "")
+    print(f"\n=== {len(jobs)} jobs ({', '.join(f'{n} {k}' for k, n in counts.items())}), up to {executor.slots} at "
+          f"once on {where}; each job's output in {out / LOGS_DIR}/<job>.log", flush=True)
+    try:
+        run_graph(jobs, executor, out / LOGS_DIR)
+    finally:
+        hashes.save()
+
+    # the splits against the ability study: does the test split hold the traffic the ability tables describe?
     split_checks = {name: compare_splits(rep, read_json(ability_json)) for name, rep in split_reports.items()}
     for name, result in split_checks.items():
         for line in split_check_warnings(result, f"{name} split", "ability study"):
             print(line, file=sys.stderr)
 
-    # 3-4. train and evaluate each model at each height
-    def eval_stage(name: str, h: float, t: float, ckpt: str, report: Path, what: str) -> None:
-        """Evaluate the checkpoint trained at `h` on the test split at `t`, unless `report` holds that already."""
-        inputs = {"train": config_digest(train_inputs[(name, h)]), "checkpoint": hashes.sha1(ckpt),
-                  "test_height": t, "data_fingerprint": data_fp[t],
-                  "eval": config_digest(load_run_config(name, args.preset, overrides=args.overrides)["eval"])}
-        hashes.save()
-        diff = changes(out, _eval_stage(name, h, t), inputs) if report.is_file() else None
-        if report.is_file() and not diff:
-            progress.skip()
-            return
-        if diff:
-            print(f"note: {report} was computed from other inputs ({'; '.join(diff)}); evaluating again", flush=True)
-        run([py, "tools/eval.py", "--ckpt", ckpt, *(["--test-height", str(t)] if t != h else []), "--split", "test",
-             "--out", str(report.parent), "--device", eval_device, *quiet], what, progress, "eval", name)
-        write_record(out, _eval_stage(name, h, t), inputs)
-
-    reports = []
-    for name in names:
-        for h in heights:
-            run_dir = study_run_dir(out, name, h)
-            report = eval_report_path(run_dir, h)
-            reports.append(report)
-            summary = run_dir / "train_summary.json"
-            done = summary.is_file() and not read_json(summary).get("interrupted", False)
-            if done:
-                progress.skip()
-            else:
-                resume = ["--resume"] if (run_dir / "checkpoints").is_dir() else []
-                write_record(out, _train_stage(name, h), train_inputs[(name, h)])  # a killed run resumes with it
-                run([py, "tools/train.py", "--model", name, "--height", str(h), "--preset", args.preset,
-                     "--data", str(root), "--device", args.device, "--out", str(run_dir), *resume, *sets,
-                     "--no-eval", *quiet], f"train {name} at {h:g} m", progress, "train", name)
-            write_record(out, _train_stage(name, h), train_inputs[(name, h)])
-            ckpt = read_json(summary)["checkpoint"]
-            eval_stage(name, h, h, ckpt, report, f"evaluate {name} at {h:g} m")
-
-    # 4b. the cross-height matrix: each checkpoint tested at the other heights
-    cross_reports = []
-    if args.cross_height:
-        for name in names:
-            for h in heights:
-                run_dir = study_run_dir(out, name, h)
-                ckpt = read_json(run_dir / "train_summary.json")["checkpoint"]
-                for t in heights:
-                    report = eval_report_path(run_dir, t)
-                    cross_reports.append(report)
-                    if t == h:
-                        continue
-                    eval_stage(name, h, t, ckpt, report, f"evaluate {name} trained at {h:g} m on {t:g} m")
-
-    # 5. combined report and figures
-    run([py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")],
-        "combine reports", progress, "combine")
     ability = read_json(ability_json)
     combined = read_json(out / "combined" / "combined.json")
     report_dicts = [read_json(r) for r in reports]
@@ -410,10 +276,11 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     # training time per model from the runs' own summaries: true across resumed invocations
     train_s: dict[str, float] = {}
     for name in names:
-        for h in heights:
-            summ = read_json(study_run_dir(out, name, h) / "train_summary.json")
+        for h, seed in ((h, seed) for h in heights for seed in seeds):
+            summ = read_json(run_dir_of(name, h, seed) / "train_summary.json")
             train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
-    train_words = ("Training time (the runs' own, summed over heights; resumed invocations included): "
+    train_words = (f"Training time (the runs' own, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
+                   "resumed invocations included): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,
@@ -439,6 +306,7 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         atomic_write_text(out / "cross_height" / "cross_height.md", "\n".join(["# Cross-height matrix", "",
                                                                              *cross_lines[2:]]))
         study["cross_height"] = mats
+    seed_lines = _seed_section(study, seeds, seed_reports)
     atomic_write_json(out / "study.json", study)
 
     def embed(md_path: Path, source: str) -> str:
@@ -464,6 +332,9 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
              "|y| <= 15 m), at 3D IoU >= 0.7 and score >= 0.1; intervals from a bootstrap over test scenes, the "
              "lead paired over the same scenes.", "", source_detect, "",
              *detector_summary_lines(report_dicts), "",
+             *([f"**Over the training seeds** {', '.join(map(str, seeds))} (the lines above are seed {primary}'s "
+                f"alone): each model and height's mean over seeds, its interval holding both the test-scene "
+                f"bootstrap and the seed-to-seed spread.", "", *seed_lines] if seed_lines else []),
              *unlearned_lines(report_dicts),
              *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
                 f"configs/presets/{args.preset}.yaml, says why); add it with `{add_left_out}`.*", ""]
@@ -493,12 +364,193 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     return out / "study.md", seconds
 
 
-def _train_stage(name: str, h: float) -> str:
-    return f"train_{name}_h{h:g}"
+def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[float], seeds: list[int], root: Path,
+                data_cfg: dict, ability_frames: int, hashes: FileHashes, train_inputs: dict, data_fp: dict, *,
+                tag, seed_sets, run_dir_of, primary: int, gpu: bool):
+    """The study's job graph: (jobs, the primary seed's report paths at the trained height, the cross-height
+    report paths (primary seed), {(model, height): [report path per seed]}).
+
+    Jobs: the ability study (no dependencies: the data exist); per model, height and seed a training (no
+    dependencies) and its evaluation at its height (after the training); with cross_height the evaluations
+    at the other heights (after the training); the combined report (after every evaluation at the trained
+    height). Each decides when it becomes ready whether its output is current (stage records)."""
+    py = sys.executable
+    quiet = ["--no-progress"] if args.no_progress else []
+    eval_device = "cpu" if args.device == "auto" else args.device
+    jobs: list[Job] = []
+
+    # the LiDAR detection ability at every height: on the preset's own simulated stream of
+    # study.ability_frames frames (counts only, no points: the paper's 8000 frames in about a
+    # minute), else on every frame of the dataset.
+    ability_json = out / "ability" / "ability.json"
+    sim_sets = [x for o in data_cfg.get("sim_overrides") or [] for x in ("--set", o)]
+    if ability_frames:
+        ability_inputs = {"heights": heights, "simulate": ability_frames, "seed": data_cfg.get("seed", 0),
+                          "sim_preset": str(data_cfg.get("sim_preset", "paper")), "sim_overrides": sim_sets}
+        ability_cmd = [py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed",
+                       str(data_cfg.get("seed", 0)), "--sim-preset", str(data_cfg.get("sim_preset", "paper")), *sim_sets,
+                       "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet]
+        ability_what = f"ability study ({ability_frames} simulated frames)"
+    else:
+        ability_inputs = {"heights": heights, "data_fingerprint": dataset_fingerprint(root, heights, hashes)}
+        hashes.save()
+        ability_cmd = [py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights",
+                       *map(str, heights), "--out", str(out / "ability"), *quiet]
+        ability_what = "ability study (every frame)"
+
+    def ability_prepare() -> list[str] | None:
+        diff = changes(out, "ability", ability_inputs) if ability_json.is_file() else None
+        if ability_json.is_file() and not diff:
+            return None
+        if diff:
+            print(f"note: {ability_json} was computed from other inputs ({'; '.join(diff)}); computing it again",
+                  flush=True)
+        return ability_cmd
+
+    jobs.append(Job("ability", "ability", ability_what, ability_prepare, outputs=(out / "ability",),
+                    finish=lambda: write_record(out, "ability", ability_inputs)))
+
+    def seed_words(seed: int) -> str:
+        return "" if len(seeds) == 1 else f" seed {seed}"
+
+    def train_job(name: str, h: float, seed: int) -> Job:
+        run_dir = run_dir_of(name, h, seed)
+        stage = _train_stage(name, h, tag(seed))
+        sets = [x for o in [*args.overrides, *seed_sets(seed)] for x in ("--set", o)]
+
+        def prepare() -> list[str] | None:
+            summary = run_dir / "train_summary.json"
+            write_record(out, stage, train_inputs[(name, h, seed)])  # a killed run resumes with it
+            if summary.is_file() and not read_json(summary).get("interrupted", False):
+                return None
+            resume = ["--resume"] if (run_dir / "checkpoints").is_dir() else []
+            return [py, "tools/train.py", "--model", name, "--height", str(h), "--preset", args.preset,
+                    "--data", str(root), "--device", args.device, "--out", str(run_dir), *resume, *sets,
+                    "--no-eval", *quiet]
+
+        return Job(stage, "train", f"train {name} {h:g} m{seed_words(seed)}", prepare, model=name,
+                   outputs=(run_dir,), gpu=gpu, finish=lambda: write_record(out, stage, train_inputs[(name, h, seed)]))
+
+    def eval_job(name: str, h: float, seed: int, t: float, what: str) -> tuple[Job, Path]:
+        run_dir = run_dir_of(name, h, seed)
+        report = eval_report_path(run_dir, t)
+        stage = _eval_stage(name, h, t, tag(seed))
+        recorded: dict = {}
+
+        def prepare() -> list[str] | None:
+            """Evaluate the checkpoint trained at `h` on the test split at `t`, unless `report` holds that already."""
+            ckpt = read_json(run_dir / "train_summary.json")["checkpoint"]
+            inputs = {"train": config_digest(train_inputs[(name, h, seed)]), "checkpoint": hashes.sha1(ckpt),
+                      "test_height": t, "data_fingerprint": data_fp[t],
+                      "eval": config_digest(load_run_config(name, args.preset, overrides=args.overrides)["eval"])}
+            hashes.save()
+            recorded.update(inputs)
+            diff = changes(out, stage, inputs) if report.is_file() else None
+            if report.is_file() and not diff:
+                return None
+            if diff:
+                print(f"note: {report} was computed from other inputs ({'; '.join(diff)}); evaluating again",
+                      flush=True)
+            return [py, "tools/eval.py", "--ckpt", ckpt, *(["--test-height", str(t)] if t != h else []),
+                    "--split", "test", "--out", str(report.parent), "--device", eval_device, *quiet]
+
+        job = Job(stage, "eval" if t == h else "cross_eval", what, prepare, deps=(_train_stage(name, h, tag(seed)),),
+                  model=name, outputs=(report.parent,), gpu=gpu and eval_device.startswith("cuda"),
+                  finish=lambda: write_record(out, stage, recorded))
+        return job, report
+
+    reports: list[Path] = []
+    seed_reports: dict[tuple[str, float], list[Path]] = {}
+    evals: list[Job] = []
+    for name in names:
+        for h in heights:
+            for seed in seeds:
+                jobs.append(train_job(name, h, seed))
+                job, report = eval_job(name, h, seed, h, f"evaluate {name} {h:g} m{seed_words(seed)}")
+                jobs.append(job)  # right after its training: with one job at a time, train then evaluate
+                evals.append(job)
+                seed_reports.setdefault((name, h), []).append(report)
+                if seed == primary:
+                    reports.append(report)
+    cross_reports: list[Path] = []
+    if args.cross_height:
+        for name in names:
+            for h in heights:
+                for t in heights:
+                    if t == h:
+                        cross_reports.append(eval_report_path(run_dir_of(name, h, primary), t))
+                        continue
+                    job, report = eval_job(name, h, primary, t, f"evaluate {name} trained at {h:g} m on {t:g} m")
+                    jobs.append(job)
+                    evals.append(job)
+                    cross_reports.append(report)
+    combine_cmd = [py, "tools/eval.py", "--combine", *map(str, reports), "--out", str(out / "combined")]
+    jobs.append(Job("combine", "combine", "combine reports", lambda: combine_cmd,
+                    deps=tuple(j.id for j in evals if j.kind == "eval"), outputs=(out / "combined",)))
+    return jobs, reports, cross_reports, seed_reports
 
 
-def _eval_stage(name: str, h: float, t: float) -> str:
-    return f"eval_{name}_h{h:g}_on_h{t:g}"
+def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, float], list[Path]]) -> list[str]:
+    """With several seeds: study["seeds"] and study.md's section, per model and height the mean over seeds with
+    the interval holding seed spread and scene bootstrap next to the single-seed scene bootstrap interval."""
+    if len(seeds) < 2:
+        return []
+    groups = {}
+    for key, paths in seed_reports.items():
+        groups[key] = []
+        for seed, path in zip(seeds, paths):
+            rep = read_json(path)
+            rep.setdefault("train_seed", seed)  # how the seed statistics name each run
+            groups[key].append(rep)
+    # detbench.studies.seeds: the seed mean per model and height with the interval of scenes and seeds, next to
+    # the scene-only interval; a model or height called ahead only where that interval of its lead excludes 0
+    study["seeds"] = {"seeds": seeds, "by_height": {f"{h:g}": cell for h, cell in seed_summary(groups).items()},
+                      "by_model": seed_height_summary(groups)}
+    return [*seed_markdown(groups), ""]
 
 
-__all__ = ["PRESET_CAVEATS", "Progress", "StudyOptions", "run_stage", "run_study", "study_models"]
+def _cuda_available() -> bool:
+    import torch
+
+    return torch.cuda.is_available()
+
+
+def _check_executor_options(args: StudyOptions) -> None:
+    """UserError for --jobs, --executor, --address or --seeds that cannot work (before anything is created)."""
+    if args.jobs is not None and args.jobs < 1:
+        raise UserError(f"--jobs {args.jobs}: the number of jobs at once is at least 1 (leave it out for one per "
+                        f"free CPU core, or one per GPU with --device cuda)")
+    if args.executor not in ("local", "ray"):
+        raise UserError(f"--executor {args.executor}: one of local, ray")
+    if args.address and args.executor != "ray":
+        raise UserError(f"--address {args.address} names a Ray cluster: add --executor ray")
+    if args.executor == "ray":
+        from detbench.studies.ray_executor import import_ray
+
+        import_ray()  # not installed: the install command
+    bad = [s for s in (args.seeds or []) if s < 0]
+    if bad:
+        raise UserError(f"--seeds {' '.join(map(str, bad))}: a training seed is a whole number >= 0, "
+                        f"e.g. --seeds 0 1 2")
+
+
+def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
+    """The executor of the study's jobs: local (--jobs N at once, default one per free CPU core or per GPU)
+    or Ray (--executor ray --address ADDR; --jobs caps the jobs at once)."""
+    if args.executor == "ray":
+        from detbench.studies.ray_executor import RayExecutor
+
+        return RayExecutor(address=args.address, cwd=repo, gpu=gpu, slots=args.jobs)
+    devices = cuda_devices() if gpu else None
+    return LocalExecutor(args.jobs or default_jobs("cuda" if gpu else "cpu"), cwd=repo, devices=devices)
+
+
+def _train_stage(name: str, h: float, seed: int | None = None) -> str:
+    return f"train_{name}_h{h:g}" + ("" if seed is None else f"_s{seed}")
+
+
+def _eval_stage(name: str, h: float, t: float, seed: int | None = None) -> str:
+    return f"eval_{name}_h{h:g}_on_h{t:g}" + ("" if seed is None else f"_s{seed}")
+
+
+__all__ = ["PRESET_CAVEATS", "StudyOptions", "run_study", "study_models"]

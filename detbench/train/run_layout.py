@@ -2,9 +2,11 @@
 
 A training run of model M at mounting height H is a folder named `M_hH` inside a study
 (`runs/study_<preset>/second_h1.8`), or `runs/M_hH_<preset>` when tools/train.py is given no
---out. Its checkpoints are in `<run>/checkpoints/`, and the tools that start from a checkpoint
-write next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height tested
-at) and `<run>/precision_hH_<split>/` (tools/precision.py). Heights are written by
+--out. A study trained with several seeds (`tools/study.py --seeds`) keeps the run of the config's
+own train.seed under that name and suffixes the others' with their seed: `second_h1.8_s1`.
+Its checkpoints are in `<run>/checkpoints/`, and the tools that start from a checkpoint write
+next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height tested at)
+and `<run>/precision_hH_<split>/` (tools/precision.py). Heights are written by
 `detbench.data.frame.height_key` (1.8, 1.0, 0.25).
 
 `RUN_FOLDER` and `STUDY_FOLDER` say what such folders hold, for `detbench.utils.io.claim_folder`
@@ -35,14 +37,16 @@ RUN_FOLDER = FolderKind(
 # run per model and height (`model_run_name`), each of which must itself be a run
 STUDY_FOLDER = FolderKind(
     name="a study", marker="study.json", entries=("study.json", "study.md", "ability", "combined", "cross_height",
-             "splits", "stage_inputs"),
+             "splits", "stage_inputs", "logs"),
     foreign="written by a study", unfinished="an unfinished study", key="study",
-    members=((r"[a-z0-9]+(?:[_-][a-z0-9]+)*_h[0-9]+(?:\.[0-9]+)?", RUN_FOLDER),), evidence=("ability/ability.json",))
+    members=((r"[a-z0-9]+(?:[_-][a-z0-9]+)*_h[0-9]+(?:\.[0-9]+)?(?:_s[0-9]+)?", RUN_FOLDER),),
+    evidence=("ability/ability.json",))
 
 
-def model_run_name(model: str, height: float) -> str:
-    """The folder of model `model` trained at `height` inside a study: "second_h1.8"."""
-    return f"{model}_h{height_key(height)}"
+def model_run_name(model: str, height: float, seed: int | None = None) -> str:
+    """The folder of model `model` trained at `height` inside a study: "second_h1.8"; with `seed` (a
+    training seed other than the config's own) "second_h1.8_s1"."""
+    return f"{model}_h{height_key(height)}" + ("" if seed is None else f"_s{int(seed)}")
 
 
 def default_train_dir(model: str, height: float, preset: str) -> Path:
@@ -55,9 +59,9 @@ def default_study_dir(preset: str) -> Path:
     return RUNS_DIR / f"study_{preset}"
 
 
-def study_run_dir(study: str | os.PathLike, model: str, height: float) -> Path:
-    """The training run of `model` at `height` inside a study folder."""
-    return Path(study) / model_run_name(model, height)
+def study_run_dir(study: str | os.PathLike, model: str, height: float, seed: int | None = None) -> Path:
+    """The training run of `model` at `height` inside a study folder (`seed`: see `model_run_name`)."""
+    return Path(study) / model_run_name(model, height, seed)
 
 
 def eval_dir_name(height: float, split: str = "test", stage: str = "refined") -> str:

@@ -21,22 +21,35 @@ def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
     assert code == 2 and "unknown config key 'train.epohcs'" in err and "epochs" in err
     code, err = tool("study", "--data", tmp_path / "nope", "--out", tmp_path / "s4")
     assert code == 2 and f"--data {tmp_path / 'nope'}: no such folder" in err
-    assert not any((tmp_path / s).exists() for s in ("s2", "s3", "s4"))
+    code, err = tool("study", "--jobs", "0", "--out", tmp_path / "s5")
+    assert code == 2 and "--jobs 0: the number of jobs at once is at least 1" in err
+    code, err = tool("study", "--address", "auto", "--out", tmp_path / "s6")
+    assert code == 2 and "--address auto names a Ray cluster: add --executor ray" in err
+    code, err = tool("study", "--seeds", "0", "-1", "--out", tmp_path / "s7")
+    assert code == 2 and "--seeds -1: a training seed is a whole number >= 0" in err
+    assert not any((tmp_path / s).exists() for s in ("s2", "s3", "s4", "s5", "s6", "s7"))
+
+
+def test_the_ray_executor_without_ray_names_the_install_command(tool, tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    code, err = tool("study", "--executor", "ray", "--out", tmp_path / "s")
+    assert code == 2 and "pip install .[cluster]" in err and not (tmp_path / "s").exists()
 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
-def test_a_failed_study_stage_keeps_the_users_error_apart_from_a_bug(status, expected):
-    from detbench.studies.study import run_stage
+def test_a_failed_study_job_keeps_the_users_error_apart_from_a_bug(status, expected, tmp_path):
+    from detbench.studies.jobs import Job, LocalExecutor, run_graph
     from detbench.utils.cli import run_main
 
     def main(_argv):
-        run_stage([sys.executable, "-c", f"import sys; sys.exit({status})"], "train second at 1.8 m")
+        cmd = [sys.executable, "-c", f"import sys; sys.exit({status})"]
+        run_graph([Job("train_second_h1.8", "train", "train second 1.8 m", lambda: cmd)], LocalExecutor(1), tmp_path)
         return 0
 
     try:
         code = run_main(main, [])
     except SystemExit as e:  # a bug's SystemExit is not caught by run_main: its code is the message
-        assert "train second at 1.8 m failed" in str(e.code) and "run the same command again" in str(e.code)
+        assert "train second 1.8 m failed" in str(e.code) and "run the same command again" in str(e.code)
         code = 1
     assert code == expected
 

@@ -107,13 +107,15 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     out = tmp_path / "study"
     args = ["tools/study.py", "--preset", "smoke", "--set", "study.models=[second]", "--heights", "0.5", "1.8",
             "--data", str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.epochs=1",
-            "--set", "train.tensorboard=false", "--cross-height"]
+            "--set", "train.tensorboard=false", "--cross-height", "--jobs", "1"]
     proc = run(args)
-    # the progress line names the stage k of n, the model and height, and the time left
-    assert "=== [1/9] dataset (smoke preset)" in proc.stdout
-    assert "=== [3/9] train second at 0.5 m" in proc.stdout
-    later = proc.stdout.split("=== [5/9] train second at 1.8 m")[1].splitlines()[0]
-    assert "left" in later and "measured after" not in later  # known once the first training ran
+    # one progress line per job started or done: the running jobs, how many are done, the time left
+    assert "=== dataset (smoke preset)" in proc.stdout
+    assert "=== 8 jobs (1 ability, 2 train, 2 eval, 2 cross_eval, 1 combine), up to 1 at once" in proc.stdout
+    assert "=== start train second 0.5 m | running: train second 0.5 m | 1/8 done" in proc.stdout
+    later = proc.stdout.split("=== start train second 1.8 m")[1].splitlines()[0]
+    assert "left" in later and "known once" not in later  # known once a training and an evaluation ran
+    assert "wrote " in (out / "logs" / "eval_second_h0.5_on_h0.5.log").read_text()  # each job's own log
     md = (out / "study.md").read_text()
     assert md.index("## Summary") < md.index("## 1. LiDAR detection ability")
     assert "Which height sees the most vehicles?" in md and "Which detector finds the most" in md
@@ -132,14 +134,14 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     rep = json.loads((out / "second_h1.8" / "eval_h1.8_test" / "report.json").read_text())
     assert "uncertainty" in rep  # the evaluation ran with the scene bootstrap
     # --cross-height: each checkpoint tested at the other height, a matrix per model in the report
-    assert "evaluate second trained at 0.5 m on 1.8 m" in proc.stdout
+    assert "start evaluate second trained at 0.5 m on 1.8 m" in proc.stdout
     cross = json.loads((out / "cross_height" / "cross_height.json").read_text())["matrices"]
     assert cross[0]["heights"] == [0.5, 1.8] and all(v is not None for row in cross[0]["values"]["second"] for v in row)
     assert "## 3. Cross-height matrix" in md and (out / "cross_height" / "cross_height_ap_r40_small.png").is_file()
     # a second call finds every stage done: only the combine step runs again
     proc = run(args)
     assert "train second" not in proc.stdout and "evaluate" not in proc.stdout
-    assert "[9/9] combine reports" in proc.stdout
+    assert "start combine reports | running: combine reports | 7/8 done" in proc.stdout
 
 
 def test_study_models_come_from_models_then_the_preset_then_the_registry():
@@ -152,30 +154,6 @@ def test_study_models_come_from_models_then_the_preset_then_the_registry():
     assert study_models("smoke", None, [], registry=models) == (["ct3d", "pillarnet", "pointrcnn", "second"], [])
     with pytest.raises(ValueError):
         study_models("smoke", None, ["study.models=[nosuchmodel]"], registry=models)
-
-
-def test_study_progress_time_left_counts_the_stage_starting_now(capsys):
-    """The time left names every stage not yet finished, the one starting included: with SECOND's
-    training measured at 100 s and its evaluation at 10 s, starting its second training leaves
-    100 + 10 + 100 + 10 s (a guess-free figure), not the 120 s of the stages after it."""
-    from detbench.studies.study import Progress
-
-    stages = [("train", "second"), ("eval", "second")] * 3 + [("combine", None)]
-    prog = Progress(stages)
-    prog.start("train second at 0.5 m")
-    assert "measured after the first training" in capsys.readouterr().out
-    prog.finish("train", "second", 100.0)
-    prog.start("evaluate second at 0.5 m")
-    prog.finish("eval", "second", 10.0)
-    left, guess = prog.left_s()
-    assert left == pytest.approx(220.0) and not guess
-    prog.start("train second at 1 m")
-    assert "about 4 min left" in capsys.readouterr().out  # 220 s; 120 s would print "about 2 min"
-    prog.finish("train", "second", 100.0)
-    prog.start("evaluate second at 1 m")
-    prog.finish("eval", "second", 10.0)
-    prog.start("train second at 1.8 m")
-    assert "about 2 min left" in capsys.readouterr().out.splitlines()[-1]  # 110 s, the last training included
 
 
 def test_train_option_overrides_follow_the_users_set_values(tmp_path):

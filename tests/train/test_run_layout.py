@@ -14,3 +14,14 @@ def test_run_folder_names():
     assert rl.eval_report_path("s/second_h1.8", 0.5) == Path("s/second_h1.8/eval_h0.5_test/report.json")
     assert rl.precision_dir_name(1.8, "test") == "precision_h1.8_test"
     assert rl.run_dir_of_checkpoint("r/checkpoints/epoch_002.pt") == Path("r").resolve()
+
+
+def test_a_study_names_the_runs_of_other_seeds_after_their_seed_and_owns_them():
+    import re
+
+    assert rl.model_run_name("second", 1.8, 1) == "second_h1.8_s1"
+    assert rl.study_run_dir("s", "ct3d", 0.5, 2) == Path("s/ct3d_h0.5_s2")
+    pattern = rl.STUDY_FOLDER.members[0][0]
+    assert re.fullmatch(pattern, "second_h1.8_s1") and re.fullmatch(pattern, "second_h1.8")
+    assert not re.fullmatch(pattern, "second_h1.8_x1")
+    assert "logs" in rl.STUDY_FOLDER.entries  # the jobs' logs

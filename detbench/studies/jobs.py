@@ -1,0 +1,486 @@
+"""The study as a graph of jobs, and the local executor that runs as many of them at once as there is room for.
+
+A `Job` is one stage of a study (the ability study, a training, an evaluation, the combined
+report) run as one command in its own process: its id (also its log's name, OUT/logs/<id>.log),
+its kind and model (for the time left), the ids of the jobs it needs finished first, the run
+folders it writes, and its resource request (one CPU core, or one GPU). A job decides what it
+runs only when its dependencies have finished (`prepare`: the command, or None when its output
+is current and it is skipped, as a study resumes); `finish` records what it was computed from
+once it succeeded. Both run in the driver process, one at a time.
+
+`run_graph` is the driver both executors share: it starts every job whose dependencies are done
+while the executor has a free slot, prints one progress line per event (`GraphProgress`), and
+on a failed job prints its log's path and last lines, starts nothing new and sends SIGINT to the
+running jobs so a training writes its checkpoint and exits (train_summary.json "interrupted");
+Ctrl-C does the same. The study resumes afterwards with the same command.
+
+`LocalExecutor` runs the jobs as child processes of this machine: `slots` at once, each with
+one torch and one numba thread (`JOB_ENV`) whatever the number of slots, so results do not
+depend on it. With one slot a job's output streams through to the terminal (and into its log);
+with several it goes to its log only. detbench.studies.ray_executor runs the same graph on Ray.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from detbench.studies.runner import STOP_GRACE_S
+from detbench.utils.cli import EXIT_USER_ERROR, UserError
+
+LOGS_DIR = "logs"  # OUT/logs/<job id>.log
+TAIL_LINES = 20  # lines of a failed job's log printed with its path
+
+# Every job's environment on top of the driver's: one torch (OpenMP) and one numba thread, unbuffered
+# output (the log is current while the job runs). The same for every number of jobs at once.
+JOB_ENV = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+
+KINDS = ("ability", "train", "eval", "cross_eval", "combine")  # the data and the splits' counts come before the graph
+
+
+@dataclass
+class Job:
+    """One stage of a study run as one command (see the module's docstring)."""
+
+    id: str
+    kind: str  # one of KINDS
+    what: str  # what the progress line calls it: "train second 0.5 m"
+    prepare: Callable[[], list[str] | None]  # the command, or None: its output is current (skipped)
+    deps: tuple[str, ...] = ()
+    model: str | None = None
+    finish: Callable[[], None] | None = None  # after it succeeded: record its inputs
+    outputs: tuple[Path, ...] = ()  # the folders it writes
+    gpu: bool = False  # asks for one GPU instead of one CPU core
+    log: Path | None = None  # set by run_graph: OUT/logs/<id>.log
+
+    @property
+    def resources(self) -> dict[str, int]:
+        return {"gpu": 1} if self.gpu else {"cpu": 1}
+
+
+def check_graph(jobs: list[Job]) -> None:
+    """ValueError when a job id repeats, a dependency is unknown, or the dependencies form a cycle."""
+    ids = [j.id for j in jobs]
+    dup = sorted({i for i in ids if ids.count(i) > 1})
+    if dup:
+        raise ValueError(f"job ids repeat: {', '.join(dup)}")
+    known = set(ids)
+    for j in jobs:
+        if j.kind not in KINDS:
+            raise ValueError(f"job {j.id}: unknown kind {j.kind!r} (one of {', '.join(KINDS)})")
+        missing = [d for d in j.deps if d not in known]
+        if missing:
+            raise ValueError(f"job {j.id} depends on unknown job(s) {', '.join(missing)}")
+    deps = {j.id: set(j.deps) for j in jobs}
+    done: set[str] = set()
+    while len(done) < len(jobs):
+        ready = [i for i in deps if i not in done and deps[i] <= done]
+        if not ready:
+            raise ValueError(f"the jobs' dependencies form a cycle among {', '.join(sorted(set(deps) - done))}")
+        done.update(ready)
+
+
+def _cpu_times() -> tuple[float, float] | None:
+    """(busy, total) jiffies of every CPU since boot, from /proc/stat (None where there is none)."""
+    try:
+        with open("/proc/stat", encoding="ascii") as fh:
+            fields = [float(x) for x in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle + iowait
+    return sum(fields) - idle, sum(fields)
+
+
+def busy_cores(window_s: float = 0.5) -> float:
+    """Cores kept busy by every process now: the busy share of CPU time over `window_s` seconds (/proc/stat)
+    times the machine's cores; where /proc/stat is missing, the 1-minute load average."""
+    a = _cpu_times()
+    if a is not None:
+        time.sleep(window_s)
+        b = _cpu_times()
+        if b is not None and b[1] > a[1]:
+            return (b[0] - a[0]) / (b[1] - a[1]) * (os.cpu_count() or 1)
+    try:
+        return os.getloadavg()[0]
+    except OSError:
+        return 0.0
+
+
+def free_cpus() -> int:
+    """CPU cores free for jobs: the cores this process may run on (sched_getaffinity) minus the cores other
+    processes keep busy now (`busy_cores`, rounded to the nearest whole core), at least 1. Measured over half a
+    second rather than by the 1-minute load average, which lags: right after a study ended it still counts
+    that study's jobs as busy."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, cores - int(round(busy_cores())))
+
+
+def cuda_devices() -> list[str]:
+    """The GPUs jobs may use: CUDA_VISIBLE_DEVICES when set, else every device torch sees (as indices)."""
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        return [d.strip() for d in visible.split(",") if d.strip() and d.strip() != "-1"]
+    import torch
+
+    return [str(i) for i in range(torch.cuda.device_count())] if torch.cuda.is_available() else []
+
+
+def default_jobs(device: str) -> int:
+    """How many jobs run at once by default: one per GPU with --device cuda, else one per free CPU core."""
+    if device.startswith("cuda"):
+        return max(1, len(cuda_devices()))
+    return free_cpus()
+
+
+def tail(path: Path, n: int = TAIL_LINES) -> list[str]:
+    """The last `n` lines of a log file ([] when it cannot be read); progress bars' carriage returns
+    keep only their last state."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return []
+    return [ln.rsplit("\r", 1)[-1] for ln in text.splitlines() if ln.strip()][-n:]
+
+
+def _minutes(s: float) -> str:
+    return "under a minute" if s < 60 else f"~{s / 60:.0f} min"
+
+
+class GraphProgress:
+    """One line per event: what started or finished, the jobs running, how many are done, the time left.
+
+    The time left is the longest remaining path through the graph over the workers: the larger of
+    the critical path (each job's estimated duration, the running ones less their elapsed time, along
+    the longest chain of dependencies still to run) and the remaining work spread over `slots`
+    workers. A job's duration is the mean measured duration of finished jobs of the same kind and
+    model; a kind not measured for that model borrows the mean of that kind (a guess, said so until
+    every model has run each kind once), a cross-height evaluation that of an evaluation; a training
+    or evaluation with no measurement at all leaves the time left unknown until the first one
+    finishes. Short kinds (data, ability, combine) count only once measured."""
+
+    def __init__(self, jobs: list[Job], slots: int, *, stream=None):
+        self.jobs = {j.id: j for j in jobs}
+        self.order = [j.id for j in jobs]
+        self.slots = max(1, slots)
+        self.measured: dict[tuple[str, str | None], list[float]] = {}
+        self.finished: set[str] = set()
+        self.running: dict[str, float] = {}  # id -> start time
+        self.t0 = time.perf_counter()
+        self.stream = stream if stream is not None else sys.stdout
+
+    def estimate(self, job: Job) -> tuple[float | None, bool]:
+        """(seconds, a guess?) for one job; None: no measurement to go by."""
+        own = self.measured.get((job.kind, job.model))
+        if own:
+            return sum(own) / len(own), False
+        same = [t for (k, _), ts in self.measured.items() if k == job.kind for t in ts]
+        if same:
+            return sum(same) / len(same), True
+        if job.kind == "cross_eval":  # an evaluation at another height costs about what one at its own does
+            return self.estimate(Job(job.id, "eval", job.what, job.prepare, model=job.model))[0], True
+        return (None, True) if job.kind in ("train", "eval", "cross_eval") else (0.0, False)
+
+    def left_s(self, now: float | None = None) -> tuple[float | None, bool]:
+        """(seconds left, a guess?): see the class docstring."""
+        now = time.perf_counter() if now is None else now
+        rest = [i for i in self.order if i not in self.finished]
+        rem: dict[str, float] = {}
+        guess = False
+        for i in rest:
+            est, g = self.estimate(self.jobs[i])
+            if est is None:
+                return None, True
+            guess |= g
+            rem[i] = max(0.0, est - (now - self.running[i])) if i in self.running else est
+        succ: dict[str, list[str]] = {i: [] for i in rest}
+        for i in rest:
+            for d in self.jobs[i].deps:
+                if d in succ:
+                    succ[d].append(i)
+        path: dict[str, float] = {}
+        for i in reversed(self._topo(rest)):
+            path[i] = rem[i] + max((path[s] for s in succ[i]), default=0.0)
+        critical = max(path.values(), default=0.0)
+        return max(critical, sum(rem.values()) / self.slots), guess
+
+    def _topo(self, ids: list[str]) -> list[str]:
+        left, out, placed = list(ids), [], set(self.finished)
+        while left:
+            ready = [i for i in left if all(d in placed for d in self.jobs[i].deps)]
+            out += ready
+            placed.update(ready)
+            left = [i for i in left if i not in placed]
+            if not ready:  # cannot happen in a checked graph
+                out += left
+                break
+        return out
+
+    def line(self, event: str) -> str:
+        now = time.perf_counter()
+        left, guess = self.left_s(now)
+        running = ", ".join(self.jobs[i].what for i in self.running) or "nothing"
+        if left is None:
+            eta = "time left: known once a training and an evaluation have finished"
+        else:
+            eta = f"{_minutes(left)} left" + (" (a guess: some model has not run this kind of job yet)"
+                                              if guess else "")
+        return (f"=== {event} | running: {running} | {len(self.finished)}/{len(self.order)} done | "
+                f"{(now - self.t0) / 60:.1f} min elapsed, {eta}")
+
+    def say(self, text: str) -> None:
+        print(text, file=self.stream, flush=True)
+
+    def start(self, job: Job) -> None:
+        self.running[job.id] = time.perf_counter()
+        self.say(self.line(f"start {job.what}"))
+
+    def skip(self, job: Job) -> None:
+        self.finished.add(job.id)
+
+    def done(self, job: Job) -> float:
+        seconds = time.perf_counter() - self.running.pop(job.id)
+        self.finished.add(job.id)
+        self.measured.setdefault((job.kind, job.model), []).append(seconds)
+        self.say(self.line(f"done {job.what} in {seconds:.0f} s"))
+        return seconds
+
+    def stopped(self, job: Job) -> None:
+        self.running.pop(job.id, None)
+
+
+class LocalExecutor:
+    """Runs jobs as child processes of this machine, `slots` at once (see the module's docstring).
+
+    devices: with --device cuda, the GPU indices; each job gets one of them as CUDA_VISIBLE_DEVICES."""
+
+    def __init__(self, slots: int, *, cwd: str | os.PathLike | None = None, devices: list[str] | None = None,
+                 stream: bool | None = None):
+        self.slots = max(1, int(slots))
+        self.cwd = cwd
+        self.devices = list(devices) if devices else None
+        if self.devices:
+            self.slots = min(self.slots, len(self.devices))
+        self.stream = (self.slots == 1) if stream is None else stream
+        self.procs: dict[str, tuple[subprocess.Popen, str | None, threading.Thread | None]] = {}
+
+    def start(self, job: Job, cmd: list[str]) -> None:
+        assert job.log is not None
+        job.log.parent.mkdir(parents=True, exist_ok=True)
+        env = {**os.environ, **JOB_ENV}
+        device = None
+        if self.devices:
+            used = {d for _, d, _ in self.procs.values()}
+            device = next(d for d in self.devices if d not in used)
+            env["CUDA_VISIBLE_DEVICES"] = device
+        fh = open(job.log, "w", encoding="utf-8")
+        fh.write(f"$ {' '.join(cmd)}\n")
+        fh.flush()
+        if self.stream:
+            print(f"$ {' '.join(cmd)}", flush=True)
+            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+            pump = threading.Thread(target=_tee, args=(proc.stdout, fh), daemon=True)
+            pump.start()
+        else:
+            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=fh, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL)
+            fh.close()
+            pump = None
+        self.procs[job.id] = (proc, device, pump)
+
+    def wait(self, timeout: float) -> list[tuple[str, int]]:
+        """(job id, exit status) of the jobs that ended, waiting up to `timeout` s for the first."""
+        deadline = time.monotonic() + timeout
+        while True:
+            ended = [(i, p.poll()) for i, (p, _, _) in self.procs.items() if p.poll() is not None]
+            if ended or not self.procs or time.monotonic() >= deadline:
+                for i, _ in ended:
+                    _, _, pump = self.procs.pop(i)
+                    if pump is not None:
+                        pump.join()
+                return [(i, int(rc)) for i, rc in ended]
+            time.sleep(0.05)
+
+    def interrupt(self) -> None:
+        """SIGINT to every running job (a training writes its checkpoint and exits)."""
+        for p, _, _ in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+
+    def kill(self) -> None:
+        for p, _, _ in self.procs.values():
+            if p.poll() is None:
+                p.kill()
+
+    @property
+    def running(self) -> list[str]:
+        return list(self.procs)
+
+    def close(self) -> None:
+        pass
+
+
+def _tee(src, fh) -> None:
+    """Copy a child's output to this process's stdout and to its log, as it comes."""
+    out = getattr(sys.stdout, "buffer", None)
+    try:
+        for chunk in iter(lambda: src.read1(65536), b""):
+            if out is not None:
+                out.write(chunk)
+                out.flush()
+            else:
+                sys.stdout.write(chunk.decode("utf-8", "replace"))
+                sys.stdout.flush()
+            fh.write(chunk.decode("utf-8", "replace"))
+            fh.flush()
+    finally:
+        fh.close()
+
+
+@dataclass
+class GraphResult:
+    """ran: ids of the jobs that ran and succeeded; kept: ids skipped as current; seconds per job that ran."""
+
+    ran: list[str] = field(default_factory=list)
+    kept: list[str] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None = None,
+              poll_s: float = 1.0) -> GraphResult:
+    """Run `jobs` (in their list order among those ready) on `executor`; each job's output in
+    `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
+    naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C
+    stopped them. See the module's docstring."""
+    check_graph(jobs)
+    for j in jobs:
+        j.log = Path(logs) / f"{j.id}.log"
+    progress = progress or GraphProgress(jobs, executor.slots)
+    by_id = {j.id: j for j in jobs}
+    pending = list(jobs)
+    done: set[str] = set()
+    result = GraphResult()
+    failed: tuple[Job, int] | None = None
+    kill_at = float("inf")  # after a failure: when the jobs still running are killed
+    try:
+        while True:
+            if failed is None:
+                _start_ready(pending, done, executor, progress, result)
+            if not executor.running:
+                break
+            if time.monotonic() >= kill_at:
+                executor.kill()
+            for jid, rc in executor.wait(poll_s):
+                job = by_id[jid]
+                if rc == 0 and failed is None:
+                    if job.finish is not None:
+                        job.finish()
+                    result.seconds[jid] = progress.done(job)
+                    result.ran.append(jid)
+                    done.add(jid)
+                elif rc == 0:  # it finished while the others were stopping: its output stands
+                    if job.finish is not None:
+                        job.finish()
+                    progress.stopped(job)
+                    progress.say(f"=== {job.what} finished while the study stopped; kept")
+                elif failed is None:
+                    progress.stopped(job)
+                    failed = (job, rc)
+                    _report_failure(job, rc, progress, [by_id[i].what for i in executor.running])
+                    executor.interrupt()
+                    kill_at = time.monotonic() + STOP_GRACE_S
+                else:
+                    progress.stopped(job)
+                    progress.say(f"=== {job.what} stopped (exit {rc}); its log: {job.log}")
+    except KeyboardInterrupt:
+        if executor.running:
+            progress.say(f"\n=== interrupted: stopping {', '.join(by_id[i].what for i in executor.running)} "
+                         f"(a training writes its checkpoint first)")
+            _stop_all(executor, progress, by_id)
+        executor.close()
+        progress.say("=== the study stopped; run the same command again to resume: finished jobs are kept")
+        raise
+    executor.close()
+    if failed is not None:
+        job, rc = failed
+        msg = (f"study: {job.what} failed (exit {rc}); its log: {job.log}. Fix the error and run the same command "
+               f"again: finished jobs are kept and skipped, a stopped training resumes from its checkpoint")
+        raise UserError(msg) if rc == EXIT_USER_ERROR else SystemExit(msg)
+    if pending:  # cannot happen in a checked graph
+        raise RuntimeError(f"jobs never became ready: {', '.join(j.id for j in pending)}")
+    return result
+
+
+def _start_ready(pending: list[Job], done: set[str], executor, progress: GraphProgress, result: GraphResult) -> None:
+    """Start (or skip, when current) the pending jobs whose dependencies are done, in list order, while a slot
+    is free."""
+    again = True
+    while again:
+        again = False
+        for job in list(pending):
+            if len(executor.running) >= executor.slots:
+                return
+            if not all(d in done for d in job.deps):
+                continue
+            pending.remove(job)
+            cmd = job.prepare()
+            if cmd is None:
+                progress.skip(job)
+                result.kept.append(job.id)
+                done.add(job.id)
+                again = True  # its dependants may be ready now
+                continue
+            progress.start(job)
+            executor.start(job, cmd)
+
+
+def _report_failure(job: Job, rc: int, progress: GraphProgress, others: list[str]) -> None:
+    lines = tail(job.log) if job.log is not None else []
+    progress.say(f"\n=== FAILED: {job.what} (exit {rc}); its log: {job.log}")
+    if lines:
+        progress.say(f"--- last {len(lines)} lines of {job.log}:")
+        for ln in lines:
+            progress.say(f"    {ln}")
+        progress.say("---")
+    if others:
+        progress.say(f"=== starting no new job; stopping {', '.join(others)} (a training writes its checkpoint "
+                     f"first)")
+
+
+def _stop_all(executor, progress: GraphProgress, by_id: dict[str, Job]) -> None:
+    """SIGINT to the running jobs, then wait for them (a kill after STOP_GRACE_S); a second Ctrl-C kills at once."""
+    executor.interrupt()
+    deadline = time.monotonic() + STOP_GRACE_S
+    try:
+        while executor.running:
+            if time.monotonic() >= deadline:
+                executor.kill()
+            for jid, rc in executor.wait(0.5):
+                job = by_id[jid]
+                if rc == 0 and job.finish is not None:
+                    job.finish()
+                progress.stopped(job)
+    except KeyboardInterrupt:
+        executor.kill()
+        while executor.running:
+            executor.wait(0.5)
+
+
+def job_counts(jobs: Iterable[Job]) -> dict[str, int]:
+    """How many jobs of each kind (for the study's plan line)."""
+    counts: dict[str, int] = {}
+    for j in jobs:
+        counts[j.kind] = counts.get(j.kind, 0) + 1
+    return counts
+
+
+__all__ = ["GraphProgress", "GraphResult", "JOB_ENV", "Job", "KINDS", "LOGS_DIR", "LocalExecutor", "TAIL_LINES",
+           "busy_cores", "check_graph", "cuda_devices", "default_jobs", "free_cpus", "job_counts", "run_graph", "tail"]

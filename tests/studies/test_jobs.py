@@ -1,0 +1,189 @@
+"""The study's job graph (detbench.studies.jobs): dependencies, jobs at once, the time left, a failed job, Ctrl-C."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from detbench.studies.jobs import (
+    GraphProgress, Job, LocalExecutor, busy_cores, check_graph, free_cpus, run_graph,
+)
+from detbench.utils.cli import UserError
+from tests.helpers import ROOT
+
+# A job that stands for a training: it marks itself started, and on SIGINT writes its "checkpoint" and exits
+# 130 (as tools/train.py does); given "resume" it finishes at once, noting that it resumed.
+TRAINING = """
+import signal, sys, time
+from pathlib import Path
+d = Path(sys.argv[1])
+def stop(*_):
+    (d / "checkpoint").write_text("step 3")
+    sys.exit(130)
+signal.signal(signal.SIGINT, stop)
+if sys.argv[2:] == ["resume"]:
+    (d / "done").write_text("resumed from " + (d / "checkpoint").read_text())
+    sys.exit(0)
+(d / "started").write_text("1")
+for _ in range(600):
+    time.sleep(0.05)
+(d / "done").write_text("ran through")
+"""
+
+
+def py(code: str, *args) -> list[str]:
+    return [sys.executable, "-c", code, *map(str, args)]
+
+
+def job(jid, cmd, deps=(), kind="train", model="m", out: Path | None = None):
+    """A job that is skipped once `out` exists (as a study's stage with its output)."""
+    return Job(jid, kind, jid.replace("_", " "), lambda: None if out is not None and out.exists() else cmd,
+               deps=tuple(deps), model=model)
+
+
+def test_the_graph_refuses_unknown_dependencies_and_cycles():
+    noop = py("pass")
+    with pytest.raises(ValueError, match="depends on unknown job"):
+        check_graph([job("a", noop, deps=["b"])])
+    with pytest.raises(ValueError, match="cycle"):
+        check_graph([job("a", noop, deps=["b"]), job("b", noop, deps=["a"])])
+    with pytest.raises(ValueError, match="repeat"):
+        check_graph([job("a", noop), job("a", noop)])
+    assert 1 <= free_cpus() <= (os.cpu_count() or 1) and 0.0 <= busy_cores(0.1) <= (os.cpu_count() or 1) + 0.01
+
+
+def test_time_left_is_the_longest_remaining_path_over_the_workers():
+    """Two trainings of 100 s, each followed by its evaluation of 10 s: on two workers the critical path
+    (110 s) decides, on one the work (220 s); a model not measured borrows its kind's mean, flagged a guess."""
+    jobs = [job("train_a", [], model="a"), job("train_b", [], model="b"),
+            job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
+            job("eval_b", [], deps=["train_b"], kind="eval", model="b")]
+    prog = GraphProgress(jobs, slots=2)
+    assert prog.left_s() == (None, True)  # nothing measured: unknown
+    prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0], ("train", "b"): [100.0], ("eval", "b"): [10.0]}
+    assert prog.left_s() == (pytest.approx(110.0), False)
+    assert GraphProgress(jobs, slots=1).left_s() == (None, True)
+    one = GraphProgress(jobs, slots=1)
+    one.measured = prog.measured
+    assert one.left_s() == (pytest.approx(220.0), False)
+    # a running job counts what it has left; a finished one nothing
+    prog.finished.add("train_a")
+    prog.running["eval_a"] = 0.0
+    left, _ = prog.left_s(now=4.0)
+    assert left == pytest.approx(110.0)  # train_b + eval_b; eval_a's 6 s run beside them
+    del prog.measured[("train", "b")]
+    assert prog.left_s(now=4.0) == (pytest.approx(110.0), True)  # b's training borrows a's: a guess
+
+
+def test_jobs_run_at_once_after_their_dependencies_and_the_output_goes_to_their_logs(tmp_path, capsys):
+    a, b = tmp_path / "a", tmp_path / "b"
+    # b needs a's output; c and a run together (each waits for the other to have started)
+    wait_for = "import sys, time, pathlib\nfor _ in range(400):\n    if pathlib.Path(sys.argv[1]).exists(): break\n" \
+               "    time.sleep(0.02)\nelse: sys.exit(5)\n"
+    jobs = [job("job_a", py("import pathlib,sys; pathlib.Path(sys.argv[1]).write_text('a'); print('hello from a')\n"
+                            + wait_for.replace("sys.argv[1]", "sys.argv[2]"), a, tmp_path / "c"), out=a),
+            job("job_b", py("import pathlib,sys; assert pathlib.Path(sys.argv[1]).read_text() == 'a'; "
+                            "pathlib.Path(sys.argv[2]).write_text('b')", a, b), deps=["job_a"], out=b),
+            job("job_c", py("import pathlib,sys; pathlib.Path(sys.argv[1]).write_text('c')\n"
+                            + wait_for.replace("sys.argv[1]", "sys.argv[2]"), tmp_path / "c", a))]
+    res = run_graph(jobs, LocalExecutor(2), tmp_path / "logs", poll_s=0.05)
+    assert sorted(res.ran) == ["job_a", "job_b", "job_c"] and b.read_text() == "b"
+    out = capsys.readouterr().out
+    assert "hello from a" not in out  # two at once: output in the logs only
+    assert "hello from a" in (tmp_path / "logs" / "job_a.log").read_text()
+    assert "running: job a, job c | 0/3 done" in out and "3/3 done" in out
+    # again: every output exists, nothing runs
+    res = run_graph(jobs[:2], LocalExecutor(2), tmp_path / "logs", poll_s=0.05)
+    assert res.ran == [] and res.kept == ["job_a", "job_b"]
+
+
+def test_one_job_at_a_time_streams_its_output_and_keeps_its_log(tmp_path, capfd):
+    run_graph([job("only", py("print('line one'); print('line two')"))], LocalExecutor(1), tmp_path / "logs",
+              poll_s=0.05)
+    out = capfd.readouterr().out
+    assert "line one\nline two" in out and "line two" in (tmp_path / "logs" / "only.log").read_text()
+
+
+def test_a_failed_job_stops_the_study_and_the_running_training_checkpoints_then_it_resumes(tmp_path, capsys):
+    """The failed job's log is named and its last lines shown; the training running beside it gets SIGINT and
+    writes its checkpoint; the job waiting for a slot never starts. The same graph again (the error fixed)
+    keeps what finished, resumes the training and runs the rest."""
+    run, fixed = tmp_path / "train", tmp_path / "fixed"
+    run.mkdir()
+    fail = ("import pathlib, sys, time\nif pathlib.Path(sys.argv[2]).exists(): sys.exit(0)\n"
+            "for _ in range(500):\n    if pathlib.Path(sys.argv[1]).exists(): break\n    time.sleep(0.02)\n"
+            "print('\\n'.join(f'log line {i}' for i in range(30))); print('ValueError: the config is wrong')\n"
+            "sys.exit(3)")
+
+    def train_prepare():
+        if (run / "done").exists():
+            return None
+        return py(TRAINING, run, *(["resume"] if (run / "checkpoint").exists() else []))
+
+    def graph():
+        return [Job("train_m", "train", "train m", train_prepare, model="m"),
+                job("eval_bad", py(fail, run / "started", fixed), kind="eval"),
+                job("waiting", py("import pathlib,sys; pathlib.Path(sys.argv[1]).write_text('w')",
+                                  tmp_path / "waiting"), out=tmp_path / "waiting"),
+                job("after_bad", py("pass"), deps=["eval_bad"], kind="combine")]
+
+    with pytest.raises(SystemExit) as e:
+        run_graph(graph(), LocalExecutor(2), tmp_path / "logs", poll_s=0.05)
+    log = tmp_path / "logs" / "eval_bad.log"
+    assert f"eval bad failed (exit 3); its log: {log}" in str(e.value.code)
+    assert "run the same command again" in str(e.value.code)
+    out = capsys.readouterr().out
+    assert f"FAILED: eval bad (exit 3); its log: {log}" in out
+    assert "ValueError: the config is wrong" in out and "log line 29" in out and "log line 5\n" not in out
+    assert "stopping train m" in out
+    assert (run / "checkpoint").read_text() == "step 3" and not (run / "done").exists()
+    assert not (tmp_path / "waiting").exists()
+
+    fixed.write_text("1")
+    res = run_graph(graph(), LocalExecutor(2), tmp_path / "logs", poll_s=0.05)
+    assert (run / "done").read_text() == "resumed from step 3"
+    assert sorted(res.ran) == ["after_bad", "eval_bad", "train_m", "waiting"]
+
+
+@pytest.mark.parametrize("status, error", [(2, UserError), (1, SystemExit)])
+def test_a_failed_job_keeps_the_users_error_apart_from_a_bug(tmp_path, status, error):
+    with pytest.raises(error, match="train m failed"):
+        run_graph([job("train_m", py(f"import sys; sys.exit({status})"))], LocalExecutor(1), tmp_path, poll_s=0.05)
+
+
+DRIVER = """
+import sys
+from pathlib import Path
+from detbench.studies.jobs import Job, LocalExecutor, run_graph
+d = Path(sys.argv[1])
+training = sys.argv[2]
+run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", training, str(d)], model="m")],
+          LocalExecutor(2), d / "logs", poll_s=0.05)
+"""
+
+
+def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp_path):
+    proc = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+    for _ in range(600):
+        if (tmp_path / "started").exists():
+            break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGINT)  # the driver only: it passes SIGINT on to its jobs
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode != 0 and "KeyboardInterrupt" in out
+    assert (tmp_path / "checkpoint").read_text() == "step 3" and not (tmp_path / "done").exists()
+    assert "interrupted: stopping train m" in out and "run the same command again to resume" in out
+
+
+def test_a_cross_height_evaluation_borrows_the_time_of_an_evaluation():
+    jobs = [job("train_a", [], model="a"), job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
+            job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a")]
+    prog = GraphProgress(jobs, slots=1)
+    prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0]}
+    assert prog.left_s() == (pytest.approx(120.0), True)

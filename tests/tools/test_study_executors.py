@@ -1,0 +1,84 @@
+"""tools/study.py's executors give the same study: one job at a time, two at once, and the jobs as Ray tasks."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+import models
+from detbench.studies.study import StudyOptions, run_study
+from tests.helpers import ROOT
+
+SMOKE = ["train.epochs=1", "train.tensorboard=false", "study.models=[second]"]
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    from detbench.sim.dataset import simulate_dataset
+
+    root = tmp_path_factory.mktemp("data") / "sim"
+    return simulate_dataset(root, frames=9, heights=[0.5, 1.8], seed=7, frames_per_scene=3, progress=False)
+
+
+def comparable(out: Path) -> dict:
+    """study.json without its timing fields and with the study's own folder replaced by OUT."""
+    text = (out / "study.json").read_text().replace(str(out), "OUT")
+
+    def strip(v):
+        if isinstance(v, dict):
+            return {k: strip(x) for k, x in v.items() if "seconds" not in k and "per_second" not in k}
+        if isinstance(v, list):
+            return [strip(x) for x in v]
+        return v
+
+    return strip(json.loads(text))
+
+
+def study(data: Path, out: Path, heights: list[float], **kw) -> dict:
+    run_study(StudyOptions(preset="smoke", heights=heights, data=str(data), out=str(out), overrides=SMOKE,
+                           no_progress=True, **kw), registry=models, repo=ROOT)
+    return comparable(out)
+
+
+@pytest.mark.slow
+def test_one_job_at_a_time_and_two_at_once_give_the_same_study(tiny_dataset, tmp_path):
+    one = study(tiny_dataset, tmp_path / "one", [0.5, 1.8], jobs=1)
+    two = study(tiny_dataset, tmp_path / "two", [0.5, 1.8], jobs=2)
+    assert one["models"] == ["second"] and one["summary"]["detectors"]
+    assert one == two
+
+
+def test_the_study_on_a_local_ray_instance_matches_the_local_executor(tiny_dataset, tmp_path):
+    ray = pytest.importorskip("ray", reason="Ray is not installed (pip install .[cluster]): the cluster executor "
+                                            "is not tested")
+    local = study(tiny_dataset, tmp_path / "local", [0.5], jobs=1)
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        on_ray = study(tiny_dataset, tmp_path / "ray", [0.5], executor="ray")
+    finally:
+        ray.shutdown()
+    assert (tmp_path / "ray" / "logs" / "train_second_h0.5.log").is_file()
+    assert on_ray == local
+
+
+@pytest.mark.slow
+def test_seeds_train_each_run_once_per_seed_and_the_report_gives_the_spread(tiny_dataset, tmp_path, capsys):
+    out = tmp_path / "seeds"
+    got = study(tiny_dataset, out, [0.5], jobs=2, seeds=[0, 1])
+    # seed 0 is the config's train.seed: today's folder; seed 1 its own, trained with --set train.seed=1
+    assert (out / "second_h0.5" / "eval_h0.5_test" / "report.json").is_file()
+    assert (out / "second_h0.5_s1" / "eval_h0.5_test" / "report.json").is_file()
+    rec = json.loads((out / "stage_inputs" / "train_second_h0.5_s1.json").read_text())
+    assert rec["inputs"]["config"]["train"]["seed"] == 1
+    assert json.loads((out / "stage_inputs" / "train_second_h0.5.json").read_text())["inputs"]["config"]["train"][
+        "seed"] == 0
+    assert got["seeds"]["seeds"] == [0, 1] and "0.5" in got["seeds"]["by_height"]
+    comb = got["seeds"]["by_height"]["0.5"]["models"]["second"]
+    assert comb["num_seeds"] == 2 and comb["seeds"] == [0, 1]
+    md = (out / "study.md").read_text()
+    assert "**Over the training seeds** 0, 1" in md and "seed sd" in md and "scene-only" in md
+    # the same command again: every job is kept
+    capsys.readouterr()
+    study(tiny_dataset, out, [0.5], jobs=2, seeds=[0, 1])
+    assert "start train" not in capsys.readouterr().out
