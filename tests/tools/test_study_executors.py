@@ -49,6 +49,7 @@ def test_one_job_at_a_time_and_two_at_once_give_the_same_study(tiny_dataset, tmp
     assert one == two
 
 
+@pytest.mark.slow  # about a minute: .ci/run runs it on its own after the default suite
 def test_the_study_on_a_local_ray_instance_matches_the_local_executor(tiny_dataset, tmp_path):
     ray = pytest.importorskip("ray", reason="Ray is not installed (pip install .[cluster]): the cluster executor "
                                             "is not tested")
