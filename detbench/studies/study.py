@@ -388,7 +388,8 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
         ability_inputs = {"heights": heights, "simulate": ability_frames, "seed": data_cfg.get("seed", 0),
                           "sim_preset": str(data_cfg.get("sim_preset", "paper")), "sim_overrides": sim_sets}
         ability_cmd = [py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed",
-                       str(data_cfg.get("seed", 0)), "--sim-preset", str(data_cfg.get("sim_preset", "paper")), *sim_sets,
+                       str(data_cfg.get("seed", 0)), "--sim-preset", str(data_cfg.get("sim_preset", "paper")),
+                       *sim_sets,
                        "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet]
         ability_what = f"ability study ({ability_frames} simulated frames)"
     else:
