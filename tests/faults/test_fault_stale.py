@@ -103,6 +103,6 @@ def test_study_rerun_with_other_inputs_does_not_report_the_old_figures(fault_dat
     code, log = study(fault_data, "--heights", "0.5", "1.8")
     assert code == 0, log[-3000:]
     assert "ability.json was computed from other inputs (" in log and "heights: then [1.8], now [0.5, 1.8]" in log
-    assert "train second at 1.8 m" not in log and "train second at 0.5 m" in log
+    assert "start train second 1.8 m" not in log and "start train second 0.5 m" in log
     ability = __import__("json").loads((out / "ability" / "ability.json").read_text())
     assert "0.5" in str(ability["heights"]) and "0.5 m" in (out / "study.md").read_text().split("## 1.")[0]
