@@ -146,6 +146,7 @@ def test_idle_and_loaded_and_ratio():
 
 
 @linux_only
+@pytest.mark.slow  # about 20 s: the simulator timed idle and beside a busy process
 def test_bench_sim_load_reports_idle_and_loaded(tmp_path):
     bench = tools.bench_sim
     assert bench.main(["--frames", "2", "--frames-per-scene", "2", "--heights", "1.0", "--mode", "counts",

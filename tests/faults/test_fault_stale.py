@@ -77,6 +77,7 @@ def test_bin_points_of_another_dtype_are_named_and_the_fix_keeps_the_values(dtyp
     np.testing.assert_array_equal(np.fromfile(bad, "<f4").reshape(-1, 4), originals["0001_002"])
 
 
+@pytest.mark.slow  # about a minute on 2 cores: four smoke studies
 def test_study_rerun_with_other_inputs_does_not_report_the_old_figures(fault_data, data_copy, tool, tmp_path):
     """A finished study rerun on the same --out: with other data or other settings its training run is refused,
     naming the run and what changed, before anything runs or changes; with an added height the ability study
