@@ -37,6 +37,7 @@ import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before
 import models
 from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,
                                             peak_rss_mib)
+from detbench.data.road import RoadConfig
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
 from detbench.utils.cli import EXIT_USER_ERROR, UserError, check_out_dir, doc_parser, require, run_main, torch_device
@@ -86,6 +87,7 @@ def worker(args) -> dict:
     if ckpt:
         model, ck = models.load_from_checkpoint(ckpt, device)
         cfg_model = ck["config"]["model"]
+        road = RoadConfig.of_run_config(ck["config"])
     else:
         cfg = load_run_config(name, args.preset)
         root_for_sizes = default_dataset({**cfg["data"], "root": args.data} if args.data else
@@ -93,13 +95,14 @@ def worker(args) -> dict:
         train = Height3Dataset(root_for_sizes, args.height, "train")
         boxes = np.concatenate([train[i].boxes for i in range(min(len(train), 20))])
         cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
+        road = RoadConfig.of_run_config(cfg)
         model = models.build_model(name, cfg_model).to(device).eval()
     data_root = default_dataset({"root": args.data} if args.data else load_run_config(name, "smoke")["data"],
                                 progress=False)
     test = Height3Dataset(data_root, args.height, "test")
     return measure_detector(model, name, test, cfg_model["point_cloud_range"], device, frames=args.frames,
                             warmup=args.warmup, checkpoint=ckpt, rss_before_model=rss0,
-                            train_steps=args.train_steps, train_batch=args.train_batch)
+                            train_steps=args.train_steps, train_batch=args.train_batch, road=road)
 
 
 def check_arguments(args: argparse.Namespace) -> None:

@@ -9,6 +9,8 @@ For each model, from the preset's point, one knob at a time and a few joint poin
              margins (trained), against the full grid evaluated on the same range
   points     input point budget at test time, 16384 and 4096 points by random or farthest-point
              subsampling (preset model); PointRCNN also its sampled points per frame x0.5 / x2 (trained)
+  road       the model trained with road points removed before voxelising or sampling, or kept: the
+             opposite of its config's road.drop (configs/default.yaml `road:`)
   proposals  two-stage models: proposals refined at test time x0.25 / x0.5 (preset model), training
              RoIs per frame x0.5 / x2 (trained)
   precision  bfloat16 autocast on CPU; float16 and bfloat16 autocast on CUDA (preset model)

@@ -98,6 +98,7 @@ def main(argv=None) -> int:
 def train_in(args, cfg: dict, out: Path) -> int:
     """Train as `args` say into the run folder `out` (held by `main`)."""
     from detbench.eval.evaluate import EvalConfig
+    from detbench.data.road import RoadConfig
     from detbench.sim.dataset import default_dataset
     from detbench.train import AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed, \
         main_process_first, train
@@ -105,13 +106,14 @@ def train_in(args, cfg: dict, out: Path) -> int:
     model_name = cfg["model"]["name"]
     info = init_distributed(args.device)
     tcfg = TrainConfig.from_dict(cfg["train"])
+    road = RoadConfig.of_run_config(cfg)
     torch.manual_seed(tcfg.seed)
     try:
         with main_process_first(info):
             root = default_dataset(cfg["data"], progress=info.is_main and not args.no_progress)
             train_set = TrainingSet.from_dataset(root, args.height, cfg["model"]["point_cloud_range"],
                                                  augment=AugmentConfig.from_dict(cfg["augment"]), seed=tcfg.seed,
-                                                 progress=info.is_main and not args.no_progress)
+                                                 road=road, progress=info.is_main and not args.no_progress)
         if train_set.sampler is None:  # with ground-truth sampling on, building its database read every frame
             check_training_frames(train_set.frames)
         data_info = training_data_info(root, args.height, train_set)
@@ -126,7 +128,7 @@ def train_in(args, cfg: dict, out: Path) -> int:
         ecfg = EvalConfig.from_dict(cfg["eval"])
         eval_fn = None if args.no_eval else make_eval_fn(eval_frames(root, args.height, ecfg), ecfg,
                                                          model_cfg["point_cloud_range"], info.device,
-                                                         tcfg.batch_size)
+                                                         tcfg.batch_size, road=road)
     except (FileNotFoundError, ValueError, KeyError, ConfigError, CheckpointError) as e:
         raise UserError(str(e)) from None
 

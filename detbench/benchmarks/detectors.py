@@ -16,8 +16,8 @@ import torch
 from torch import nn
 
 from detbench import runtime
-from detbench.data.augment import crop_to_range
 from detbench.data.batch import Sample, collate
+from detbench.data.road import RoadConfig, crop_model_input
 from detbench.train.inference import frame_sample
 from detbench.utils.bench import StageTimer, load_line, ratio, runtime_line
 
@@ -32,16 +32,17 @@ def peak_rss_mib() -> float:
 
 def measure_detector(model: nn.Module, name: str, test, point_cloud_range, device: torch.device, *, frames: int,
                      warmup: int, checkpoint=None, rss_before_model: float, train_steps: int = 0,
-                     train_batch: int = 2) -> dict:
+                     train_batch: int = 2, road: RoadConfig | None = None) -> dict:
     """The cost of `model` (named `name`, eval mode, on `device`): latency per stage over `frames` frames of
-    `test` after `warmup` passes, weights size, peak memory, and with `train_steps` the training step."""
+    `test` after `warmup` passes, weights size, peak memory, and with `train_steps` the training step. The
+    frames are prepared as the model's input (`road`: its road setting; the road fit is not timed)."""
     rss0 = rss_before_model
     buf = io.BytesIO()  # the model's weights as torch.save writes them (no optimizer state)
     torch.save(model.state_dict(), buf)
     ckpt_bytes = buf.tell()
     params = sum(p.numel() for p in model.parameters())
     n = frames + warmup
-    samples = [frame_sample(test[i % len(test)], point_cloud_range) for i in range(n)]
+    samples = [frame_sample(test[i % len(test)], point_cloud_range, road) for i in range(n)]
     stages = model.STAGES
     timer = StageTimer(model, stages, device)
     sync = timer.sync  # CUDA-synchronising on a GPU, a no-op on CPU
@@ -59,25 +60,27 @@ def measure_detector(model: nn.Module, name: str, test, point_cloud_range, devic
               "weights_mb": round(ckpt_bytes / 1e6, 2), "latency_ms": med,
               "latency_ms_min_total": round(min(r["total"] for r in rows), 2),
               "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
-              "frames": len(rows), "threads": torch.get_num_threads()}
+              "frames": len(rows), "threads": torch.get_num_threads(), "road_dropped": bool(road and road.drop)}
     if device.type == "cuda":
         result["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated(device) / 2**20, 1)
     if train_steps > 0:
-        result["train_step_ms"] = train_step_ms(model, test, point_cloud_range, train_steps, train_batch, device, sync)
+        result["train_step_ms"] = train_step_ms(model, test, point_cloud_range, train_steps, train_batch, device, sync,
+                                                road)
         result["train_batch"] = train_batch
     result["runtime"] = runtime.describe()
     return result
 
 
 def train_step_ms(model: nn.Module, frames, point_cloud_range, steps: int, batch_size: int, device: torch.device,
-                  sync) -> float:
+                  sync, road: RoadConfig | None = None) -> float:
     """Median milliseconds of one training step (forward, loss, backward, AdamW step) over
     `steps` steps after one untimed step; batches of `batch_size` frames with their
-    boxes cropped to the model's range. The model is trained in place (benchmark only)."""
+    boxes cropped to the model's range (and its road dropped, as `road` says). The model is trained in place
+    (benchmark only)."""
     def sample(i):
         f = frames[i % len(frames)]
-        pts, boxes, _ = crop_to_range(np.asarray(f.points, np.float32), np.asarray(f.boxes, np.float32),
-                                      point_cloud_range)
+        pts, boxes, _ = crop_model_input(np.asarray(f.points, np.float32), np.asarray(f.boxes, np.float32),
+                                         point_cloud_range, road)
         return Sample(np.ascontiguousarray(pts[:, :4]), boxes, f.frame_id)
 
     optimizer = torch.optim.AdamW(model.parameters(), lr=1e-4)

@@ -4,8 +4,10 @@ For each model, from the preset's point, one knob at a time and a few joint poin
 in tools/tradeoff.py's help). A point changes the model trained for it (`Point.train`, dotted
 overrides under `model:`) or only how the preset's model runs (`Point.infer`: precision,
 threads, a test-time point budget, inference-only model keys). Points with the same training
-share one training run. The width knob scales the channel widths that each model's config lists under `width_keys`
-(`detbench.train.run_config.width_keys`); a model that lists none has no width knob.
+share one training run. The road knob trains the model with the opposite of its config's `road.drop`
+(road points removed before voxelising or sampling, or kept; detbench.data.road), the one knob whose
+override lies outside `model:`. The width knob scales the channel widths that each model's config lists
+under `width_keys` (`detbench.train.run_config.width_keys`); a model that lists none has no width knob.
 """
 from __future__ import annotations
 
@@ -20,7 +22,7 @@ from detbench.data.regions import RANGES
 from detbench.studies.registry import ModelRegistry
 from detbench.train.run_config import width_keys
 
-KNOBS = ("voxel", "width", "region", "points", "proposals", "precision", "threads", "joint", "curve")
+KNOBS = ("voxel", "width", "region", "points", "road", "proposals", "precision", "threads", "joint", "curve")
 VOXEL_FACTORS = (0.5, 2.0)
 WIDTH_FACTORS = (0.5, 2.0)
 REGION_RANGES = ("small", "moderate")  # "large" is the full grid: the preset's point
@@ -34,9 +36,9 @@ _PROBE_BOXES = [[20.0, 0.0, 0.8, 4.5, 1.9, 1.6, 0.0]]
 
 @dataclass
 class Point:
-    """One point of the sweep. `train`: dotted config overrides of the model trained for it ({} =
-    the preset's model); `infer`: what changes at inference only (precision, threads, subsample
-    [method, points], model {dotted: value})."""
+    """One point of the sweep. `train`: dotted run-config overrides of the model trained for it ({} =
+    the preset's model; keys under `model.`, and `road.drop` for the road knob); `infer`: what changes at
+    inference only (precision, threads, subsample [method, points], model {dotted: value})."""
 
     model: str
     name: str
@@ -146,8 +148,8 @@ def _no_fit(model, x_max, y_half):
 
 
 def sweep_points(model: str, model_cfg: dict, knobs, device: str, cores: int, default_threads: int, *,
-                 registry: ModelRegistry) -> list[Point]:
-    """The points of one model's sweep, from its preset `model:` config section."""
+                 registry: ModelRegistry, road_drop: bool = False) -> list[Point]:
+    """The points of one model's sweep, from its preset `model:` config section and its `road.drop`."""
     pts = [Point(model, "preset", "preset", "the preset's settings")]
     mc = model_cfg
     pcr = [float(v) for v in mc["point_cloud_range"]]
@@ -198,6 +200,12 @@ def sweep_points(model: str, model_cfg: dict, knobs, device: str, cores: int, de
                 n = max(64, int(round(num_points * f)))
                 pts.append(Point(model, f"sampled points x{f:g}", "points", f"{n} sampled points per frame (trained)",
                                  {"model.sampling.num_points": n}, train_factor=f, tier=2))
+    if "road" in knobs:
+        drop = not road_drop
+        pts.append(Point(model, "road dropped" if drop else "road kept", "road",
+                         "road points removed before the model (trained)" if drop
+                         else "road points kept in the model's input (trained)",
+                         {"road.drop": drop}, train_factor=0.5 if drop else 2.0, tier=2))
     if "proposals" in knobs and is_two_stage:
         test_k = int(get_dotted(mc, "roi_head.proposals.test.post_nms_top_k"))
         for f in PROPOSAL_FACTORS:

@@ -470,7 +470,8 @@ def prepare_sweep(opts: TradeoffOptions, out: str | os.PathLike, *, registry: Mo
     points = []
     try:
         for n in names:
-            points += sweep_points(n, cfgs[n]["model"], opts.knobs, device, cores, default_threads, registry=registry)
+            points += sweep_points(n, cfgs[n]["model"], opts.knobs, device, cores, default_threads, registry=registry,
+                                   road_drop=bool((cfgs[n].get("road") or {}).get("drop", False)))
     except ValueError as e:
         raise UserError(str(e)) from None
     budget_s = opts.budget * 60 if opts.budget else None

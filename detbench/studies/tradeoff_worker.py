@@ -24,12 +24,13 @@ from detbench.utils.io import atomic_write_json
 
 
 class SubsampledFrames:
-    """The frames of a dataset with each one's points cropped to the model's range and then cut to
-    `budget` points by "random" (seeded per frame) or "fps" (farthest point sampling);
-    `seconds` sums the time spent subsampling."""
+    """The frames of a dataset with each one's points prepared as the model's input (cropped to its range,
+    without the road when `road.drop`) and then cut to `budget` points by "random" (seeded per frame) or
+    "fps" (farthest point sampling); `seconds` sums the time spent subsampling."""
 
-    def __init__(self, frames, point_cloud_range, method: str, budget: int):
+    def __init__(self, frames, point_cloud_range, method: str, budget: int, road=None):
         self.frames, self.pcr, self.method, self.budget = frames, point_cloud_range, method, int(budget)
+        self.road = road
         self.seconds = 0.0
 
     def __len__(self):
@@ -56,7 +57,7 @@ class SubsampledFrames:
         from detbench.train.inference import frame_sample
 
         frame = self.frames[i]
-        cropped = frame_sample(frame, self.pcr).points
+        cropped = frame_sample(frame, self.pcr, self.road).points
         t0 = time.perf_counter()
         pts = self.subsample(cropped, i)
         self.seconds += time.perf_counter() - t0
@@ -93,6 +94,7 @@ def evaluate_checkpoint(model, cfg_model: dict, ck: dict, test, device, precisio
     evenly spaced frames of it), predicted under `precision` and `subsample`."""
     import numpy as np
 
+    from detbench.data.road import RoadConfig
     from detbench.eval.evaluate import EvalConfig, evaluate_predictions
     from detbench.train.inference import predict_frames
 
@@ -100,10 +102,11 @@ def evaluate_checkpoint(model, cfg_model: dict, ck: dict, test, device, precisio
     if eval_frames and eval_frames < len(test):
         frames = [test[int(i)] for i in np.linspace(0, len(test) - 1, eval_frames).astype(int)]
     ecfg = EvalConfig.from_dict(ck["config"].get("eval"))
-    source = SubsampledFrames(frames, cfg_model["point_cloud_range"], *subsample) if subsample else frames
+    road = RoadConfig.of_run_config(ck["config"])
+    source = SubsampledFrames(frames, cfg_model["point_cloud_range"], *subsample, road=road) if subsample else frames
     with _autocast(device, precision):
         preds = predict_frames(model, source, cfg_model["point_cloud_range"], device=device, batch_size=4,
-                               progress=False)
+                               progress=False, road=None if subsample else road)  # subsampled: prepared already
     rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
                                score_threshold=ecfg.score_threshold, extras=False, progress=False)
     return {r: {k: rep["results"][r]["all"][k] for k in ("ap_r40", "recall", "lidar_detected")}
@@ -120,6 +123,7 @@ def measure_point(registry: ModelRegistry, spec: dict) -> dict:
     from detbench import runtime
     from detbench.data import Height3Dataset
     from detbench.data.batch import Sample, collate
+    from detbench.data.road import RoadConfig
     from detbench.train.inference import frame_sample
     from detbench.utils.bench import StageTimer, median_p90, peak_rss_mib, reset_peak_rss, rss_mib
 
@@ -136,7 +140,8 @@ def measure_point(registry: ModelRegistry, spec: dict) -> dict:
     if len(test) == 0:
         raise UserError(f"{spec['data']}: the test split at {spec['height']:g} m has no frames")
     pcr = cfg_model["point_cloud_range"]
-    sub = SubsampledFrames(test, pcr, *infer["subsample"]) if infer.get("subsample") else None
+    road = RoadConfig.of_run_config(ck["config"])
+    sub = SubsampledFrames(test, pcr, *infer["subsample"], road=road) if infer.get("subsample") else None
     timer = StageTimer(model, model.STAGES, device)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -145,7 +150,7 @@ def measure_point(registry: ModelRegistry, spec: dict) -> dict:
     with torch.no_grad(), _autocast(device, infer.get("precision")):
         for i in range(n):
             frame = test[i % len(test)]
-            points = frame_sample(frame, pcr).points  # the crop is input preparation, not timed
+            points = frame_sample(frame, pcr, road).points  # crop and road removal are input preparation, not timed
             t_sub = 0.0
             if sub is not None:
                 ts = time.perf_counter()
@@ -165,7 +170,7 @@ def measure_point(registry: ModelRegistry, spec: dict) -> dict:
               "peak_rss_mib": round(peak_rss, 1), "rss_before_model_mib": round(rss0, 1),
               "peak_rss_since": "model load" if peak_reset else "process start",
               "parameters": int(sum(p.numel() for p in model.parameters())), "weights_mb": round(buf.tell() / 1e6, 3),
-              "threads": torch.get_num_threads(), "point_cloud_range": pcr}
+              "threads": torch.get_num_threads(), "point_cloud_range": pcr, "road_dropped": road.drop}
     if device.type == "cuda":
         result["peak_cuda_mib"] = round(torch.cuda.max_memory_allocated(device) / 2 ** 20, 1)
     try:

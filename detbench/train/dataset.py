@@ -5,7 +5,9 @@ Per item, in order:
    >= 1 point inside the box with its bottom raised 0.05 m), as the paper trains;
 2. when training: augmentation (detbench.data.augment) with a generator seeded from
    (seed, epoch, index), pasted vehicles kept clear of every vehicle of the frame;
-3. crop points and boxes to the model's point-cloud range.
+3. crop points and boxes to the model's point-cloud range and, when the run's `road.drop` says so,
+   remove the road points (`detbench.data.road.crop_model_input`: pasted vehicles are in by then, so
+   their copied road goes too).
 
 Items are addressed as `ts[(epoch, index)]` (the training loop's batch sampler sends the
 epoch with each index, so persistent DataLoader workers need no epoch state) or as
@@ -23,11 +25,12 @@ import numpy as np
 from torch.utils.data import Dataset
 
 from detbench.data import Height3Dataset
-from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range, crop_to_range
+from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range
 from detbench.data.batch import Sample
 from detbench.data.frame import Frame, height_key
 from detbench.data.gt_database import GTDatabase, GTSampler, build_or_load_gt_database
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, lidar_detected
+from detbench.data.road import RoadConfig, crop_model_input
 from detbench.train.seed import sample_rng
 
 __all__ = ["TrainingSet", "default_database_dir"]
@@ -48,13 +51,14 @@ class TrainingSet(Dataset):
         gt_database: required when `augment.gt_sampling.enabled`.
         seed: seeds each sample's augmentation with the epoch and index.
         training: False disables augmentation (evaluation, previews).
+        road: the road model; with `road.drop` the road points leave every sample (None: kept).
         min_points / bottom_lift: the LiDAR-detected rule (defaults: DETECTED_MIN_POINTS = 1 point,
             DETECTED_BOTTOM_LIFT = 0.05 m; detbench.data.regions).
     """
 
     def __init__(self, frames: Sequence[Frame], point_cloud_range: Sequence[float], *,
                  augment: AugmentConfig | None = None, gt_database: GTDatabase | None = None, seed: int = 0,
-                 training: bool = True, min_points: int = DETECTED_MIN_POINTS,
+                 training: bool = True, road: RoadConfig | None = None, min_points: int = DETECTED_MIN_POINTS,
                  bottom_lift: float = DETECTED_BOTTOM_LIFT):
         self.frames = frames
         self.point_cloud_range = check_point_cloud_range(point_cloud_range)
@@ -67,6 +71,7 @@ class TrainingSet(Dataset):
                                  "TrainingSet.from_dataset, or set augment.gt_sampling.enabled=false")
             self.sampler = GTSampler(gt_database, self.augment.gt_sampling)
         self.seed = int(seed)
+        self.road = road
         self.training = bool(training)
         self.min_points = int(min_points)
         self.bottom_lift = float(bottom_lift)
@@ -75,7 +80,8 @@ class TrainingSet(Dataset):
     @classmethod
     def from_dataset(cls, root: str | os.PathLike, height: float, point_cloud_range: Sequence[float], *,
                      augment: AugmentConfig | None = None, seed: int = 0, split: str = "train",
-                     database_dir: str | os.PathLike | None = None, progress: bool = True) -> TrainingSet:
+                     road: RoadConfig | None = None, database_dir: str | os.PathLike | None = None,
+                     progress: bool = True) -> TrainingSet:
         """`Height3Dataset(root, height, split)` with the ground-truth database built (once) if sampling is on.
 
         The database comes from the *train* split only; it lives in `database_dir`, else
@@ -93,7 +99,8 @@ class TrainingSet(Dataset):
                                                    "split": "train"})
         if db is None and augment.gt_sampling.enabled:
             augment = replace(augment, gt_sampling=replace(augment.gt_sampling, enabled=False))
-        return cls(frames, point_cloud_range, augment=augment, gt_database=db, seed=seed, training=split != "test")
+        return cls(frames, point_cloud_range, augment=augment, gt_database=db, seed=seed, training=split != "test",
+                   road=road)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -120,6 +127,6 @@ class TrainingSet(Dataset):
         if augment:
             rng = sample_rng(self.seed, epoch, index)
             points, gt = augment_frame(points, gt, rng, self.augment, self.sampler, avoid_boxes=all_boxes)
-        points, gt, _ = crop_to_range(points, gt, self.point_cloud_range)
+        points, gt, _ = crop_model_input(points, gt, self.point_cloud_range, self.road)
         return Sample(np.ascontiguousarray(points, dtype=np.float32), np.ascontiguousarray(gt, dtype=np.float32),
                       frame.frame_id)

@@ -16,18 +16,19 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from detbench.data.augment import crop_to_range
 from detbench.data.batch import Sample, collate
 from detbench.data.errors import DatasetError
 from detbench.data.frame import Frame
+from detbench.data.road import RoadConfig, crop_model_input
 from detbench.train.detector import TwoStageDetector
 from detbench.utils.cli import UserError
 
 
-def frame_sample(frame: Frame, point_cloud_range: Sequence[float]) -> Sample:
-    """A frame's points cropped to the model's range, with no ground truth (inference input)."""
+def frame_sample(frame: Frame, point_cloud_range: Sequence[float], road: RoadConfig | None = None) -> Sample:
+    """A frame's points cropped to the model's range, without the road when `road.drop`, with no ground
+    truth (inference input; the same preparation as a training sample's, `crop_model_input`)."""
     points = np.asarray(frame.points, dtype=np.float32)
-    points, _, _ = crop_to_range(points, np.zeros((0, 7), np.float32), point_cloud_range)
+    points, _, _ = crop_model_input(points, np.zeros((0, 7), np.float32), point_cloud_range, road)
     return Sample(np.ascontiguousarray(points), np.zeros((0, 7), np.float32), frame.frame_id)
 
 
@@ -52,12 +53,14 @@ def count_nonfinite(outputs: Any) -> int:
 @torch.no_grad()
 def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range: Sequence[float],
                    device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = True,
-                   desc: str = "predict") -> dict[str, tuple[np.ndarray, np.ndarray]]:
+                   desc: str = "predict", road: RoadConfig | None = None
+                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """{frame_id: (boxes (K, 7) float32, scores (K,) float32)} for every frame, in eval mode.
 
-    `frames` is any sequence of Frames (e.g. a Height3Dataset split). The model follows the
-    detector contract (`Detector`, detbench/train/detector.py). The model's train/eval mode is restored.
-    Raises NonFiniteOutputError when the model's outputs hold NaN or inf for any frame.
+    `frames` is any sequence of Frames (e.g. a Height3Dataset split); `road` is the model's road setting
+    (`RoadConfig.of_run_config` of its run config: a model trained without road points sees none here).
+    The model follows the detector contract (`Detector`, detbench/train/detector.py). The model's train/eval
+    mode is restored. Raises NonFiniteOutputError when the model's outputs hold NaN or inf for any frame.
     """
     was_training = model.training
     model.eval()
@@ -67,7 +70,8 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
     bad: list[str] = []  # frames of batches whose outputs were not finite
     try:
         for start in range(0, n, batch_size):
-            samples = [frame_sample(frames[i], point_cloud_range) for i in range(start, min(n, start + batch_size))]
+            samples = [frame_sample(frames[i], point_cloud_range, road)
+                       for i in range(start, min(n, start + batch_size))]
             batch = collate(samples).to(device)
             outputs = model(batch)
             if count_nonfinite(outputs):
@@ -90,9 +94,9 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
 def checkpoint_predictions(model: nn.Module, ck: dict, dataset, *, device="cpu", batch_size: int = 4,
                            progress: bool = True, stage: str = "refined", source=None) -> dict:
     """`predict_frames` of a model loaded from a checkpoint (`ck`, its dict) over `dataset`, with the
-    checkpoint's point-cloud range. `stage` "proposals" asks a two-stage model for its first stage's boxes
-    alone. A user's problem (a one-stage model asked for proposals, outputs that went NaN, a malformed
-    frame) is a UserError; `source` (the checkpoint's path) prefixes the NaN message."""
+    checkpoint's point-cloud range and road setting. `stage` "proposals" asks a two-stage model for its first
+    stage's boxes alone. A user's problem (a one-stage model asked for proposals, outputs that went NaN, a
+    malformed frame) is a UserError; `source` (the checkpoint's path) prefixes the NaN message."""
     if stage != "refined":
         if not isinstance(model, TwoStageDetector):
             raise UserError(f"--stage {stage}: {ck['model_name']} is a one-stage detector; --stage applies to "
@@ -100,7 +104,7 @@ def checkpoint_predictions(model: nn.Module, ck: dict, dataset, *, device="cpu",
         model.set_output_stage(stage)
     try:
         return predict_frames(model, dataset, ck["config"]["model"]["point_cloud_range"], device=device,
-                              batch_size=batch_size, progress=progress)
+                              batch_size=batch_size, progress=progress, road=RoadConfig.of_run_config(ck["config"]))
     except FloatingPointError as e:
         raise UserError(f"{source}: {e}") from None
     except DatasetError as e:  # a frame of the split is malformed

@@ -44,6 +44,7 @@ from detbench.data import Height3Dataset
 from detbench.data.batch import collate
 from detbench.data.errors import DatasetError
 from detbench.data.regions import RANGE_NAMES, detected_point_counts
+from detbench.data.road import RoadConfig
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.ops import boxes_iou_bev, boxes_to_corners_3d, normalize_heading
 from detbench.train.inference import count_nonfinite, frame_sample
@@ -92,9 +93,11 @@ class PrecisionRun:
 
 @torch.no_grad()
 def run_at_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequence[float], precision: str,
-                     device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = False) -> PrecisionRun:
+                     device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = False,
+                     road: RoadConfig | None = None) -> PrecisionRun:
     """Run `model` (the detector contract: forward, predict) over `frames` in eval mode under `precision`'s
-    autocast. Never raises for NaN / inf outputs: they are counted (see the module doc)."""
+    autocast, on the input `frame_sample` prepares (`road`: the model's road setting). Never raises for
+    NaN / inf outputs: they are counted (see the module doc)."""
     device = torch.device(device)
     was_training = model.training
     model.eval()
@@ -105,7 +108,8 @@ def run_at_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequ
     t0 = time.perf_counter()
     try:
         for start in range(0, n, batch_size):
-            samples = [frame_sample(frames[i], point_cloud_range) for i in range(start, min(n, start + batch_size))]
+            samples = [frame_sample(frames[i], point_cloud_range, road)
+                       for i in range(start, min(n, start + batch_size))]
             batch = collate(samples).to(device)
             with autocast_for(precision, device):
                 outputs = model(batch)
@@ -219,7 +223,7 @@ def _diff(a, b):
 def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequence[float],
                       precisions: Sequence[str] | None = None, device: torch.device | str = "cpu",
                       batch_size: int = 4, score_threshold: float | None = None, iou_threshold: float | None = None,
-                      match_iou: float = 0.5, progress: bool = False) -> dict:
+                      match_iou: float = 0.5, progress: bool = False, road: RoadConfig | None = None) -> dict:
     """Float32 against each reduced precision on the same model and frames (see the module doc).
 
     Args:
@@ -231,6 +235,7 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
         score_threshold / iou_threshold: the evaluator's; None: configs/default.yaml `eval:` (the paper's
             0.1 and 3D IoU 0.7); the score threshold also selects the detections compared box by box.
         match_iou: BEV IoU a reduced-precision detection needs with a float32 one to count as the same vehicle.
+        road: the model's road setting (`RoadConfig.of_run_config` of its run config).
     Returns:
         {"reference": "float32", "device", "num_frames", "score_threshold", "iou_threshold", "match_iou",
          "precisions": {name: {"autocast_dtype", "seconds_per_frame", "detections", "nonfinite_values",
@@ -254,7 +259,7 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
            "match_iou": float(match_iou), "precisions": {}}
     ref_run, ref_acc = None, None
     for p in names:
-        run = run_at_precision(model, frames, point_cloud_range, p, device, batch_size, progress)
+        run = run_at_precision(model, frames, point_cloud_range, p, device, batch_size, progress, road)
         acc = _accuracy(eval_base, run, iou_threshold, score_threshold)
         entry = {"autocast_dtype": None if PRECISIONS[p] is None else str(PRECISIONS[p]).replace("torch.", ""),
                  "seconds_per_frame": run.seconds / max(len(frames), 1),
@@ -329,7 +334,8 @@ def checkpoint_precision_report(model: nn.Module, ck: dict, checkpoint, frames: 
     """`compare_precision` of a loaded checkpoint (`model`, its dict `ck`) on `frames`, headed by where the
     checkpoint and the frames come from (the report of precision.json)."""
     report = compare_precision(model, frames, ck["config"]["model"]["point_cloud_range"], precisions, device,
-                               batch_size, score_threshold=score_threshold, match_iou=match_iou, progress=progress)
+                               batch_size, score_threshold=score_threshold, match_iou=match_iou, progress=progress,
+                               road=RoadConfig.of_run_config(ck["config"]))
     return {"checkpoint": str(checkpoint), "model": ck["model_name"], "data": str(root), "height": height,
             "split": split, "torch": torch.__version__, "threads": torch.get_num_threads(), **report}
 

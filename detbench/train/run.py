@@ -86,11 +86,12 @@ def eval_frames(root: Path, height: float, ecfg):
     return test_set
 
 
-def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int):
-    """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range."""
+def make_eval_fn(frames, ecfg, point_cloud_range, device, batch_size: int, road=None):
+    """`eval_fn(model, epoch)` for the training loop: recall and AP@R40 of all vehicles per range, on the
+    input the model trains on (`road`: the run's RoadConfig)."""
     def eval_fn(m, epoch):
         preds = inference.predict_frames(m, frames, point_cloud_range, device=device, batch_size=batch_size,
-                                         progress=False)
+                                         progress=False, road=road)
         rep = evaluate_predictions(frames, preds, iou_threshold=ecfg.iou_threshold,
                                    score_threshold=ecfg.score_threshold, extras=False, progress=False)
         res = {}

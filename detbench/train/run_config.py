@@ -24,6 +24,7 @@ from detbench.config import (
     CONFIG_DIR, ConfigError, apply_overrides, deep_merge, get, load_config, model_name_of, validate,
 )
 from detbench.data.augment import AugmentConfig
+from detbench.data.road import RoadConfig
 from detbench.eval.evaluate import EvalConfig
 from detbench.train.loop import TrainConfig
 
@@ -64,6 +65,7 @@ def load_run_config(model: str | None = None, preset: str | None = None, config:
     cfg["preset"] = preset
     TrainConfig.from_dict(cfg.get("train"), where="train")  # type and range checks, early
     AugmentConfig.from_dict(cfg.get("augment"), where="augment")
+    RoadConfig.from_dict(cfg.get("road"), where=f"{source} road")  # its own keys: a model's YAML may set them
     EvalConfig.from_dict(cfg.get("eval"), where="eval")  # before training, not after its first epoch
     return cfg
 

@@ -208,7 +208,8 @@ def test_sweep_points_build_and_cover_the_knobs(model):
             continue
         cfg = json.loads(json.dumps(mc))
         for key, value in p.train.items():
-            set_dotted(cfg, key.removeprefix("model."), value)
+            if key.startswith("model."):  # the road knob's road.drop is a run-config key outside model:
+                set_dotted(cfg, key.removeprefix("model."), value)
         params[p.name] = n_params(cfg)  # every trained point builds
         if p.region_range:
             from detbench.data.regions import RANGES
@@ -228,6 +229,27 @@ def test_fit_range_finds_the_smallest_grid_that_builds():
     assert fit_range("second", mc, 153.6, 16.0, registry=models) == [0.0, -16.0, -0.6, 153.6, 16.0, 4.2]
     pr = load_run_config("pointrcnn", "smoke")["model"]  # no grid: the range itself
     assert fit_range("pointrcnn", pr, 53.6, 6.0, registry=models) == [0.0, -6.0, -0.6, 53.6, 6.0, 4.2]
+
+
+@pytest.mark.parametrize("model", ["second", "pillarnet", "ct3d", "pointrcnn"])
+def test_road_knob_trains_the_opposite_drop_through_the_run_config(model):
+    """The road knob is one trained point with road.drop flipped from the preset's, and its override is one
+    that tools/train.py's --set accepts and the trained run config then holds."""
+    import models
+    from detbench.train.run_config import load_run_config
+
+    cfg = load_run_config(model, "quick")
+    drop = cfg["road"]["drop"]
+    pts = sweep_points(model, cfg["model"], ["road"], "cpu", cores=2, default_threads=2, registry=models,
+                       road_drop=drop)
+    (road,) = [p for p in pts if p.knob == "road"]
+    assert road.train == {"road.drop": not drop} and not road.infer and road.train_id != "preset"
+    assert road.name == ("road kept" if drop else "road dropped")
+    sets = [f"{k}={json.dumps(v)}" for k, v in road.train.items()]  # as the sweep passes them to tools/train.py
+    trained = load_run_config(model, "quick", overrides=sets)
+    assert trained["road"]["drop"] is (not drop) and trained["model"] == cfg["model"]
+    assert "road" not in [p.knob for p in sweep_points(model, cfg["model"], ["width"], "cpu", cores=2,
+                                                       default_threads=2, registry=models)]
 
 
 def test_scale_widths():
