@@ -5,8 +5,9 @@ per-frame count. A frame is a LiDAR frame in the backbone and one RoI in PointRC
 stage. Every level keeps a fixed number of points per frame, so counts stay uniform.
 
 - `sample_frame_points`: each frame's points to a fixed budget (the paper's sampling:
-  distant points first, near points randomly, repeats when a frame has too few).
-- `SharedMLP`: per-point Linear + BatchNorm + ReLU layers.
+  distant points first, near points randomly, repeats when a frame has too few), in scan
+  order or shuffled.
+- `SharedMLP`: per-point Linear + BatchNorm + ReLU layers (or Linear with bias + ReLU).
 - `SetAbstraction`: farthest point sampling, ball query per radius (multi-scale grouping),
   shared MLP and max-pool per scale, concatenated; `npoint=None` groups all points of a frame.
 - `FeaturePropagation`: three-nearest-neighbour interpolation from a coarse level to a fine
@@ -33,15 +34,18 @@ class SampledPoints(NamedTuple):
 
 @torch.no_grad()
 def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, far_threshold: float = 40.0,
-                        generator: torch.Generator | None = None) -> SampledPoints:
+                        generator: torch.Generator | None = None, shuffle: bool = False) -> SampledPoints:
     """Each frame of a Batch's points (P, 1 + C) to exactly `num_points` rows (PointRCNN's sampling).
 
     A frame with more points keeps all points farther than `far_threshold` (BEV distance from
     the sensor, metres) when they fit, and fills the budget with a random subset of the near
     ones (if even the far ones do not fit, a random subset of them); a frame with fewer
     points keeps them all and repeats random ones; an empty frame gets `num_points` filler
-    rows (all zeros, z = -10 m, `valid` False). Kept rows stay in their original order.
-    Random draws come from `generator` (a CPU generator) or torch's global one.
+    rows (all zeros, z = -10 m, `valid` False). Kept rows stay in their original order, or with
+    `shuffle` come in a random order: a ball query takes the first `nsample` points of a ball in
+    row order, and a scan-ordered cloud would give it the lowest laser rows first.
+    Random draws come from `generator` (a CPU generator) or torch's global one, so the sample
+    and its order are the same for the same generator seed.
     """
     out, valid = [], []
     c = points.shape[1] - 1
@@ -66,6 +70,8 @@ def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, 
         else:
             extra = torch.randint(n, (num_points - n,), generator=generator).to(pts.device)
             keep = torch.cat([torch.arange(n, device=pts.device), extra])
+        if shuffle:
+            keep = keep[torch.randperm(keep.numel(), generator=generator).to(pts.device)]
         out.append(pts[keep])
         valid.append(torch.ones(num_points, dtype=torch.bool, device=points.device))
     if not out:
@@ -74,13 +80,17 @@ def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, 
 
 
 class SharedMLP(nn.Module):
-    """Per-point layers: (..., C_in) -> (..., C_out), Linear (no bias) + BatchNorm + ReLU each."""
+    """Per-point layers: (..., C_in) -> (..., C_out), Linear (no bias) + BatchNorm + ReLU each,
+    or with `batch_norm` False Linear (with bias) + ReLU."""
 
-    def __init__(self, channels: Sequence[int]):
+    def __init__(self, channels: Sequence[int], batch_norm: bool = True):
         super().__init__()
         layers: list[nn.Module] = []
         for cin, cout in zip(channels[:-1], channels[1:]):
-            layers += [nn.Linear(cin, cout, bias=False), SafeBatchNorm1d(cout), nn.ReLU(inplace=True)]
+            if batch_norm:
+                layers += [nn.Linear(cin, cout, bias=False), SafeBatchNorm1d(cout), nn.ReLU(inplace=True)]
+            else:
+                layers += [nn.Linear(cin, cout), nn.ReLU(inplace=True)]
         self.layers = nn.Sequential(*layers)
         self.out_channels = int(channels[-1])
 
@@ -101,18 +111,18 @@ class SetAbstraction(nn.Module):
     npoint: centres per frame (farthest point sampling), or None to group every point of a
     frame around its origin (the last level of a classifier / PointRCNN's RoI network).
     radii, nsamples, mlps: one entry per scale; mlps[s] lists the layer widths after the
-    input (3 relative coordinates + the incoming features).
+    input (3 relative coordinates + the incoming features). batch_norm: see `SharedMLP`.
     """
 
     def __init__(self, npoint: int | None, radii: Sequence[float], nsamples: Sequence[int],
-                 mlps: Sequence[Sequence[int]], in_channels: int):
+                 mlps: Sequence[Sequence[int]], in_channels: int, batch_norm: bool = True):
         super().__init__()
         if npoint is not None and not (len(radii) == len(nsamples) == len(mlps)):
             raise ValueError(f"SetAbstraction: radii {list(radii)}, nsamples {list(nsamples)} and mlps need one "
                              f"entry per scale")
         self.npoint = None if npoint in (None, -1) else int(npoint)
         self.radii, self.nsamples = [float(r) for r in radii], [int(n) for n in nsamples]
-        self.mlps = nn.ModuleList(SharedMLP([3 + in_channels, *m]) for m in mlps)
+        self.mlps = nn.ModuleList(SharedMLP([3 + in_channels, *m], batch_norm) for m in mlps)
         self.out_channels = sum(m.out_channels for m in self.mlps)
 
     def forward(self, level: PointLevel) -> PointLevel:

@@ -145,6 +145,29 @@ def select_proposals(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: i
     return Proposals(rois, out_scores, mask)
 
 
+@torch.no_grad()
+def select_proposals_by_distance(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: int, post_nms_top_k: int,
+                                 nms_threshold: float, valid: torch.Tensor | None, distance: float,
+                                 near_share: float) -> Proposals:
+    """`select_proposals` with the budget split by range (PointRCNN's test-time proposals).
+
+    Candidates whose box centre lies within `distance` metres of the sensor (BEV) get
+    round(near_share * budget) of both the pre- and the post-NMS budget, the farther ones the
+    rest, so near vehicles cannot take every slot. Near slots come first; a part that finds
+    fewer proposals than its slots leaves them as padding.
+    """
+    ok = torch.ones(scores.shape, dtype=torch.bool, device=scores.device) if valid is None else valid
+    near = torch.hypot(boxes[..., 0], boxes[..., 1]) <= float(distance)
+    share = min(max(float(near_share), 0.0), 1.0)
+    post_near = int(round(share * int(post_nms_top_k)))
+    pre_near = int(round(share * int(pre_nms_top_k)))
+    a = select_proposals(boxes, scores, pre_near, post_near, nms_threshold, ok & near)
+    b = select_proposals(boxes, scores, int(pre_nms_top_k) - pre_near, int(post_nms_top_k) - post_near,
+                         nms_threshold, ok & ~near)
+    return Proposals(torch.cat([a.rois, b.rois], dim=1), torch.cat([a.scores, b.scores], dim=1),
+                     torch.cat([a.mask, b.mask], dim=1))
+
+
 # --------------------------------------------------------------------------------------
 # proposal targets
 # --------------------------------------------------------------------------------------
@@ -261,9 +284,16 @@ class RoIs(NamedTuple):
 
 
 def rois_for_refinement(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor | None, gt_boxes: torch.Tensor,
-                        gt_mask: torch.Tensor, budgets: dict, target_cfg: dict, training: bool) -> RoIs:
+                        gt_mask: torch.Tensor, budgets: dict, target_cfg: dict, training: bool,
+                        test_split: dict | None = None) -> RoIs:
     """The step between the stages: proposals under the train or test budget, then (training)
-    target sampling; the first stage's boxes (B, A, 7) and scores (B, A) are detached."""
+    target sampling; the first stage's boxes (B, A, 7) and scores (B, A) are detached.
+    `test_split` ({distance, near_share}, or None) splits the test budget by range
+    (`select_proposals_by_distance`)."""
+    if not training and test_split is not None:
+        props = select_proposals_by_distance(boxes.detach(), scores.detach(), valid=valid, **budgets["test"],
+                                             distance=test_split["distance"], near_share=test_split["near_share"])
+        return RoIs(props, props.rois, props.mask, None)
     props = select_proposals(boxes.detach(), scores.detach(), valid=valid, **budgets["train" if training else "test"])
     if not training:
         return RoIs(props, props.rois, props.mask, None)

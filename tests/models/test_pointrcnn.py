@@ -16,7 +16,7 @@ def point_head_args(box_coding: str) -> dict:
     """PointHead's configured values (configs/pointrcnn.yaml) with the given box coding."""
     ph = load_run_config("pointrcnn", "paper")["model"]["point_head"]
     return {"extra_width": ph["extra_width"], "loss_weights": ph["loss_weights"], "bin_cfg": ph["bin"],
-            "box_coding": box_coding}
+            "box_coding": box_coding, "fg_bottom_lift": ph["fg_bottom_lift"]}
 
 
 def tiny_cfg():
@@ -32,10 +32,12 @@ def test_point_targets_on_a_hand_made_scene():
                                             2.0 + 2.25 * np.sin(0.3) + 0.1 * np.sin(0.3), 0.8],
                          [30.0, 0.0, 0.5], [10.1, 2.0, 0.8]]], dtype=torch.float32)
     valid = torch.tensor([[True, True, True, False]])
-    t = point_targets(xyz, valid, torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool), extra_width=0.2)
+    t = point_targets(xyz, valid, torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool), extra_width=0.2,
+                      bottom_lift=0.0)
     assert t.labels.tolist() == [[1, -1, 0, -1]]
     assert torch.allclose(t.boxes[0, 0], torch.tensor(CAR)) and not t.boxes[0, 2].any()
-    none = point_targets(xyz, valid, torch.zeros(1, 0, 7), torch.zeros(1, 0, dtype=torch.bool), extra_width=0.2)
+    none = point_targets(xyz, valid, torch.zeros(1, 0, 7), torch.zeros(1, 0, dtype=torch.bool), extra_width=0.2,
+                         bottom_lift=0.0)
     assert none.labels.tolist() == [[0, 0, 0, -1]]
 
 
@@ -274,7 +276,8 @@ def test_bin_coding_point_head_losses_are_finite_and_learnable():
     assert good < 0.01 * parts["loss_point_box"]
     dec, _ = head.decode(PointHeadOutput(out.cls_logits.detach(), perfect), xyz)
     assert torch.allclose(dec[0, :2], boxes[0, :2], atol=1e-4)
-    assert torch.allclose(dec[0, 3, :6], torch.tensor([12.0, 2.0, 0.8, 4.5, 1.9, 1.6]), atol=2e-3)  # 9 + 3 m
+    edge = 9.0 + head.bin_coder.loc_scope  # clamped to the range's edge
+    assert torch.allclose(dec[0, 3, :6], torch.tensor([edge, 2.0, 0.8, 4.5, 1.9, 1.6]), atol=2e-3)
     # an in-place training step on the bin loss lowers it (the gradients point the right way)
     opt = torch.optim.Adam(head.parameters(), lr=0.01)
     first = None
@@ -292,9 +295,111 @@ def test_bin_coding_point_head_losses_are_finite_and_learnable():
 def test_both_box_codings_build_and_the_config_names_every_point_head_value():
     cfg = tiny_cfg()
     assert cfg["point_head"]["box_coding"] == "bin"
-    assert models.build_model("pointrcnn", cfg).point_head.code_size == 76
+    bins = round(2 * cfg["point_head"]["bin"]["loc_scope"] / cfg["point_head"]["bin"]["loc_bin_size"])
+    assert models.build_model("pointrcnn", cfg).point_head.code_size == 4 * bins + 1 + 2 * 12 + 3
     cfg["point_head"]["box_coding"] = "residual"
     assert models.build_model("pointrcnn", cfg).point_head.code_size == 8
     del cfg["point_head"]["box_coding"]  # the model has no value of its own: configs/pointrcnn.yaml is the home
     with pytest.raises(ValueError, match=r"point_head: missing key\(s\) \['box_coding'\]"):
         models.build_model("pointrcnn", cfg)
+
+
+# --------------------------------------------------------------------------------------
+# the mechanisms behind PointRCNN's config keys (docs/results.md, "PointRCNN ablation")
+# --------------------------------------------------------------------------------------
+def test_foreground_labels_lift_the_box_bottom_off_the_road():
+    """CAR stands on the road (bottom at z = 0): a road point under it and one beside it in the
+    margin are background with the 0.05 m lift; without it, foreground and ignored."""
+    beside = [10.0 - 1.05 * np.sin(0.3), 2.0 + 1.05 * np.cos(0.3), 0.0]  # 0.1 m off the side face, on the road
+    xyz = torch.tensor([[[10.0, 2.0, 0.02], beside, [10.0, 2.0, 0.3], [10.0, 2.0, 1.7]]])
+    valid = torch.ones(1, 4, dtype=torch.bool)
+    gt, m = torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool)
+    assert point_targets(xyz, valid, gt, m, extra_width=0.2, bottom_lift=0.0).labels.tolist() == [[1, -1, 1, -1]]
+    assert point_targets(xyz, valid, gt, m, extra_width=0.2, bottom_lift=0.05).labels.tolist() == [[0, 0, 1, -1]]
+
+
+def test_shuffled_sampling_is_deterministic_per_seed():
+    """With shuffle the rows are those of the scan-ordered sample of the same seed, in a random
+    order that the seed fixes (the same seed: the same order; another seed: another order)."""
+    g = torch.Generator().manual_seed(0)
+    frame = torch.rand(500, 4, generator=g) * torch.tensor([60.0, 10.0, 2.0, 1.0])
+    points = torch.cat([torch.zeros(500, 1), frame], 1)
+
+    def sample(seed, shuffle):
+        return sample_frame_points(points, 1, 128, generator=torch.Generator().manual_seed(seed), shuffle=shuffle)
+
+    ordered, a, b, c = sample(3, False), sample(3, True), sample(3, True), sample(4, True)
+    assert torch.equal(a.points, b.points) and not torch.equal(a.points, c.points)
+    assert {tuple(p.tolist()) for p in a.points} == {tuple(p.tolist()) for p in ordered.points}
+    assert not torch.equal(a.points, ordered.points)
+    # a small frame (repeats) is shuffled too: the original rows no longer lead
+    small = sample_frame_points(points[:50], 1, 128, generator=torch.Generator().manual_seed(3), shuffle=True)
+    assert not torch.equal(small.points[:50], frame[:50])
+
+
+def roi_head_of(**keys):
+    cfg = tiny_cfg()
+    cfg["roi_head"].update(keys)
+    torch.manual_seed(0)
+    return models.build_model("pointrcnn", cfg).roi_head.eval()
+
+
+def test_roi_size_reaches_the_refinement():
+    """Three RoIs of lengths -15 %, 0, +15 % on one vehicle pool the same points: without the size
+    channels their features are identical, with either of them they differ."""
+    car_pts = torch.as_tensor(box_points(CAR, n=24, on_faces=True)[:, :3])
+    rois = torch.tensor([CAR] * 3)
+    rois[:, 3] *= torch.tensor([0.85, 1.0, 1.15])
+
+    def features(head):
+        feats_in = torch.randn(24, head.merge_down.layers[0].in_features - head.xyz_up.out_channels,
+                               generator=torch.Generator().manual_seed(0))
+        with torch.no_grad():
+            scores = torch.rand(24, generator=torch.Generator().manual_seed(1))
+            return head(car_pts, feats_in, scores, rois[None], 24)[0]
+
+    blind = features(roi_head_of(scaled_xyz=False, roi_size=False))
+    assert torch.equal(blind[0], blind[1]) and torch.equal(blind[1], blind[2])
+    for keys in ({"scaled_xyz": True, "roi_size": False}, {"scaled_xyz": False, "roi_size": True}):
+        seen = features(roi_head_of(**keys))  # untrained weights: small but real differences
+        assert (seen[0] - seen[1]).abs().max() > 1e-5 and (seen[1] - seen[2]).abs().max() > 1e-5, keys
+
+
+def test_roi_head_batch_norm_and_detached_features():
+    """batch_norm False leaves no BatchNorm in the RoI network; detach_features stops the
+    refinement's loss at the backbone (its gradients reach only the second stage)."""
+    bn = torch.nn.modules.batchnorm._BatchNorm
+    assert not any(isinstance(m, bn) for m in roi_head_of(batch_norm=False).modules())
+    assert any(isinstance(m, bn) for m in roi_head_of(batch_norm=True).modules())
+    from models.stages.two_stage import refine_loss
+    batch = batch_of([np.concatenate([box_points(CAR, n=300, on_faces=True),
+                                      np.random.default_rng(0).uniform([0, -8, 0, 0], [30, 8, 0.05, 1], (200, 4))])],
+                     [np.array([CAR])])
+    for detach in (True, False):
+        cfg = tiny_cfg()
+        cfg["roi_head"]["detach_features"] = detach
+        torch.manual_seed(0)
+        model = models.build_model("pointrcnn", cfg)
+        out = model(batch)
+        loss, _ = refine_loss(out.refine, model.coder, model.loss_weights)
+        loss.backward()
+        backbone = [p.grad for p in model.backbone.parameters()]
+        reached = any(g is not None and bool(g.abs().sum() > 0) for g in backbone)
+        assert reached is not detach
+        assert any(p.grad is not None and bool(p.grad.abs().sum() > 0) for p in model.refine.parameters())
+
+
+def test_test_proposals_split_by_distance():
+    """Many strong near boxes and a few weaker far ones: the plain budget goes to the near ones,
+    the split budget keeps near_share of it within the distance and gives the rest to the far ones."""
+    from models.stages.two_stage import select_proposals, select_proposals_by_distance
+    near = torch.tensor([[5.0 + 6 * i, -8.0 + 4 * j, 0.8, 4.0, 1.8, 1.5, 0.0] for i in range(6) for j in range(5)])
+    far = torch.tensor([[60.0 + 6 * i, 0.0, 0.8, 4.0, 1.8, 1.5, 0.0] for i in range(5)])
+    boxes = torch.cat([near, far])[None]
+    scores = torch.cat([torch.full((30,), 0.9), torch.full((5,), 0.3)])[None]
+    plain = select_proposals(boxes, scores, 100, 10, 0.8)
+    assert (plain.rois[0, plain.mask[0], 0] < 40).all() and int(plain.mask.sum()) == 10
+    split = select_proposals_by_distance(boxes, scores, 100, 10, 0.8, None, distance=40.0, near_share=0.7)
+    x = split.rois[0, :, 0]
+    assert split.rois.shape == (1, 10, 7) and bool(split.mask.all())
+    assert (x[:7] < 40).all() and (x[7:] > 40).all()

@@ -148,8 +148,10 @@ def test_study_models_come_from_models_then_the_preset_then_the_registry():
     import models
     from detbench.studies.study import study_models
 
-    # quick leaves PointRCNN out (it does not learn in a few minutes per height); --models wins
-    assert study_models("quick", None, [], registry=models) == (["ct3d", "pillarnet", "second"], ["pointrcnn"])
+    # quick names all four detectors; a study.models override leaves the others out; --models wins
+    assert study_models("quick", None, [], registry=models) == (["ct3d", "pillarnet", "pointrcnn", "second"], [])
+    assert study_models("quick", None, ["study.models=[second]"], registry=models) == (
+        ["second"], ["ct3d", "pillarnet", "pointrcnn"])
     assert study_models("quick", ["pointrcnn"], [], registry=models) == (["pointrcnn"], [])
     assert study_models("smoke", None, [], registry=models) == (["ct3d", "pillarnet", "pointrcnn", "second"], [])
     with pytest.raises(ValueError):
