@@ -174,6 +174,8 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
     if args.data is None:
         args.data = Path(ck["data"]["source"])
     args.trained_height = trained_h
+    seed = (ck.get("config") or {}).get("train", {}).get("seed")
+    args.train_seed = int(seed) if isinstance(seed, (int, float)) and not isinstance(seed, bool) else None
     if args.test_height is not None:
         args.height = args.test_height
     if args.out is None:
@@ -226,7 +228,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                                         not args.no_progress, args.stage)
         skipped = []
         model = model or ckpt_model
-        checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage)
+        checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage,
+                                   train_seed=args.train_seed)
         write_predictions(preds, checkpoint.predictions_dir)
     settings = EvalSettings(iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
                             iou_kind=args.iou_kind, extras=not args.no_extras, bootstrap=args.bootstrap,

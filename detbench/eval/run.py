@@ -42,6 +42,7 @@ class CheckpointRun:
     trained_height: float
     predictions_dir: Path
     stage: str = "refined"  # or "proposals": a two-stage model's first stage alone
+    train_seed: int | None = None  # the training's train.seed (the seed statistics name runs by it)
 
 
 def load_split(root: Path, height: float, split: str) -> tuple[Height3Dataset, list[str]]:
@@ -93,6 +94,8 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
         full["trained_height"] = checkpoint.trained_height
         full["predictions_dir"] = str(checkpoint.predictions_dir)
         full["stage"] = checkpoint.stage
+        if checkpoint.train_seed is not None:
+            full["train_seed"] = checkpoint.train_seed
     if saved is not None:
         full["prediction_files"] = len(preds)
         full["files_of_other_splits_skipped"] = len(saved.skipped)

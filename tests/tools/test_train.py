@@ -34,7 +34,8 @@ def run(args, cwd=ROOT):
 def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, capsys):
     out = tmp_path / "run"
     run(["tools/train.py", "--model", model, "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset),
-         "--out", str(out), "--epochs", "1", "--no-progress", "--set", "train.tensorboard=false"])
+         "--out", str(out), "--epochs", "1", "--no-progress", "--set", "train.tensorboard=false",
+         "--set", "train.seed=3"])
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["epochs_completed"] == 1 and not summary["interrupted"]
     ckpt = Path(summary["checkpoint"])
@@ -48,7 +49,7 @@ def test_train_then_eval_checkpoint(tiny_dataset, tmp_path, model, capsys):
     run(["tools/eval.py", "--ckpt", str(ckpt), "--out", str(tmp_path / "e18"), "--no-progress"])
     rep = json.loads((tmp_path / "e18" / "report.json").read_text())
     assert rep["model"] == model and rep["height"] == 1.8 and rep["trained_height"] == 1.8
-    assert rep["stage"] == "refined"
+    assert rep["stage"] == "refined" and rep["train_seed"] == 3  # the seed statistics name runs by it
     assert rep["num_frames"] == 3 and set(rep["results"]) == {"small", "moderate", "large"}
     assert len(list((tmp_path / "e18" / "pred").glob("*.txt"))) == 3
     run(["tools/eval.py", "--ckpt", str(ckpt), "--test-height", "0.5", "--out", str(tmp_path / "e05"),
