@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_NAMES, RANGES
+from detbench.sim.dataset import sim_calibration
 from detbench.studies.ability import ExampleFrames
 from detbench.utils.figures import LEGEND_SMALL, save_figure, series_colours
 
@@ -96,6 +97,15 @@ def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, li
     return fig, [ax_n, ax_l], area_top
 
 
+def world_label(report: dict) -> str:
+    """Where an ability report's counts come from, for figure titles: "simulator calibration v2",
+    "data on disk", or "source not recorded"."""
+    src = report.get("extras", {}).get("source") or {}
+    if src.get("kind") == "simulator":
+        return f"simulator calibration {sim_calibration(src)}"
+    return "data on disk" if src else "source not recorded"
+
+
 def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "all") -> Path:
     """Paper Fig. 6: detected vehicles (a) and LDR (b) per height in each range, at `level`."""
     groups = list(RANGE_NAMES)
@@ -107,7 +117,7 @@ def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "a
     what = LEVEL_LABELS[level] + " vehicles"
     ax_n.set_title(f"(a) LiDAR-detected vehicles by range ({what})", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by range ({what})", fontsize=10)
-    fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
+    fig.text(0.99, 0.99, f"{report['num_frames']} frames; {world_label(report)}", fontsize=9, ha="right", va="top")
     fig.tight_layout(rect=(0, 0, 1, top))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
@@ -121,7 +131,7 @@ def plot_ability_by_level(report: dict, path: str | os.PathLike, range_name: str
         ax.set_xticklabels([LEVEL_LABELS[g] for g in groups])
     ax_n.set_title(f"(a) LiDAR-detected vehicles by importance ({range_name} range)", fontsize=10)
     ax_l.set_title(f"(b) LiDAR detection rate by importance ({range_name} range)", fontsize=10)
-    fig.text(0.99, 0.99, f"{report['num_frames']} frames", fontsize=9, ha="right", va="top")
+    fig.text(0.99, 0.99, f"{report['num_frames']} frames; {world_label(report)}", fontsize=9, ha="right", va="top")
     fig.tight_layout(rect=(0, 0, 1, top))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
@@ -147,7 +157,8 @@ def plot_ldr_vs_distance(report: dict, path: str | os.PathLike) -> Path:
         ax.legend(fontsize=7, ncol=math.ceil(len(heights) / 18), loc="upper left", bbox_to_anchor=(1.01, 1.0),
                   borderaxespad=0.0)
         fig.set_figwidth(8 + 1.1 * math.ceil(len(heights) / 18))
-    ax.set_title(f"LiDAR detection rate against distance ({report['num_frames']} frames; {dist['region']})",
+    ax.set_title(f"LiDAR detection rate against distance ({report['num_frames']} frames, {world_label(report)}; "
+                 f"{dist['region']})",
                  fontsize=9)
     if heights:
         ax_c.bar(centres, dist["heights"][heights[0]]["total"], width=0.9 * (edges[1] - edges[0]), color="#bbbbbb")

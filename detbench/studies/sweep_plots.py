@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from detbench.data.regions import LEVELS, RANGE_NAMES, RANGES
+from detbench.studies.ability_plots import world_label
 from detbench.studies.placement import SCORE_NAMES
 from detbench.utils.figures import save_figure
 
@@ -25,6 +26,11 @@ _RANGE_STYLE = {"small": "#e0b000", "moderate": "#2ca02c", "large": "#3b7dd8"}
 
 def _nan(v) -> float:
     return float("nan") if v is None else float(v)
+
+
+def _world(report: dict) -> str:
+    """Where the sweep's figures come from, for the titles (`world_label` of its ability report)."""
+    return world_label(report["ability"])
 
 
 def _band(ax, x, cis, colour):
@@ -57,7 +63,7 @@ def plot_ldr_vs_height(report: dict, path: str | os.PathLike) -> Path:
     axes[0].legend(fontsize=9, loc="lower right")
     src = ab["extras"].get("source") or {}
     sensor = (src.get("sensor") or {}).get("preset", "")
-    fig.suptitle(f"LiDAR detection rate against mounting height ({report['num_frames']} frames, "
+    fig.suptitle(f"LiDAR detection rate against mounting height ({_world(report)}, {report['num_frames']} frames, "
                  f"{report['num_scenes']} scenes, same traffic at every height"
                  f"{', sensor ' + sensor if sensor else ''}; "
                  f"bands: 95 % bootstrap over scenes)", fontsize=10)
@@ -88,8 +94,8 @@ def plot_scores_vs_height(report: dict, path: str | os.PathLike) -> Path:
         ax.set_xlabel("mounting height (m)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Training-free placement scores against height (* primary score; definitions in the report)",
-                 fontsize=10)
+    fig.suptitle(f"Training-free placement scores against height ({_world(report)}; * primary score; "
+                 f"definitions in the report)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.92))
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 
@@ -113,7 +119,7 @@ def plot_ldr_distance_map(report: dict, path: str | os.PathLike) -> Path:
     cb.set_label("LDR = detected / total")
     ax.set_xlabel(f"box centre x (m), {dist['bin_m']:g} m bins; |y| <= 15 m")
     ax.set_ylabel("LiDAR mounting height (m)")
-    ax.set_title(f"LDR against distance and height ({report['num_frames']} frames)", fontsize=10)
+    ax.set_title(f"LDR against distance and height ({_world(report)}, {report['num_frames']} frames)", fontsize=10)
     fig.tight_layout()
     return save_figure(fig, path, dpi=120, fmt="png", tight=False)
 

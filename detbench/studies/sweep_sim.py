@@ -136,6 +136,7 @@ def run_sweep(args: SweepOptions) -> dict:
     from detbench.studies.placement import EVIDENCE_SCALE_POINTS, VoxelGrid, ray_coverage
     from detbench.studies.sweep import HeightSweep
     from detbench.sim import load_sim_config
+    from detbench.sim.dataset import sim_calibration
 
     sensor_changes, sim_overrides = split_overrides(args.overrides)
     lidars, base = sweep_lidars(args, sensor_changes)
@@ -170,7 +171,8 @@ def run_sweep(args: SweepOptions) -> dict:
     t2 = time.perf_counter()
     described = base.to_dict()
     described.pop("height")
-    source = {"kind": "simulator", "preset": args.preset, "seed": args.seed, "frames": args.frames,
+    source = {"kind": "simulator", "preset": args.preset, "calibration": sim_calibration(cfg), "seed": args.seed,
+              "frames": args.frames,
               "frames_per_scene": prov["fps"], "overrides": list(sim_overrides),
               "sensor": {"preset": args.lidar, "changes": {k: list(v) if isinstance(v, tuple) else v
                                                            for k, v in sensor_changes.items()},
