@@ -61,6 +61,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="probability in [0, 1] that a return is dropped, for every LiDAR (default 0)")
     ap.add_argument("--test-fraction", type=float, default=shipped_default("data.test_fraction"),
                     help="share of scenes in the test split (default %(default).4g)")
+    ap.add_argument("--drop-frames-without", choices=("small", "moderate", "large"), default=None, metavar="RANGE",
+                    help="frames with no vehicle in this range (small, moderate or large) join neither split, as "
+                         "the paper drops its 987 frames without vehicles (the paper preset's training data uses "
+                         "large); default: keep every frame")
     ap.add_argument("--overwrite", action="store_true",
                     help="replace a dataset already in --out (the new one is built beside it and swapped in when "
                          "complete, so an interrupted run leaves the old one; --out must hold only a dataset's files)")
@@ -111,7 +115,7 @@ def main(argv=None) -> int:
     try:
         write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
                          test_fraction=args.test_fraction, overwrite=args.overwrite, progress=not args.no_progress,
-                         on_step=summary.tally, finish=summary.write)
+                         on_step=summary.tally, finish=summary.write, drop_frames_without=args.drop_frames_without)
     except (FileExistsError, ValueError, TypeError) as e:
         raise UserError(str(e)) from None
     except DiskFullError as e:

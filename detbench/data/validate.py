@@ -40,6 +40,7 @@ class ValidationReport:
     heights: list[str] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)  # facts worth knowing that are not problems
     truncated: bool = False
 
     @property
@@ -48,7 +49,7 @@ class ValidationReport:
 
     def to_dict(self) -> dict:
         return {"root": self.root, "ok": self.ok, "num_frames": self.num_frames, "heights": self.heights,
-                "errors": self.errors, "warnings": self.warnings, "truncated": self.truncated}
+                "errors": self.errors, "warnings": self.warnings, "notes": self.notes, "truncated": self.truncated}
 
 
 def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50, progress: bool = False
@@ -96,7 +97,11 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
     labels_dir = root / LABELS_DIR
     if labels_dir.is_dir():
         orphans = [p for p in labels_dir.glob("*.txt") if p.stem not in listed]
-        if orphans:
+        dropped = (info.split or {}).get("dropped") or {}
+        if orphans and len(orphans) == dropped.get("frames"):  # the dataset's own rule left them out
+            rep.notes.append(f"{len(orphans)} frame(s) join neither split: {dropped.get('rule')} (dataset.json "
+                             f"split.dropped)")
+        elif orphans:
             rep.warnings.append(f"{labels_dir}: {len(orphans)} label file(s) are in no split (e.g. {orphans[0].name}); "
                                 f"they are ignored")
     datasets = {}
@@ -237,6 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("--max-errors", type=int, default=50, help="stop after this many problems (default 50)")
     args = ap.parse_args(argv)
     rep = validate_dataset(args.root, args.heights, args.max_errors, progress=True)
+    for n in rep.notes:
+        print("note:", n)
     for w in rep.warnings:
         print("warning:", w)
     for e in rep.errors:

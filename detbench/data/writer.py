@@ -33,6 +33,7 @@ from detbench.data.layout import (
     SceneRule, assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path,
 )
 from detbench.data.readers import format_labels, meta_dict
+from detbench.data.regions import check_range_name, in_range
 from detbench.utils.io import (
     atomic_save, atomic_write_json, atomic_write_text, check_replaceable, folder_owner, recover_staged,
     staged_folder, write_owner,
@@ -71,11 +72,16 @@ class DatasetWriter:
             seen, appended in order of appearance).
         points_ext: ".npy" (default) or ".bin" (KITTI-style raw float32).
         lane_width: metres (default 3.5), stored for readers that must derive lanes from y.
+        drop_frames_without: a range name ("small", "moderate", "large") or None (default: keep
+            every frame): frames with no vehicle centred in that range are written but join neither
+            split, as the paper drops its frames without vehicles. Scenes are split first, so the
+            rule never moves a scene to the other split; dataset.json records what was dropped.
     """
 
     def __init__(self, root: str | os.PathLike, heights: list[float], source: dict,
                  test_fraction: float | None = None, *, overwrite: bool = False, classes: list[str] | None = None,
-                 points_ext: str = ".npy", lane_width: float | None = None):
+                 points_ext: str = ".npy", lane_width: float | None = None,
+                 drop_frames_without: str | None = None):
         self.root = Path(root)
         test_fraction = shipped_default("data.test_fraction", test_fraction)
         if not heights:
@@ -91,6 +97,8 @@ class DatasetWriter:
             raise ValueError(f"points_ext must be one of {POINT_EXTS}, got {points_ext!r}")
         self.source = dict(source)
         self.test_fraction = float(test_fraction)
+        self.drop_frames_without = None if drop_frames_without is None else check_range_name(drop_frames_without)
+        self._without: set[str] = set()  # frames with no vehicle in that range
         self.overwrite = overwrite
         self.points_ext = points_ext
         self.lane_width = DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width)
@@ -212,6 +220,8 @@ class DatasetWriter:
         atomic_write_json(meta_path(self._dir, fid), meta_dict(ref, sensors), indent=None)
         self._frame_ids.append(fid)
         self._scene_of[fid] = ref.scene_id
+        if self.drop_frames_without is not None and not in_range(ref.boxes, self.drop_frames_without).any():
+            self._without.add(fid)
 
     # ------------------------------------------------------------------ finish
     def close(self) -> DatasetInfo:
@@ -225,6 +235,13 @@ class DatasetWriter:
                           stacklevel=2)
         try:
             train, test, rule = assign_splits(self._frame_ids, self._scene_of, self.test_fraction)
+            if self.drop_frames_without is not None:
+                rule = dict(rule, dropped={
+                    "rule": f"frames with no vehicle in the {self.drop_frames_without} range join neither split",
+                    "range": self.drop_frames_without, "frames": len(self._without),
+                    "train": sum(f in self._without for f in train), "test": sum(f in self._without for f in test)})
+                train = [f for f in train if f not in self._without]
+                test = [f for f in test if f not in self._without]
             atomic_write_text(imageset_path(self._dir, "train"), "".join(f + "\n" for f in train))
             atomic_write_text(imageset_path(self._dir, "test"), "".join(f + "\n" for f in test))
             heights = {}

@@ -125,7 +125,7 @@ def check_space(root: str | os.PathLike, nbytes: int, *, what: str, fix: str) ->
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
                      frames_per_scene: int | None = None, test_fraction: float | None = None, overwrite: bool = False,
                      progress: bool = True, on_step: Callable[[list], None] | None = None,
-                     finish: Callable[[Path], None] | None = None) -> Path:
+                     finish: Callable[[Path], None] | None = None, drop_frames_without: str | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
 
     The dataset is built in a sibling folder `.tmp-new-<name>-<pid>` and swapped in whole when
@@ -135,14 +135,15 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     (`detbench.utils.io.check_replaceable`; FileExistsError otherwise, before anything is simulated).
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
-    `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter).
+    `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter);
+    `drop_frames_without`: see `DatasetWriter`.
     """
     root = Path(root)
     heights = [float(lid.height) for lid in lidars]
     recover_staged(root)
     check_replaceable(root, overwrite, DATASET_FOLDER)
     with staged_folder(root) as staged:
-        with DatasetWriter(staged, heights, source, test_fraction) as writer:
+        with DatasetWriter(staged, heights, source, test_fraction, drop_frames_without=drop_frames_without) as writer:
             stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
             for step in tqdm(stream, total=int(frames), desc="simulate", unit="frame", disable=not progress,
                              dynamic_ncols=True):
@@ -181,7 +182,7 @@ def sim_calibration(info: dict) -> str:
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
                      preset: str = "paper", overrides: Sequence[str] = (), frames_per_scene: int | None = None,
                      test_fraction: float | None = None, frame_stride: int | None = None, overwrite: bool = False,
-                     progress: bool = True) -> Path:
+                     progress: bool = True, drop_frames_without: str | None = None) -> Path:
     """Simulate `frames` time steps at every height in `heights` (Table II sensors) under `root`.
 
     Returns `root`. The simulator config is `load_sim_config(preset, overrides)`; the
@@ -189,7 +190,8 @@ def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[
     `frame_stride` k keeps every k-th frame of the simulator's frame rate (its `scene.frame_rate_hz`
     divided by k): a scene of n frames then spans n * k frames of time, so a few frames per scene
     sample the whole course of a scene, as the ability study's long scenes do (None:
-    configs/default.yaml `data.frame_stride`).
+    configs/default.yaml `data.frame_stride`). `drop_frames_without` (a range name or None): frames
+    with no vehicle in that range join neither split (`DatasetWriter`; None: keep every frame).
     """
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
@@ -209,7 +211,7 @@ def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[
         source["frame_stride"] = int(frame_stride)
     return write_simulation(root, HighwaySimulator(cfg, seed=int(seed)), lidars, frames, source=source,
                             frames_per_scene=frames_per_scene, test_fraction=test_fraction, overwrite=overwrite,
-                            progress=progress)
+                            progress=progress, drop_frames_without=drop_frames_without)
 
 
 def dataset_digest(data_cfg: dict) -> str:
@@ -219,6 +221,9 @@ def dataset_digest(data_cfg: dict) -> str:
     stride = int(data_cfg.get("frame_stride", DATA_DEFAULTS["frame_stride"]) or 1)
     if stride != 1:  # named only when it is set, so the digests of datasets without a stride stay as they are
         desc["frame_stride"] = stride
+    drop = data_cfg.get("drop_frames_without", DATA_DEFAULTS["drop_frames_without"])
+    if drop:  # likewise named only when set
+        desc["drop_frames_without"] = str(drop)
     desc["heights"] = [height_key(h) for h in desc["heights"]]
     desc["test_fraction"] = round(float(desc["test_fraction"]), 6)
     desc["sim_config"] = load_sim_config(desc["sim_preset"], list(desc["sim_overrides"]))
@@ -270,7 +275,7 @@ def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path
                          preset=cfg["sim_preset"], overrides=cfg["sim_overrides"],
                          frames_per_scene=cfg["frames_per_scene"], test_fraction=float(cfg["test_fraction"]),
                          frame_stride=int(cfg.get("frame_stride") or 1),
-                         progress=progress)
+                         progress=progress, drop_frames_without=cfg.get("drop_frames_without"))
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -130,6 +130,32 @@ def test_split_by_scene_never_by_frame(tmp_path):
     assert validate_dataset(tmp_path).ok
 
 
+def test_frames_without_vehicles_join_neither_split(tmp_path):
+    """drop_frames_without: a frame with no vehicle in the range is written but listed in no split (the
+    paper's 987 frames); the scenes are split first, so the rule never moves a scene."""
+    rng = np.random.default_rng(0)
+    empty = set()
+    with DatasetWriter(tmp_path, list(HEIGHTS), {"kind": "test"}, drop_frames_without="large") as w:
+        for s in range(6):
+            for i in range(3):
+                frames = make_frames(s, i, rng)
+                if i == 1 and s % 2 == 0:  # every vehicle behind the ego: none in any range
+                    for f in frames:
+                        f.boxes[:, 0] -= 130.0
+                    empty.add(frames[0].frame_id)
+                w.add(frames)
+    train, test = Height3Dataset(tmp_path, 1.0, "train"), Height3Dataset(tmp_path, 1.0, "test")
+    assert {sc for sc in test.scene_ids().values()} == {"0002", "0005"}  # the same scenes as without the rule
+    assert not empty & set(train.frame_ids + test.frame_ids) and len(train) + len(test) == 18 - 3
+    info = json.loads((tmp_path / "dataset.json").read_text())["split"]
+    assert info["dropped"]["frames"] == 3 and info["dropped"]["test"] == 1 and info["dropped"]["train"] == 2
+    assert info["num_test"] == 5 and info["num_train"] == 10
+    rep = validate_dataset(tmp_path)
+    assert rep.ok and not rep.warnings and "join neither split" in rep.notes[0]
+    with pytest.raises(ValueError, match="unknown range_name"):
+        DatasetWriter(tmp_path / "x", list(HEIGHTS), {"kind": "test"}, drop_frames_without="huge")
+
+
 def test_split_rule_is_deterministic_and_bounded():
     scenes = [f"{i:04d}" for i in range(40)]
     tr, te = split_scenes(scenes[::-1], 1 / 3)

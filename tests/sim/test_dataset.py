@@ -1,4 +1,5 @@
-"""The simulated dataset on disk: the frame stride that spreads a scene's few frames over its whole course."""
+"""The simulated dataset on disk: the frame stride that spreads a scene's few frames over its whole course, and
+the paper's rule that frames without vehicles join neither split."""
 import json
 
 import pytest
@@ -20,6 +21,19 @@ def test_the_digest_names_a_stride_only_when_it_is_set():
     base = {k: DATA_DEFAULTS[k] for k in DATA_DEFAULTS}
     assert dataset_digest(base) == dataset_digest({**base, "frame_stride": 1})
     assert dataset_digest(base) != dataset_digest({**base, "frame_stride": 40})
+
+
+def test_the_digest_names_the_drop_rule_only_when_it_is_set(tmp_path):
+    base = {k: DATA_DEFAULTS[k] for k in DATA_DEFAULTS}
+    assert DATA_DEFAULTS["drop_frames_without"] is None  # cached datasets keep their names
+    assert dataset_digest(base) == dataset_digest({**base, "drop_frames_without": None})
+    assert dataset_digest(base) != dataset_digest({**base, "drop_frames_without": "large"})
+    # the simulator writes the rule through: frames without a vehicle in the small range are in no split
+    root = simulate_dataset(tmp_path / "ds", frames=8, heights=[1.0], frames_per_scene=4, progress=False,
+                            drop_frames_without="small")
+    split = json.loads((root / "dataset.json").read_text())["split"]
+    listed = split["num_train"] + split["num_test"]
+    assert split["dropped"]["range"] == "small" and listed + split["dropped"]["frames"] == 8
 
 
 @pytest.mark.parametrize("stride", [0, -1, 2.5])
