@@ -28,6 +28,16 @@ The combination, and why:
   resampling 2 or 3 values has a handful of outcomes and shrinks the spread by (n - 1) / n, the
   opposite of what few seeds call for. One seed measures no spread: q is absent, the interval is
   the scene interval alone, and the output says the seed spread is not measured.
+- **Seed term pooled over a model's heights** (`seed_summary`, `seed_height_summary`,
+  `seed_markdown`; `pool=False` turns it off). With 2 seeds the t factor is 12.71 and s itself
+  rests on one difference, so a cell's own seed term is either huge or, by luck, near zero; with
+  the heights of a study trained alike, a model's seed variance is taken as one quantity per
+  (range, level, metric) and estimated from every height: s_p^2 = sum (n_h - 1) s_h^2 /
+  sum (n_h - 1), with df = sum (n_h - 1) (3 for 2 seeds at 3 heights: t = 3.18; 6 for 3 seeds:
+  t = 2.45), the pooled variance of a one-way analysis of variance. The cell then carries
+  q = t(df) * s_p / sqrt(n), and its own s stays beside it ("sd_own"). The assumption is that the
+  training randomness of one model does not depend on the height it is trained at; it errs where
+  one height trains less stably than the others.
 - **Both together.** The two errors are independent (which scenes were drawn; which seeds were
   drawn), so the half-widths add in quadrature, each side on its own: lo = m - sqrt((m - lo_s)^2
   + q^2), hi = m + sqrt((hi_s - m)^2 + q^2), with [lo_s, hi_s] the scene interval of the mean.
@@ -343,13 +353,16 @@ def _welch(cell_a: dict, cell_b: dict, n_a: int, n_b: int, confidence: float) ->
     sa, sb = cell_a["sd"], cell_b["sd"]
     if sa is None and sb is None:
         return None, None
+    da, db = cell_a.get("seed_df") or n_a - 1, cell_b.get("seed_df") or n_b - 1
     if sa is None:  # one seed of a: assume b's seed variance, the df b measured
-        sa, df = sb, n_b - 1
+        sa, df = sb, db
     elif sb is None:
-        sb, df = sa, n_a - 1
+        sb, df = sa, da
+    elif cell_a.get("seed_pool") is not None and cell_a.get("seed_pool") == cell_b.get("seed_pool"):
+        df = min(da, db)  # one pooled estimate on both sides (a model at two heights): its own df, not twice it
     else:
         va, vb = sa * sa / n_a, sb * sb / n_b
-        df = (va + vb) ** 2 / (va * va / (n_a - 1) + vb * vb / (n_b - 1)) if va + vb > 0 else n_a + n_b - 2
+        df = (va + vb) ** 2 / (va * va / da + vb * vb / db) if va + vb > 0 else da + db
     var = sa * sa / n_a + sb * sb / n_b
     t = student_t_quantile(0.5 + confidence / 2.0, df)
     return t, t * math.sqrt(var)
@@ -401,6 +414,51 @@ def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: dict, comb_b: di
     return {"diff": _r6(diff), "scene_ci95": scene_ci, "scene_method": method, "seed_t": _r6(t),
             "seed_half_width": _r6(q), "ci95": ci, "ahead": ahead,
             "verdict": "ahead" if ahead else ("not resolved" if ci else "no interval")}
+
+
+def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> None:
+    """Pool each model's seed variance over its heights, in place (module docstring).
+
+    combined: {(model, height): seed_combined(...)}. For every model, range, level and metric whose
+    groups measured a spread (2 or more seeds), each cell of that model gets sd = the pooled s_p,
+    "sd_own" (its own s, None for one seed), "seed_df" (the pooled df), "seed_pool" (the model),
+    "seed_t" = t(df), "seed_half_width" = t * s_p / sqrt(n) and "ci95" recombined with its scene
+    interval. A model with one height, or with one seed everywhere, is left as it is."""
+    by_model: dict[str, list[dict]] = {}
+    for (model, _), comb in combined.items():
+        by_model.setdefault(str(model), []).append(comb)
+    for model, combs in by_model.items():
+        if len(combs) < 2:
+            continue
+        for r in RANGE_NAMES:
+            for lv in LEVELS:
+                for metric in METRICS:
+                    cells = [(c["results"][r][lv][metric], c["num_seeds"], c["confidence"]) for c in combs]
+                    measured = [(cell, n) for cell, n, _ in cells if cell["sd"] is not None and n >= 2]
+                    df = sum(n - 1 for _, n in measured)
+                    if df < 1 or len(measured) < 2:
+                        continue
+                    sd = math.sqrt(sum((n - 1) * cell["sd"] ** 2 for cell, n in measured) / df)
+                    for cell, n, confidence in cells:
+                        if cell["mean"] is None:
+                            continue
+                        t = student_t_quantile(0.5 + confidence / 2.0, df)
+                        q = t * sd / math.sqrt(n)
+                        cell.update(sd_own=cell["sd"], sd=_r6(sd), seed_df=df, seed_pool=model, seed_t=_r6(t),
+                                    seed_half_width=_r6(q),
+                                    ci95=_add_seed_term(cell["mean"], cell["scene_ci95"], q, (0.0, 1.0)))
+        for c in combs:
+            c["seed_spread_pooled_over_heights"] = True
+
+
+def _combined_groups(groups: Mapping, pool: bool) -> dict[float, dict[str, tuple[list[dict], dict]]]:
+    """{height: {model: (reports, seed_combined)}} with the seed spread pooled over heights when `pool`."""
+    by_height = _groups(groups)
+    out = {h: {m: (reps, seed_combined(reps, f"{m} at {h:g} m")) for m, reps in models.items()}
+           for h, models in by_height.items()}
+    if pool:
+        pool_seed_spread({(m, h): comb for h, models in out.items() for m, (_, comb) in models.items()})
+    return out
 
 
 def _groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
@@ -462,7 +520,7 @@ def _leader(name: str, items: dict, cell: tuple[str, str], metric: str, other: s
 WHAT = (("recall", RECALL_CELL, "ap_r40"), ("ap_r40", AP_CELL, "recall"))
 
 
-def seed_summary(groups: Mapping) -> dict:
+def seed_summary(groups: Mapping, pool: bool = True) -> dict:
     """Per height, the model that leads in recall (large range, all vehicles, as detector_summary) and
     in AP@R40 (small range, all vehicles), with its lead over the runner-up.
 
@@ -472,17 +530,17 @@ def seed_summary(groups: Mapping) -> dict:
     "num_seeds"}], "best", "runner_up", "lead": {"diff", "scene_ci95", "scene_method", "seed_t",
     "seed_half_width", "ci95", "ahead", "verdict"} or None}. "ahead" is True only when the lead's
     interval (scene bootstrap plus both models' seed spread) excludes 0; verdict "ahead",
-    "not resolved", or "no interval" (no scene bootstrap). Fractions in [0, 1].
+    "not resolved", or "no interval" (no scene bootstrap). Fractions in [0, 1]. `pool`: each
+    model's seed spread pooled over its heights (`pool_seed_spread`).
     """
     out = {}
-    for h, models in _groups(groups).items():
-        items = {m: (reps, seed_combined(reps, f"{m} at {h:g} m")) for m, reps in models.items()}
+    for h, items in _combined_groups(groups, pool).items():
         out[h] = {"models": {m: c for m, (_, c) in items.items()},
                   **{metric: _leader("model", items, cell, metric, other) for metric, cell, other in WHAT}}
     return out
 
 
-def seed_height_summary(groups: Mapping) -> dict:
+def seed_height_summary(groups: Mapping, pool: bool = True) -> dict:
     """Per model tested at two or more heights, the height at which it leads in recall (large range)
     and AP@R40 (small range), all vehicles, with the lead over the runner-up height.
 
@@ -491,11 +549,12 @@ def seed_height_summary(groups: Mapping) -> dict:
     count as independent, so the seed term is Welch's as between models. Scenes that differ between
     the heights fall back to the two scene intervals in quadrature. Returns {model: {"recall": lead,
     "ap_r40": lead}} laid out as in `seed_summary`, with "height" (metres) in place of "model".
+    `pool` as in `seed_summary`; the two heights then share one seed estimate, so its df is counted once.
     """
     by_model: dict[str, dict[float, tuple]] = {}
-    for h, models in _groups(groups).items():
-        for m, reps in models.items():
-            by_model.setdefault(m, {})[h] = (reps, seed_combined(reps, f"{m} at {h:g} m"))
+    for h, items in _combined_groups(groups, pool).items():
+        for m, pair in items.items():
+            by_model.setdefault(m, {})[h] = pair
     return {m: {metric: _leader("height", items, cell, metric, other) for metric, cell, other in WHAT}
             for m, items in by_model.items() if len(items) > 1}
 
@@ -549,12 +608,12 @@ def _lead_sentence(prefix: str, key: str, metric: str, entry: dict) -> str:
     return f"{head}: no interval (evaluate with --bootstrap), so none is called ahead."
 
 
-def seed_markdown(groups: Mapping) -> list[str]:
+def seed_markdown(groups: Mapping, pool: bool = True) -> list[str]:
     """Markdown lines for study.md: per height a table of every model's seed mean per range (All
     vehicles) for recall and AP@R40 with the interval of scenes and seeds, the seed spread and the
     scene-only interval beside it, then the sentences of `seed_summary` and, for models tested at
     two or more heights, of `seed_height_summary`."""
-    summary = seed_summary(groups)
+    summary = seed_summary(groups, pool)
     seeds_used = sorted({s for h in summary.values() for c in h["models"].values() for s in c["seeds"]},
                         key=lambda s: (not isinstance(s, int), s if isinstance(s, int) else 0, str(s)))
     counts = sorted({c["num_seeds"] for h in summary.values() for c in h["models"].values()})
@@ -570,6 +629,12 @@ def seed_markdown(groups: Mapping) -> list[str]:
     if counts == [1]:
         lines += ["With one seed per model the seed spread is not measured: the intervals are the scene bootstrap "
                   "alone, as in a single-seed study.", ""]
+    pooled = any(c.get("seed_spread_pooled_over_heights") for h in summary.values() for c in h["models"].values())
+    if pooled:
+        lines += ["The seed spread is pooled over each model's heights (its training randomness taken as one quantity "
+                  "per range and metric, estimated from every height: sd is the pooled one, with its degrees of "
+                  "freedom in the t factor; each height's own sd in brackets), because 2 or 3 seeds alone give a t "
+                  "factor of 12.7 or 4.3 on an sd that rests on one or two differences.", ""]
     for h, cell in summary.items():
         lines += [f"**{h:g} m**", "",
                   "| Model | Seeds | Range | Recall (95 %, scenes + seeds) | Recall seed sd / +- | Recall scene-only "
@@ -581,14 +646,15 @@ def seed_markdown(groups: Mapping) -> list[str]:
                 for metric in METRICS:
                     c = comb["results"][r]["all"][metric]
                     row.append(f"{_f(c['mean'])} {_ci(c['ci95'])}" if c["mean"] is not None else "-")
-                    row.append("-" if c["sd"] is None else f"{_f(c['sd'])} / +-{_f(c['seed_half_width'])}")
+                    own = f" ({_f(c['sd_own'])})" if c.get("seed_pool") is not None else ""
+                    row.append("-" if c["sd"] is None else f"{_f(c['sd'])}{own} / +-{_f(c['seed_half_width'])}")
                     row.append(_ci(c["scene_ci95"]) if c["mean"] is not None else "-")
                 lines.append("| " + " | ".join(row) + " |")
         lines.append("")
         for metric in METRICS:
             lines.append(_lead_sentence(f"At {h:g} m", "model", metric, cell[metric]))
         lines.append("")
-    by_model = seed_height_summary(groups)
+    by_model = seed_height_summary(groups, pool)
     if by_model:
         lines += ["**Heights, per model**", ""]
         for m, cell in by_model.items():
@@ -600,5 +666,6 @@ def seed_markdown(groups: Mapping) -> list[str]:
     return lines
 
 
-__all__ = ["seed_combined", "seed_summary", "seed_height_summary", "seed_markdown", "student_t_quantile", "METRICS",
+__all__ = ["seed_combined", "pool_seed_spread", "seed_summary", "seed_height_summary", "seed_markdown",
+           "student_t_quantile", "METRICS",
            "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "RECALL_CELL", "AP_CELL"]

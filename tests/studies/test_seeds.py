@@ -16,7 +16,8 @@ import pytest
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.studies.seeds import (
-    LEAD_REPLICATES, METRICS, seed_combined, seed_height_summary, seed_markdown, seed_summary, student_t_quantile,
+    LEAD_REPLICATES, METRICS, pool_seed_spread, seed_combined, seed_height_summary, seed_markdown, seed_summary,
+    student_t_quantile,
 )
 from detbench.studies.study_summary import paired_recall_difference
 
@@ -309,3 +310,40 @@ def test_without_a_scene_bootstrap_there_is_no_interval_and_no_model_is_called_a
     assert lead["diff"] > 0.4 and lead["verdict"] == "no interval" and not lead["ahead"]
     assert "no interval (evaluate with --bootstrap)" in "\n".join(seed_markdown({("second", 1.8): a,
                                                                                 ("pillarnet", 1.8): b}))
+
+
+def test_the_seed_spread_is_pooled_over_a_models_heights():
+    """Two seeds at three heights: each cell carries the model's pooled sd with df 3 (t 3.18, not 12.71),
+    keeps its own sd beside it, and its interval is the scene interval and the pooled seed term together."""
+    low, mid = dict(height=0.5, hidden=(3, 5)), dict(height=1.0, hidden=(5,))
+    groups = {("second", 1.8): _seeds("second", (0.9, 0.8)), ("second", 1.0): _seeds("second", (0.7, 0.72), **mid),
+              ("second", 0.5): _seeds("second", (0.5, 0.6), **low)}
+    own = {h: seed_combined(groups[("second", h)]) for h in (1.8, 1.0, 0.5)}
+    pooled = {h: copy.deepcopy(c) for h, c in own.items()}
+    pool_seed_spread({("second", h): c for h, c in pooled.items()})
+    for r in RANGE_NAMES:
+        for metric in METRICS:
+            sds = [own[h]["results"][r]["all"][metric]["sd"] for h in own]
+            sp = math.sqrt(sum(v * v for v in sds) / 3)  # equal n: the mean of the variances
+            t3 = student_t_quantile(0.975, 3)
+            for h in own:
+                c, o = pooled[h]["results"][r]["all"][metric], own[h]["results"][r]["all"][metric]
+                assert c["seed_df"] == 3 and c["seed_pool"] == "second" and abs(c["seed_t"] - t3) < 1e-5
+                assert abs(c["sd"] - sp) < 1e-5 and c["sd_own"] == o["sd"] and c["mean"] == o["mean"]
+                assert abs(c["seed_half_width"] - t3 * sp / math.sqrt(2)) < 1e-5
+                m, (lo, hi) = c["mean"], c["scene_ci95"]
+                q = c["seed_half_width"]
+                assert abs(c["ci95"][0] - max(0.0, m - math.hypot(m - lo, q))) < 2e-6
+                assert abs(c["ci95"][1] - min(1.0, m + math.hypot(hi - m, q))) < 2e-6
+    # the summaries pool by default; pool=False keeps each cell's own two-seed spread (t = 12.71)
+    on = seed_summary(groups)[1.8]["models"]["second"]["results"]["small"]["all"]["recall"]
+    off = seed_summary(groups, pool=False)[1.8]["models"]["second"]["results"]["small"]["all"]["recall"]
+    assert on["seed_df"] == 3 and "seed_df" not in off and abs(off["seed_t"] - 12.7062) < 1e-3
+    assert _width(on["ci95"]) < _width(off["ci95"])
+    # a height lead of one model uses its one pooled estimate: df 3, counted once
+    lead = seed_height_summary(groups)["second"]["recall"]["lead"]
+    assert abs(lead["seed_t"] - student_t_quantile(0.975, 3)) < 1e-5
+    assert "pooled over each model's heights" in "\n".join(seed_markdown(groups))
+    # one height only: nothing to pool
+    single = seed_summary({("second", 1.8): groups[("second", 1.8)]})[1.8]["models"]["second"]
+    assert "seed_df" not in single["results"]["small"]["all"]["recall"]
