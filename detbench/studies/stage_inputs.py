@@ -21,7 +21,6 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from detbench.config import shipped_default
 from detbench.data.dataset import Height3Dataset, split_ids
 from detbench.data.frame import height_key
 from detbench.data.layout import INFO_FILE, imageset_path
@@ -149,37 +148,15 @@ def _short(v: Any) -> str:
     return text if len(text) <= 80 else text[:77] + "..."
 
 
-def _is_shipped_default(dotted: str, value: Any) -> bool:
-    try:
-        return shipped_default(dotted) == value
-    except KeyError:
-        return False
-
-
-def _with_new_defaults(old: Mapping, now: Mapping, prefix: str = "") -> dict:
-    """`old` with every key that only `now` has and that holds its configs/default.yaml value filled in: a key
-    a newer detbench added takes, at its default, the behaviour the older one had, so it changes nothing."""
-    out = dict(old)
-    for k, v in now.items():
-        if k not in out:
-            if _is_shipped_default(prefix + k, v):
-                out[k] = v
-        elif isinstance(out[k], Mapping) and isinstance(v, Mapping):
-            out[k] = _with_new_defaults(out[k], v, f"{prefix}{k}.")
-    return out
-
-
 def changes(out: str | os.PathLike, stage: str, inputs: Mapping) -> list[str]:
     """What differs between the inputs recorded for `stage` and `inputs`, one 'key: then X, now Y' a key
-    ([] when nothing does; one line when nothing was recorded). A run config key that the record lacks and
-    that holds its configs/default.yaml value now is no change (a newer detbench added it)."""
+    ([] when nothing does; one line when nothing was recorded). A config key that the record lacks and that
+    holds its configs/default.yaml value now is no change (a newer detbench added it: `config_diff`)."""
     old = read_record(out, stage)
     if old is None:
         return [f"no record of its inputs ({Path(out) / RECORDS_DIR / (stage + '.json')} is missing: it was "
                 f"written by an earlier detbench or by another command)"]
     now = json.loads(json.dumps(dict(inputs), default=str))
-    if isinstance(old.get("config"), Mapping) and isinstance(now.get("config"), Mapping):
-        old = {**old, "config": _with_new_defaults(old["config"], now["config"])}
     lines = []
     for k in sorted(set(old) | set(now)):
         a, b = old.get(k, "<absent>"), now.get(k, "<absent>")

@@ -37,7 +37,7 @@ import torch
 from torch import nn
 
 from detbench.train.seed import restore_rng_state
-from detbench.config import MAX_CONFIG_VALUES
+from detbench.config import MAX_CONFIG_VALUES, shipped_default
 from detbench.utils.io import atomic_save
 from detbench.utils.untrusted import clip, excerpt, structure_problem
 
@@ -125,12 +125,34 @@ def _flatten(d: Mapping, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _is_shipped_default(dotted: str, value: Any) -> bool:
+    try:
+        return shipped_default(dotted) == value
+    except KeyError:
+        return False
+
+
+def with_new_defaults(saved: Mapping, current: Mapping, prefix: str = "") -> dict:
+    """`saved` with every key that only `current` has and that holds its configs/default.yaml value filled
+    in: a key a newer detbench added takes, at its default, the behaviour the older one had."""
+    out = dict(saved)
+    for k, v in current.items():
+        if k not in out:
+            if _is_shipped_default(prefix + str(k), v):
+                out[k] = v
+        elif isinstance(out[k], Mapping) and isinstance(v, Mapping):
+            out[k] = with_new_defaults(out[k], v, f"{prefix}{k}.")
+    return out
+
+
 def config_diff(saved: Mapping, current: Mapping, ignore: Iterable[str] = ()) -> list[str]:
     """Dotted keys whose values differ, as 'key: saved_value (checkpoint) vs current_value (now)'.
 
-    Keys equal to or under an entry of `ignore` (dotted) are skipped.
+    Keys equal to or under an entry of `ignore` (dotted) are skipped. A key that only `current` has
+    and that holds its configs/default.yaml value is no difference (`with_new_defaults`): a run made
+    before detbench added the key resumes and compares equal.
     """
-    a, b = _flatten(saved), _flatten(current)
+    a, b = _flatten(with_new_defaults(saved, current)), _flatten(current)
     ignore = tuple(ignore)
     lines = []
     for k in sorted(set(a) | set(b)):

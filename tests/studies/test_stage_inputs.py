@@ -29,3 +29,12 @@ def test_keys_outside_the_shipped_defaults_and_real_changes_are_reported(tmp_pat
     assert any("data.seed" in ln for ln in changes(tmp_path, "s", moved))
     other_data = changes(tmp_path, "s", {**_inputs(), "data_fingerprint": "def"})
     assert other_data == ['data_fingerprint: then "abc", now "def"']
+
+
+def test_a_checkpoint_from_before_a_new_key_compares_equal():
+    from detbench.train.checkpoint import config_diff
+
+    saved = _inputs()["config"]
+    assert config_diff(saved, _inputs(drop_frames_without=None)["config"]) == []
+    assert config_diff(saved, _inputs(drop_frames_without="small")["config"]) == [
+        "data.drop_frames_without: '<absent>' (checkpoint) vs 'small' (now)"]
