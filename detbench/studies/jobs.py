@@ -212,6 +212,31 @@ class GraphProgress:
         critical = max(path.values(), default=0.0)
         return max(critical, sum(rem.values()) / self.slots), guess
 
+    # A job kind's duration before any is measured: what orders the first jobs (a training's chain is
+    # longer than an evaluation's); seconds, the quick preset's order of magnitude.
+    PRIOR_S = {"train": 300.0, "eval": 60.0, "cross_eval": 60.0, "ability": 90.0}
+
+    def by_path(self, pending: list[Job]) -> list[Job]:
+        """`pending` with the longest remaining path first (the job's estimated duration plus its longest
+        chain of pending successors; list order among equals): critical-path list scheduling, so a
+        training that others wait on starts before an evaluation that nothing waits on."""
+        by_id = {j.id: j for j in pending}
+        succ: dict[str, list[str]] = {i: [] for i in by_id}
+        for j in pending:
+            for d in j.deps:
+                if d in succ:
+                    succ[d].append(j.id)
+        path: dict[str, float] = {}
+
+        def length(i: str) -> float:
+            if i not in path:
+                est, _ = self.estimate(by_id[i])
+                own = est if est is not None else self.PRIOR_S.get(by_id[i].kind, 1.0)
+                path[i] = own + max((length(s) for s in succ[i]), default=0.0)
+            return path[i]
+
+        return sorted(pending, key=lambda j: -length(j.id))
+
     def _topo(self, ids: list[str]) -> list[str]:
         left, out, placed = list(ids), [], set(self.finished)
         while left:
@@ -356,7 +381,7 @@ class GraphResult:
 
 def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None = None,
               poll_s: float = 1.0) -> GraphResult:
-    """Run `jobs` (in their list order among those ready) on `executor`; each job's output in
+    """Run `jobs` (the longest remaining path first among those ready) on `executor`; each job's output in
     `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
     naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C
     stopped them. See the module's docstring."""
@@ -420,12 +445,12 @@ def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: G
 
 
 def _start_ready(pending: list[Job], done: set[str], executor, progress: GraphProgress, result: GraphResult) -> None:
-    """Start (or skip, when current) the pending jobs whose dependencies are done, in list order, while a slot
-    is free."""
+    """Start (or skip, when current) the pending jobs whose dependencies are done, the longest remaining path
+    first (`GraphProgress.by_path`), while a slot is free."""
     again = True
     while again:
         again = False
-        for job in list(pending):
+        for job in progress.by_path(pending):
             if len(executor.running) >= executor.slots:
                 return
             if not all(d in done for d in job.deps):

@@ -129,7 +129,7 @@ def test_a_failed_job_stops_the_study_and_the_running_training_checkpoints_then_
         return [Job("train_m", "train", "train m", train_prepare, model="m"),
                 job("eval_bad", py(fail, run / "started", fixed), kind="eval"),
                 job("waiting", py("import pathlib,sys; pathlib.Path(sys.argv[1]).write_text('w')",
-                                  tmp_path / "waiting"), out=tmp_path / "waiting"),
+                                  tmp_path / "waiting"), kind="combine", out=tmp_path / "waiting"),
                 job("after_bad", py("pass"), deps=["eval_bad"], kind="combine")]
 
     with pytest.raises(SystemExit) as e:
@@ -187,3 +187,22 @@ def test_a_cross_height_evaluation_borrows_the_time_of_an_evaluation():
     prog = GraphProgress(jobs, slots=1)
     prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0]}
     assert prog.left_s() == (pytest.approx(120.0), True)
+
+
+def test_the_longest_remaining_path_starts_first(tmp_path):
+    # one worker: both trainings before either evaluation (a training's chain, train + eval, is longer than
+    # an evaluation's), though the list puts each evaluation right after its training
+    noop = py("pass")
+    jobs = [job("train_a", noop), job("eval_a", noop, deps=["train_a"], kind="eval"),
+            job("train_b", noop), job("eval_b", noop, deps=["train_b"], kind="eval")]
+    res = run_graph(jobs, LocalExecutor(1), tmp_path / "logs", poll_s=0.02)
+    assert res.ran == ["train_a", "train_b", "eval_a", "eval_b"]
+    # measured durations take over from the priors: an evaluation measured longer than a training and its
+    # evaluation together goes first; equal paths keep the list order
+    prog = GraphProgress(jobs, 1)
+    prog.measured = {("train", "m"): [10.0], ("eval", "m"): [100.0]}
+    order = [j.id for j in prog.by_path([jobs[1], jobs[2], jobs[3]])]
+    assert order == ["train_b", "eval_a", "eval_b"]  # 10 + 100 > 100; eval_a before eval_b (list order)
+    prog.measured = {("train", "m"): [10.0], ("eval", "m"): [10.0]}
+    lone = Job("eval_c", "eval", "evaluate c", lambda: None, model="m")
+    assert [j.id for j in prog.by_path([lone, jobs[2], jobs[3]])] == ["train_b", "eval_c", "eval_b"]
