@@ -448,7 +448,7 @@ def _start_ready(pending: list[Job], done: set[str], executor, progress: GraphPr
     """Start (or skip, when current) the pending jobs whose dependencies are done, the longest remaining path
     first (`GraphProgress.by_path`), while a slot is free."""
     again = True
-    while again:
+    while again and len(executor.running) < executor.slots:
         again = False
         for job in progress.by_path(pending):
             if len(executor.running) >= executor.slots:

@@ -430,6 +430,7 @@ def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> None:
     for model, combs in by_model.items():
         if len(combs) < 2:
             continue
+        pooled = False
         for r in RANGE_NAMES:
             for lv in LEVELS:
                 for metric in METRICS:
@@ -439,6 +440,7 @@ def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> None:
                     if df < 1 or len(measured) < 2:
                         continue
                     sd = math.sqrt(sum((n - 1) * cell["sd"] ** 2 for cell, n in measured) / df)
+                    pooled = True
                     for cell, n, confidence in cells:
                         if cell["mean"] is None:
                             continue
@@ -448,7 +450,7 @@ def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> None:
                                     seed_half_width=_r6(q),
                                     ci95=_add_seed_term(cell["mean"], cell["scene_ci95"], q, (0.0, 1.0)))
         for c in combs:
-            c["seed_spread_pooled_over_heights"] = True
+            c["seed_spread_pooled_over_heights"] = pooled
 
 
 def _combined_groups(groups: Mapping, pool: bool) -> dict[float, dict[str, tuple[list[dict], dict]]]:

@@ -257,6 +257,10 @@ def test_markdown_of_one_seed_says_the_spread_is_not_measured():
     text = "\n".join(seed_markdown({("second", 1.8): [_report("second", 0.8, 0)],
                                     ("pillarnet", 1.8): [_report("pillarnet", 0.5, 0)]}))
     assert "seed spread is not measured" in text and "one seed each" in text
+    # several heights with one seed each: nothing to pool, and the text does not claim it
+    text = "\n".join(seed_markdown({("second", 1.8): [_report("second", 0.8, 0)],
+                                    ("second", 0.5): [_report("second", 0.6, 0, height=0.5, hidden=(3, 5))]}))
+    assert "seed spread is not measured" in text and "pooled over each model's heights" not in text
 
 
 def _count_report(tp: np.ndarray, det: np.ndarray, seed: int, replicates: int = 400) -> dict:
