@@ -9,6 +9,8 @@ interactive backend is touched) take a list of reports, each with "model" and "h
 - `plot_by_height`: numbers detected, recall and AP by model and height (paper Fig. 8);
 - `plot_by_range`: recall (or AP) by height for each range (Fig. 9);
 - `plot_by_level`: recall (or AP) by height for each importance level (Fig. 10).
+Each figure's title names where the frames come from (`data_label`: the simulator calibration and
+seed from a report's "data_source", or data on disk).
 """
 from __future__ import annotations
 
@@ -90,6 +92,8 @@ def _header(report: dict) -> list[str]:
         bits.append(f"split {report['split']}")
     n = report["num_frames"]
     bits.append(f"{n} frame{'' if n == 1 else 's'}")
+    if isinstance(report.get("data_source"), dict):
+        bits.append(data_label([report]))
     return bits
 
 
@@ -380,6 +384,26 @@ def combined_csv(reports: Sequence[dict], sources: Sequence[str] | None = None) 
 # figures
 # --------------------------------------------------------------------------------------------
 
+def data_label(reports: Sequence[dict]) -> str:
+    """Where the reports' frames come from, for figure titles: "simulator calibration v2, seed 0",
+    "data on disk", or "data source not recorded" (reports written before the field); distinct
+    sources are joined with " + "."""
+    labels = []
+    for rep in reports:
+        src = rep.get("data_source")
+        if not isinstance(src, dict):
+            lab = "data source not recorded"
+        elif src.get("kind") == "simulator":
+            lab = f"simulator calibration {src.get('calibration', '?')}"
+            if src.get("seed") is not None:
+                lab += f", seed {src['seed']}"
+        else:
+            lab = "data on disk"
+        if lab not in labels:
+            labels.append(lab)
+    return " + ".join(labels) if labels else "no reports"
+
+
 def _grid(reports: Sequence[dict]):
     comb = combine_reports(reports)
     cell = {(e["model"], e["height"]): e["results"] for e in comb["entries"]}
@@ -455,7 +479,7 @@ def plot_by_height(reports: Sequence[dict], path: str | Path, range_name: str = 
     _line_axes(axes[2], comb, cell, "ap_r40", range_name, level, "(c) AP@R40")
     axes[1].legend(fontsize=8)
     fig.suptitle(f"{RANGE_LABELS[range_name]} range, {LEVEL_LABELS[level]} vehicles, "
-                 f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g}")
+                 f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g} ({data_label(reports)})")
     return save_figure(fig, path)
 
 
@@ -472,7 +496,7 @@ def plot_by_range(reports: Sequence[dict], path: str | Path, level: str = "all",
     for ax, r in zip(axes, RANGE_NAMES):
         _line_axes(ax, comb, cell, metric, r, level, f"{RANGE_LABELS[r]} range")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{METRIC_LABELS[metric]} by range, {LEVEL_LABELS[level]} vehicles")
+    fig.suptitle(f"{METRIC_LABELS[metric]} by range, {LEVEL_LABELS[level]} vehicles ({data_label(reports)})")
     return save_figure(fig, path)
 
 
@@ -489,12 +513,13 @@ def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "
     for ax, lv in zip(axes, ("top3", "top6", "all")):
         _line_axes(ax, comb, cell, metric, range_name, lv, f"{LEVEL_LABELS[lv]} vehicles")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{METRIC_LABELS[metric]} by importance level, {RANGE_LABELS[range_name]} range")
+    fig.suptitle(f"{METRIC_LABELS[metric]} by importance level, {RANGE_LABELS[range_name]} range "
+                 f"({data_label(reports)})")
     return save_figure(fig, path)
 
 
 __all__ = [
     "check_report", "report_to_markdown", "report_to_csv", "report_rows", "summary_lines",
     "combine_reports", "combined_markdown", "combined_csv", "label_variants", "report_variant",
-    "plot_by_height", "plot_by_range", "plot_by_level", "METRIC_FIELDS",
+    "plot_by_height", "plot_by_range", "plot_by_level", "data_label", "METRIC_FIELDS",
 ]

@@ -76,6 +76,19 @@ def write_predictions(preds: dict, pred_dir: Path) -> None:
         atomic_write_text(Path(pred_dir) / f"{fid}.txt", format_prediction_lines(boxes, scores))
 
 
+def data_source(source) -> dict:
+    """What a report's frames are, from the dataset.json `source`: for the simulator its kind,
+    calibration, seed and preset (the figure titles name them); for anything else its kind
+    ("dataset": data on disk)."""
+    src = source if isinstance(source, dict) else {}
+    if src.get("kind") == "simulator":
+        from detbench.sim.dataset import sim_calibration
+
+        return {"kind": "simulator", "calibration": sim_calibration(src), "seed": src.get("seed"),
+                "preset": src.get("preset")}
+    return {"kind": str(src.get("kind") or "dataset")}
+
+
 def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: str | None, height: float,
                       split: str, data, source, saved: LoadedPredictions | None = None, pred_frame: str = "ground",
                       checkpoint: CheckpointRun | None = None) -> dict:
@@ -88,8 +101,9 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
             bootstrap=settings.bootstrap)
     except (ValueError, KeyError) as e:
         raise UserError(str(e)) from None
-    full = {"model": model, "height": float(height), "split": split, "data": str(data), "predictions": str(source),
-            **report}
+    full = {"model": model, "height": float(height), "split": split, "data": str(data),
+            "data_source": data_source(getattr(getattr(dataset, "info", None), "source", None)),
+            "predictions": str(source), **report}
     if checkpoint is not None:
         full["trained_height"] = checkpoint.trained_height
         full["predictions_dir"] = str(checkpoint.predictions_dir)

@@ -12,6 +12,7 @@ from detbench.eval.report import (
     combined_csv,
     combined_markdown,
     label_variants,
+    data_label,
     plot_by_height,
     plot_by_level,
     plot_by_range,
@@ -145,6 +146,31 @@ def test_figures(tmp_path):
     assert plot_by_height([make_report("M", 1.0, 1)], tmp_path / "one.png").exists()
     np.testing.assert_equal(sorted(p.name for p in tmp_path.glob("*.png")),
                             ["empty.png", "fig10.png", "fig8.png", "fig9.png", "one.png"])
+
+
+def test_figure_titles_name_the_data_source(tmp_path, monkeypatch):
+    import detbench.eval.report as rep_mod
+
+    sim = {"kind": "simulator", "calibration": "v2", "seed": 0, "preset": "paper"}
+    assert data_label([{"data_source": sim}]) == "simulator calibration v2, seed 0"
+    assert data_label([{"data_source": {"kind": "dataset"}}]) == "data on disk"
+    assert data_label([{}]) == "data source not recorded"
+    mixed = [{"data_source": sim}, {"data_source": {**sim, "seed": 7}}, {"data_source": sim}]
+    assert data_label(mixed) == "simulator calibration v2, seed 0 + simulator calibration v2, seed 7"
+    titles = []
+    real_save = rep_mod.save_figure
+
+    def keep_title(fig, path):
+        titles.append(fig._suptitle.get_text())
+        return real_save(fig, path)
+
+    monkeypatch.setattr(rep_mod, "save_figure", keep_title)
+    reps = [{**r, "data_source": sim} for r in reports_grid()]
+    plot_by_height(reps, tmp_path / "a.png")
+    plot_by_range(reps, tmp_path / "b.png")
+    plot_by_level(reps, tmp_path / "c.png")
+    assert len(titles) == 3 and all(t.endswith("(simulator calibration v2, seed 0)") for t in titles)
+    assert "simulator calibration v2, seed 0" in report_to_markdown(reps[0])
 
 
 def test_combine_refuses_cross_height_and_first_stage_reports_unless_labelled():

@@ -213,8 +213,9 @@ def test_tool_end_to_end(tiny_dataset, tmp_path, capsys):
     # the box at x = 70 is outside small (ignored) but an FP in moderate, ranked last
     assert moderate["fp"] == 1 and moderate["ap_r40"] == pytest.approx(2 / (2 * n))
     assert set(rep["extras"]) == {"bev_0.7", "3d_0.5", "bev_0.5"}
+    assert rep["data_source"] == {"kind": "test fixture"}  # not the simulator: no calibration to name
     md = (out / "report.md").read_text()
-    assert "SECOND at 1.8 m (test split)" in md and "| Small | All |" in md
+    assert "SECOND at 1.8 m (test split)" in md and "| Small | All |" in md and "data on disk" in md
     assert (out / "report.csv").read_text().startswith("model,height_m,split,variant")
 
     # a file for an unknown frame id, and a malformed line: errors naming the file (and line)
