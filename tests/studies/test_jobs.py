@@ -78,6 +78,10 @@ def test_time_left_is_the_longest_remaining_path_over_the_workers():
     assert left == pytest.approx(110.0)  # train_b + eval_b; eval_a's 6 s run beside them
     del prog.measured[("train", "b")]
     assert prog.left_s(now=4.0) == (pytest.approx(110.0), True)  # b's training borrows a's: a guess
+    # trainings measured but no evaluation yet: each evaluation guessed at EVAL_SHARE of its training
+    early = GraphProgress(jobs, slots=2)
+    early.measured = {("train", "a"): [100.0]}
+    assert early.left_s() == (pytest.approx(100.0 + GraphProgress.EVAL_SHARE * 100.0), True)
 
 
 def test_jobs_run_at_once_after_their_dependencies_and_the_output_goes_to_their_logs(tmp_path, capsys):
