@@ -401,3 +401,29 @@ DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "
 # a dataset (an OpenPCDet folder has the same points/, labels/ and ImageSets/)
 DATASET_FOLDER = FolderKind(name="a dataset", marker=INFO_FILE, entries=DATASET_ENTRIES, foreign="part of a dataset",
                             unfinished="an unfinished dataset", key="dataset")
+
+
+# The simulator calibration a dataset was made with, from its dataset.json `source` (the data layer reads it;
+# the simulator writes it).
+PREVIOUS_CALIBRATION = "v1"  # what a config or dataset.json without a `calibration` key was made with
+
+
+def calibration_id(label: str) -> str:
+    """The calibration id of a label: its first word ("v2"). Some datasets carry the id followed by a note in
+    parentheses ("v2 (...)"); they read as the bare id, so every dataset of one calibration compares equal."""
+    text = str(label).strip()
+    return text.split(" (", 1)[0].strip() or text
+
+
+def sim_calibration(info: dict) -> str:
+    """The simulator calibration a config or a dataset.json `source` was made with: its
+    `calibration` (or its config's) as a bare id (`calibration_id`), and "v1" when neither says,
+    since a simulator config without the key is calibration v1's."""
+    if not isinstance(info, dict):
+        return PREVIOUS_CALIBRATION
+    if info.get("calibration"):
+        return calibration_id(info["calibration"])
+    cfg = info.get("config")
+    if isinstance(cfg, dict) and cfg.get("calibration"):
+        return calibration_id(cfg["calibration"])
+    return PREVIOUS_CALIBRATION

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detbench.data import Height3Dataset, split_ids
+from detbench.data.layout import sim_calibration
 from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
 from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, label_variants, plot_by_height,
@@ -82,8 +83,6 @@ def data_source(source) -> dict:
     ("dataset": data on disk)."""
     src = source if isinstance(source, dict) else {}
     if src.get("kind") == "simulator":
-        from detbench.sim.dataset import sim_calibration
-
         return {"kind": "simulator", "calibration": sim_calibration(src), "seed": src.get("seed"),
                 "preset": src.get("preset")}
     return {"kind": str(src.get("kind") or "dataset")}

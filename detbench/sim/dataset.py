@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from detbench.config import shipped_default, shipped_defaults
 from detbench.data.frame import height_key
-from detbench.data.layout import DATASET_FOLDER
+from detbench.data.layout import DATASET_FOLDER, PREVIOUS_CALIBRATION, calibration_id, sim_calibration  # noqa: F401
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
@@ -153,30 +153,6 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
         if finish is not None:
             finish(staged)
     return root
-
-
-PREVIOUS_CALIBRATION = "v1"  # what a config or dataset.json without a `calibration` key was made with
-
-
-def calibration_id(label: str) -> str:
-    """The calibration id of a label: its first word ("v2"). Some datasets carry the id followed by a note in
-    parentheses ("v2 (...)"); they read as the bare id, so every dataset of one calibration compares equal."""
-    text = str(label).strip()
-    return text.split(" (", 1)[0].strip() or text
-
-
-def sim_calibration(info: dict) -> str:
-    """The simulator calibration a config or a dataset.json `source` was made with: its
-    `calibration` (or its config's) as a bare id (`calibration_id`), and "v1" when neither says,
-    since a simulator config without the key is calibration v1's."""
-    if not isinstance(info, dict):
-        return PREVIOUS_CALIBRATION
-    if info.get("calibration"):
-        return calibration_id(info["calibration"])
-    cfg = info.get("config")
-    if isinstance(cfg, dict) and cfg.get("calibration"):
-        return calibration_id(cfg["calibration"])
-    return PREVIOUS_CALIBRATION
 
 
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float], seed: int = 0,
