@@ -234,10 +234,13 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
 
     # 2-5. the job graph: the ability study, each training, its evaluations, the combined report
     gpu = args.device.startswith("cuda") or (args.device == "auto" and _cuda_available())
+    executor = _executor(args, gpu, repo)
+    # several jobs at once (or on Ray) write to their logs only: progress bars there are one endless line of
+    # carriage returns, so the jobs print their per-epoch and summary lines instead
+    logs_only = args.executor == "ray" or executor.slots > 1
     jobs, reports, cross_reports, seed_reports = _study_jobs(
         args, out, names, heights, seeds, root, data_cfg, ability_frames, hashes, train_inputs, data_fp,
-        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu)
-    executor = _executor(args, gpu, repo)
+        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu, quiet=logs_only)
     counts = job_counts(jobs)
     where = ("Ray" if args.executor == "ray" else "this machine") + (" (GPUs)" if gpu else "")
     print(f"\n=== {len(jobs)} jobs ({', '.join(f'{n} {k}' for k, n in counts.items())}), up to {executor.slots} at "
@@ -367,16 +370,17 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
 
 def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[float], seeds: list[int], root: Path,
                 data_cfg: dict, ability_frames: int, hashes: FileHashes, train_inputs: dict, data_fp: dict, *,
-                tag, seed_sets, run_dir_of, primary: int, gpu: bool):
+                tag, seed_sets, run_dir_of, primary: int, gpu: bool, quiet: bool = False):
     """The study's job graph: (jobs, the primary seed's report paths at the trained height, the cross-height
-    report paths (primary seed), {(model, height): [report path per seed]}).
+    report paths (primary seed), {(model, height): [report path per seed]}). `quiet` (or --no-progress)
+    runs every job without progress bars.
 
     Jobs: the ability study (no dependencies: the data exist); per model, height and seed a training (no
     dependencies) and its evaluation at its height (after the training); with cross_height the evaluations
     at the other heights (after the training); the combined report (after every evaluation at the trained
     height). Each decides when it becomes ready whether its output is current (stage records)."""
     py = sys.executable
-    quiet = ["--no-progress"] if args.no_progress else []
+    quiet = ["--no-progress"] if args.no_progress or quiet else []
     eval_device = "cpu" if args.device == "auto" else args.device
     jobs: list[Job] = []
 

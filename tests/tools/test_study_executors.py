@@ -36,17 +36,22 @@ def comparable(out: Path) -> dict:
 
 
 def study(data: Path, out: Path, heights: list[float], **kw) -> dict:
-    run_study(StudyOptions(preset="smoke", heights=heights, data=str(data), out=str(out), overrides=SMOKE,
-                           no_progress=True, **kw), registry=models, repo=ROOT)
+    kw.setdefault("no_progress", True)
+    run_study(StudyOptions(preset="smoke", heights=heights, data=str(data), out=str(out), overrides=SMOKE, **kw),
+              registry=models, repo=ROOT)
     return comparable(out)
 
 
 @pytest.mark.slow
 def test_one_job_at_a_time_and_two_at_once_give_the_same_study(tiny_dataset, tmp_path):
     one = study(tiny_dataset, tmp_path / "one", [0.5, 1.8], jobs=1)
-    two = study(tiny_dataset, tmp_path / "two", [0.5, 1.8], jobs=2)
+    two = study(tiny_dataset, tmp_path / "two", [0.5, 1.8], jobs=2, no_progress=False)
     assert one["models"] == ["second"] and one["summary"]["detectors"]
     assert one == two
+    # two jobs at once write to their logs only, so they run without progress bars (no carriage returns)
+    logs = sorted((tmp_path / "two" / "logs").glob("*.log"))
+    assert len(logs) >= 5 and not [p.name for p in logs if "\r" in p.read_text()]
+    assert "epoch 1/" in (tmp_path / "two" / "logs" / "train_second_h0.5.log").read_text()
 
 
 @pytest.mark.slow  # about a minute: .ci/run runs it on its own after the default suite
