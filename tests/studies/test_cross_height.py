@@ -38,6 +38,19 @@ def test_markdown_bolds_the_diagonal_and_the_figure_is_written(tmp_path):
     assert "| 0.5 m | **0.600** | 0.200 |" in md and "| 1.8 m | 0.300 | **0.700** |" in md
     path = plot_cross_height(mat, tmp_path / "x.png")
     assert path.is_file() and path.stat().st_size > 1000
+    assert mat["data"] == "data source not recorded"
+
+
+def test_the_figure_title_names_the_data_source(tmp_path, monkeypatch):
+    import detbench.studies.cross_height as ch
+
+    sim = {"kind": "simulator", "calibration": "v2", "seed": 0, "preset": "paper"}
+    mat = cross_height_matrix([{**r, "data_source": sim} for r in _reports()])
+    assert mat["data"] == "simulator calibration v2, seed 0"
+    titles = []
+    monkeypatch.setattr(ch, "save_figure", lambda fig, path: titles.append(fig._suptitle.get_text()) or path)
+    plot_cross_height(mat, tmp_path / "y.png")
+    assert titles == ["AP@R40, small range, all level (red: same height; simulator calibration v2, seed 0)"]
 
 
 def test_bad_reports_are_refused():
