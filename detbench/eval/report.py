@@ -305,8 +305,9 @@ def combine_reports(reports: Sequence[dict], sources: Sequence[str] | None = Non
 
     Checks that they share IoU kind, IoU and score thresholds and that reports at the same
     height agree on the ground truth. Returns {"iou_kind", "iou_threshold", "score_threshold",
-    "heights": sorted metres, "models": in first-seen order, "entries": [{"model", "height",
-    "split", "num_frames", "results"}]}. `sources` (e.g. file names) name the reports in errors.
+    "heights": sorted metres, "models": in first-seen order, "data": where the frames come from
+    (`data_label`), "entries": [{"model", "height", "split", "num_frames", "results"}]}. `sources`
+    (e.g. file names) name the reports in errors.
     """
     entries = _entries(reports, sources)
     rep0 = reports[0]
@@ -317,6 +318,7 @@ def combine_reports(reports: Sequence[dict], sources: Sequence[str] | None = Non
         "score_threshold": float(rep0["score_threshold"]),
         "heights": sorted({e["height"] for e in entries}),
         "models": models,
+        "data": data_label(reports),
         "entries": [{k: e[k] for k in ("model", "height", "split", "num_frames", "results")} for e in entries],
     }
 
@@ -344,7 +346,7 @@ def combined_markdown(reports: Sequence[dict], levels: Sequence[str] = LEVELS,
         "",
         f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g}, score >= {comb['score_threshold']:g}. "
         f"Number: LiDAR-detected vehicles, or TP of each model; LDR / Recall: fractions in [0, 1]; "
-        f"AP@R40 per model; {MISSING} where nothing is evaluated.",
+        f"AP@R40 per model; {MISSING} where nothing is evaluated. Frames: {comb['data']}.",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * 3 + "---:|" * (1 + len(cols)),
@@ -385,8 +387,9 @@ def combined_csv(reports: Sequence[dict], sources: Sequence[str] | None = None) 
 # --------------------------------------------------------------------------------------------
 
 def data_label(reports: Sequence[dict]) -> str:
-    """Where the reports' frames come from, for figure titles: "simulator calibration v2, seed 0",
-    "data on disk", or "data source not recorded" (reports written before the field); distinct
+    """Where the reports' frames come from, for figure titles: "simulator calibration v2, seed 0" (with
+    ", preset P" for a simulator preset other than paper and ", --set overrides" when the simulation had
+    some), "data on disk", or "data source not recorded" (reports written before the field); distinct
     sources are joined with " + "."""
     labels = []
     for rep in reports:
@@ -397,6 +400,10 @@ def data_label(reports: Sequence[dict]) -> str:
             lab = f"simulator calibration {src.get('calibration', '?')}"
             if src.get("seed") is not None:
                 lab += f", seed {src['seed']}"
+            if src.get("preset") not in (None, "paper"):
+                lab += f", preset {src['preset']}"
+            if src.get("overrides"):
+                lab += ", --set overrides"
         else:
             lab = "data on disk"
         if lab not in labels:

@@ -7,6 +7,7 @@ naming the file and the fix.
 """
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -79,12 +80,12 @@ def write_predictions(preds: dict, pred_dir: Path) -> None:
 
 def data_source(source) -> dict:
     """What a report's frames are, from the dataset.json `source`: for the simulator its kind,
-    calibration, seed and preset (the figure titles name them); for anything else its kind
-    ("dataset": data on disk)."""
+    calibration, seed, preset and `--set` overrides (figure titles name the calibration and seed,
+    `detbench.eval.report.data_label`); for anything else its kind ("dataset": data on disk)."""
     src = source if isinstance(source, dict) else {}
     if src.get("kind") == "simulator":
         return {"kind": "simulator", "calibration": sim_calibration(src), "seed": src.get("seed"),
-                "preset": src.get("preset")}
+                "preset": src.get("preset"), "overrides": list(src.get("overrides") or [])}
     return {"kind": str(src.get("kind") or "dataset")}
 
 
@@ -178,6 +179,9 @@ def combine_report_files(report_paths, out: Path, *, figures: bool = True, range
     except ValueError as e:
         raise UserError(str(e)) from None
     comb["sources"] = sources
+    if " + " in comb["data"]:  # e.g. reports of two calibrations: the table is not one world's
+        print(f"warning: the reports come from different data ({comb['data']}); combined.md and the figures "
+              f"name them all, but a model's figures at different heights may not be comparable", file=sys.stderr)
     paths = [out / "combined.json", out / "combined.md", out / "combined.csv"]
     atomic_write_json(paths[0], comb)
     atomic_write_text(paths[1], md)

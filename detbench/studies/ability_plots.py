@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_NAMES, RANGES
-from detbench.sim.dataset import sim_calibration
+from detbench.data.layout import sim_calibration
 from detbench.studies.ability import ExampleFrames
 from detbench.utils.figures import LEGEND_SMALL, save_figure, series_colours
 
@@ -98,12 +98,15 @@ def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, li
 
 
 def world_label(report: dict) -> str:
-    """Where an ability report's counts come from, for figure titles: "simulator calibration v2",
-    "data on disk", or "source not recorded"."""
+    """Where an ability report's counts come from, for figure titles: "simulator calibration v2"
+    (streamed), "simulator calibration v2, dataset on disk" (a simulated dataset read back), "data on
+    disk", or "data source not recorded"; the words of `detbench.eval.report.data_label`."""
     src = report.get("extras", {}).get("source") or {}
     if src.get("kind") == "simulator":
         return f"simulator calibration {sim_calibration(src)}"
-    return "data on disk" if src else "source not recorded"
+    if src.get("calibration"):
+        return f"simulator calibration {src['calibration']}, dataset on disk"
+    return "data on disk" if src else "data source not recorded"
 
 
 def plot_ability_by_range(report: dict, path: str | os.PathLike, level: str = "all") -> Path:

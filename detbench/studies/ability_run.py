@@ -64,8 +64,8 @@ def stream_simulator(args: AbilityOptions, study: AbilityStudy) -> dict:
     exact per-box hit counts (same rule and result as points_in_boxes with the 0.05 m
     lift); `--points` simulates full clouds and counts with points_in_boxes instead.
     """
+    from detbench.data.layout import sim_calibration
     from detbench.sim import HighwaySimulator, load_sim_config
-    from detbench.sim.dataset import sim_calibration
 
     heights = args.heights or [0.5, 1.0, 1.8]
     cfg = load_sim_config(args.preset, overrides=tuple(args.overrides))
@@ -139,7 +139,7 @@ def stream_dataset(args: AbilityOptions, study: AbilityStudy) -> dict:
     src = {"kind": "dataset", "root": str(args.data), "split": args.split, "heights": keys,
            "dataset_source": info.source}
     if isinstance(info.source, dict) and info.source.get("kind") == "simulator":
-        from detbench.sim.dataset import sim_calibration
+        from detbench.data.layout import sim_calibration
 
         src["calibration"] = sim_calibration(info.source)  # "v1" for a dataset.json without the id
     if skipped:

@@ -164,8 +164,9 @@ class GraphProgress:
     workers. A job's duration is the mean measured duration of finished jobs of the same kind and
     model; a kind not measured for that model borrows the mean of that kind (a guess, said so until
     every model has run each kind once), a cross-height evaluation that of an evaluation, and an
-    evaluation before any has finished `EVAL_SHARE` of its model's training (a guess); with no
-    training measured the time left is unknown until the first one finishes. Short kinds (data,
+    evaluation before any has finished `EVAL_SHARE` of its model's training (a guess); with
+    neither measured (e.g. a resumed study whose trainings are all done) the time left is unknown
+    until the first training or evaluation finishes. Short kinds (data,
     ability, combine) count only once measured."""
 
     def __init__(self, jobs: list[Job], slots: int, *, stream=None):
@@ -262,7 +263,7 @@ class GraphProgress:
         left, guess = self.left_s(now)
         running = ", ".join(self.jobs[i].what for i in self.running) or "nothing"
         if left is None:
-            eta = "time left: known once a training has finished"
+            eta = "time left: known once a training or an evaluation has finished"
         else:
             eta = f"{_minutes(left)} left" + (" (a guess: some model has not run this kind of job yet)"
                                               if guess else "")

@@ -27,7 +27,8 @@ from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import cross_height_markdown, cross_height_matrix, plot_cross_height
-from detbench.studies.jobs import LOGS_DIR, Job, LocalExecutor, cuda_devices, default_jobs, job_counts, run_graph
+from detbench.studies.jobs import (LOGS_DIR, Job, LocalExecutor, check_graph, cuda_devices, default_jobs, job_counts,
+                                   run_graph)
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.seeds import seed_height_summary, seed_markdown, seed_summary
 from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
@@ -235,12 +236,17 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     # 2-5. the job graph: the ability study, each training, its evaluations, the combined report
     gpu = args.device.startswith("cuda") or (args.device == "auto" and _cuda_available())
     executor = _executor(args, gpu, repo)
-    # several jobs at once (or on Ray) write to their logs only: progress bars there are one endless line of
-    # carriage returns, so the jobs print their per-epoch and summary lines instead
-    logs_only = args.executor == "ray" or executor.slots > 1
-    jobs, reports, cross_reports, seed_reports = _study_jobs(
-        args, out, names, heights, seeds, root, data_cfg, ability_frames, hashes, train_inputs, data_fp,
-        tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu, quiet=logs_only)
+    try:  # until run_graph owns it (it closes it whatever happens): a Ray connection is not left open
+        # several jobs at once (or on Ray) write to their logs only: progress bars there are one endless line of
+        # carriage returns, so the jobs print their per-epoch and summary lines instead
+        logs_only = args.executor == "ray" or executor.slots > 1
+        jobs, reports, cross_reports, seed_reports = _study_jobs(
+            args, out, names, heights, seeds, root, data_cfg, ability_frames, hashes, train_inputs, data_fp,
+            tag=tag, seed_sets=seed_sets, run_dir_of=run_dir_of, primary=primary, gpu=gpu, quiet=logs_only)
+        check_graph(jobs)
+    except BaseException:
+        executor.close()
+        raise
     counts = job_counts(jobs)
     where = ("Ray" if args.executor == "ray" else "this machine") + (" (GPUs)" if gpu else "")
     print(f"\n=== {len(jobs)} jobs ({', '.join(f'{n} {k}' for k, n in counts.items())}), up to {executor.slots} at "
@@ -380,7 +386,7 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
     at the other heights (after the training); the combined report (after every evaluation at the trained
     height). Each decides when it becomes ready whether its output is current (stage records)."""
     py = sys.executable
-    quiet = ["--no-progress"] if args.no_progress or quiet else []
+    quiet_args = ["--no-progress"] if args.no_progress or quiet else []
     eval_device = "cpu" if args.device == "auto" else args.device
     jobs: list[Job] = []
 
@@ -395,13 +401,13 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
         ability_cmd = [py, "tools/analyze.py", "--simulate", str(ability_frames), "--seed",
                        str(data_cfg.get("seed", 0)), "--sim-preset", str(data_cfg.get("sim_preset", "paper")),
                        *sim_sets,
-                       "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet]
+                       "--heights", *map(str, heights), "--out", str(out / "ability"), *quiet_args]
         ability_what = f"ability study ({ability_frames} simulated frames)"
     else:
         ability_inputs = {"heights": heights, "data_fingerprint": dataset_fingerprint(root, heights, hashes)}
         hashes.save()
         ability_cmd = [py, "tools/analyze.py", "--data", str(root), "--split", "all", "--heights",
-                       *map(str, heights), "--out", str(out / "ability"), *quiet]
+                       *map(str, heights), "--out", str(out / "ability"), *quiet_args]
         ability_what = "ability study (every frame)"
 
     def ability_prepare() -> list[str] | None:
@@ -432,7 +438,7 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
             resume = ["--resume"] if (run_dir / "checkpoints").is_dir() else []
             return [py, "tools/train.py", "--model", name, "--height", str(h), "--preset", args.preset,
                     "--data", str(root), "--device", args.device, "--out", str(run_dir), *resume, *sets,
-                    "--no-eval", *quiet]
+                    "--no-eval", *quiet_args]
 
         return Job(stage, "train", f"train {name} {h:g} m{seed_words(seed)}", prepare, model=name,
                    outputs=(run_dir,), gpu=gpu, finish=lambda: write_record(out, stage, train_inputs[(name, h, seed)]))
@@ -458,7 +464,7 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
                 print(f"note: {report} was computed from other inputs ({'; '.join(diff)}); evaluating again",
                       flush=True)
             return [py, "tools/eval.py", "--ckpt", ckpt, *(["--test-height", str(t)] if t != h else []),
-                    "--split", "test", "--out", str(report.parent), "--device", eval_device, *quiet]
+                    "--split", "test", "--out", str(report.parent), "--device", eval_device, *quiet_args]
 
         job = Job(stage, "eval" if t == h else "cross_eval", what, prepare, deps=(_train_stage(name, h, tag(seed)),),
                   model=name, outputs=(report.parent,), gpu=gpu and eval_device.startswith("cuda"),

@@ -157,11 +157,13 @@ def test_figure_titles_name_the_data_source(tmp_path, monkeypatch):
     assert data_label([{}]) == "data source not recorded"
     mixed = [{"data_source": sim}, {"data_source": {**sim, "seed": 7}}, {"data_source": sim}]
     assert data_label(mixed) == "simulator calibration v2, seed 0 + simulator calibration v2, seed 7"
+    other = {**sim, "preset": "v1", "overrides": ["traffic.density_per_km_lane=20"]}
+    assert data_label([{"data_source": other}]) == "simulator calibration v2, seed 0, preset v1, --set overrides"
     titles = []
     real_save = rep_mod.save_figure
 
     def keep_title(fig, path):
-        titles.append(fig._suptitle.get_text())
+        titles.append(fig.get_suptitle())
         return real_save(fig, path)
 
     monkeypatch.setattr(rep_mod, "save_figure", keep_title)
@@ -171,6 +173,8 @@ def test_figure_titles_name_the_data_source(tmp_path, monkeypatch):
     plot_by_level(reps, tmp_path / "c.png")
     assert len(titles) == 3 and all(t.endswith("(simulator calibration v2, seed 0)") for t in titles)
     assert "simulator calibration v2, seed 0" in report_to_markdown(reps[0])
+    assert combine_reports(reps)["data"] == "simulator calibration v2, seed 0"
+    assert "Frames: simulator calibration v2, seed 0." in combined_markdown(reps)
 
 
 def test_combine_refuses_cross_height_and_first_stage_reports_unless_labelled():

@@ -48,7 +48,8 @@ def test_the_figure_title_names_the_data_source(tmp_path, monkeypatch):
     mat = cross_height_matrix([{**r, "data_source": sim} for r in _reports()])
     assert mat["data"] == "simulator calibration v2, seed 0"
     titles = []
-    monkeypatch.setattr(ch, "save_figure", lambda fig, path: titles.append(fig._suptitle.get_text()) or path)
+    real_save = ch.save_figure
+    monkeypatch.setattr(ch, "save_figure", lambda fig, path: titles.append(fig.get_suptitle()) or real_save(fig, path))
     plot_cross_height(mat, tmp_path / "y.png")
     assert titles == ["AP@R40, small range, all level (red: same height; simulator calibration v2, seed 0)"]
 

@@ -78,10 +78,19 @@ def test_time_left_is_the_longest_remaining_path_over_the_workers():
     assert left == pytest.approx(110.0)  # train_b + eval_b; eval_a's 6 s run beside them
     del prog.measured[("train", "b")]
     assert prog.left_s(now=4.0) == (pytest.approx(110.0), True)  # b's training borrows a's: a guess
-    # trainings measured but no evaluation yet: each evaluation guessed at EVAL_SHARE of its training
-    early = GraphProgress(jobs, slots=2)
-    early.measured = {("train", "a"): [100.0]}
-    assert early.left_s() == (pytest.approx(100.0 + GraphProgress.EVAL_SHARE * 100.0), True)
+    # trainings measured but no evaluation yet: each evaluation guessed at EVAL_SHARE of its model's training,
+    # a cross-height evaluation at that of an evaluation, a model with no training measured borrowing another's
+    share = GraphProgress.EVAL_SHARE
+    chain = [job("train_a", [], model="a"), job("train_b", [], model="b"),
+             job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
+             job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a"),
+             job("eval_b", [], deps=["train_b"], kind="eval", model="b")]
+    early = GraphProgress(chain, slots=1)
+    early.measured = {("train", "a"): [200.0]}
+    assert early.left_s() == (pytest.approx(200.0 + 200.0 + 3 * share * 200.0), True)  # one worker: the work
+    wide = GraphProgress(chain, slots=4)
+    wide.measured = {("train", "a"): [200.0], ("train", "b"): [40.0]}
+    assert wide.left_s() == (pytest.approx(200.0 + share * 200.0), True)  # four workers: a's chain, not the work
 
 
 def test_jobs_run_at_once_after_their_dependencies_and_the_output_goes_to_their_logs(tmp_path, capsys):

@@ -61,10 +61,11 @@ def test_the_study_on_a_local_ray_instance_matches_the_local_executor(tiny_datas
     local = study(tiny_dataset, tmp_path / "local", [0.5], jobs=1)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
-        on_ray = study(tiny_dataset, tmp_path / "ray", [0.5], executor="ray")
+        on_ray = study(tiny_dataset, tmp_path / "ray", [0.5], executor="ray", no_progress=False)
     finally:
         ray.shutdown()
-    assert (tmp_path / "ray" / "logs" / "train_second_h0.5.log").is_file()
+    log = (tmp_path / "ray" / "logs" / "train_second_h0.5.log").read_text()
+    assert "epoch 1/" in log and "\r" not in log  # a Ray task's output goes to its log only: no progress bars
     assert on_ray == local
 
 

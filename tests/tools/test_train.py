@@ -115,7 +115,7 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     assert "=== 8 jobs (1 ability, 2 train, 2 eval, 2 cross_eval, 1 combine), up to 1 at once" in proc.stdout
     assert "=== start train second 0.5 m | running: train second 0.5 m | 0/8 done" in proc.stdout  # longest path first
     later = proc.stdout.split("=== start combine reports")[1].splitlines()[0]
-    assert "left" in later and "known once" not in later  # known once a training has run
+    assert "left" in later and "known once" not in later  # known once a training or an evaluation has run
     assert "wrote " in (out / "logs" / "eval_second_h0.5_on_h0.5.log").read_text()  # each job's own log
     md = (out / "study.md").read_text()
     assert md.index("## Summary") < md.index("## 1. LiDAR detection ability")
