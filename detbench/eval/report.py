@@ -386,11 +386,11 @@ def combined_csv(reports: Sequence[dict], sources: Sequence[str] | None = None) 
 # figures
 # --------------------------------------------------------------------------------------------
 
-def data_label(reports: Sequence[dict]) -> str:
-    """Where the reports' frames come from, for figure titles: "simulator calibration v2, seed 0" (with
-    ", preset P" for a simulator preset other than paper and ", --set overrides" when the simulation had
-    some), "data on disk", or "data source not recorded" (reports written before the field); distinct
-    sources are joined with " + "."""
+def data_labels(reports: Sequence[dict]) -> list[str]:
+    """Where the reports' frames come from, each distinct source once, in first-seen order:
+    "simulator calibration v2, seed 0" (with ", preset P" for a simulator preset other than paper and
+    ", --set overrides" when the simulation had some), "data on disk", or "data source not recorded"
+    (reports written before the field)."""
     labels = []
     for rep in reports:
         src = rep.get("data_source")
@@ -408,7 +408,12 @@ def data_label(reports: Sequence[dict]) -> str:
             lab = "data on disk"
         if lab not in labels:
             labels.append(lab)
-    return " + ".join(labels) if labels else "no reports"
+    return labels
+
+
+def data_label(reports: Sequence[dict]) -> str:
+    """`data_labels` for figure titles: distinct sources joined with " + "."""
+    return " + ".join(data_labels(reports)) or "no reports"
 
 
 def _grid(reports: Sequence[dict]):
@@ -528,5 +533,5 @@ def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "
 __all__ = [
     "check_report", "report_to_markdown", "report_to_csv", "report_rows", "summary_lines",
     "combine_reports", "combined_markdown", "combined_csv", "label_variants", "report_variant",
-    "plot_by_height", "plot_by_range", "plot_by_level", "data_label", "METRIC_FIELDS",
+    "plot_by_height", "plot_by_range", "plot_by_level", "data_label", "data_labels", "METRIC_FIELDS",
 ]

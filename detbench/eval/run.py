@@ -15,8 +15,8 @@ from detbench.data import Height3Dataset, split_ids
 from detbench.data.layout import sim_calibration
 from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
-from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, label_variants, plot_by_height,
-                                  plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
+from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, data_labels, label_variants,
+                                  plot_by_height, plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
 from detbench.utils.cli import UserError
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
@@ -102,7 +102,7 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
     except (ValueError, KeyError) as e:
         raise UserError(str(e)) from None
     full = {"model": model, "height": float(height), "split": split, "data": str(data),
-            "data_source": data_source(getattr(getattr(dataset, "info", None), "source", None)),
+            "data_source": data_source(dataset.info.source),
             "predictions": str(source), **report}
     if checkpoint is not None:
         full["trained_height"] = checkpoint.trained_height
@@ -179,7 +179,7 @@ def combine_report_files(report_paths, out: Path, *, figures: bool = True, range
     except ValueError as e:
         raise UserError(str(e)) from None
     comb["sources"] = sources
-    if " + " in comb["data"]:  # e.g. reports of two calibrations: the table is not one world's
+    if len(data_labels(reports)) > 1:  # e.g. reports of two calibrations: the table is not one world's
         print(f"warning: the reports come from different data ({comb['data']}); combined.md and the figures "
               f"name them all, but a model's figures at different heights may not be comparable", file=sys.stderr)
     paths = [out / "combined.json", out / "combined.md", out / "combined.csv"]

@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from detbench.config import shipped_default, shipped_defaults
 from detbench.data.frame import height_key
-from detbench.data.layout import DATASET_FOLDER, PREVIOUS_CALIBRATION, calibration_id, sim_calibration  # noqa: F401
+from detbench.data.layout import DATASET_FOLDER, sim_calibration
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from detbench.data.frame import height_key
-from detbench.sim.dataset import sim_calibration
+from detbench.data.layout import sim_calibration
 from detbench.sim.lidar import LidarConfig, lidar_preset
 from detbench.utils.io import atomic_write_json, atomic_write_text
 

@@ -181,18 +181,21 @@ class GraphProgress:
 
     def estimate(self, job: Job) -> tuple[float | None, bool]:
         """(seconds, a guess?) for one job; None: no measurement to go by."""
-        own = self.measured.get((job.kind, job.model))
+        return self._estimate(job.kind, job.model)
+
+    def _estimate(self, kind: str, model: str | None) -> tuple[float | None, bool]:
+        own = self.measured.get((kind, model))
         if own:
             return sum(own) / len(own), False
-        same = [t for (k, _), ts in self.measured.items() if k == job.kind for t in ts]
+        same = [t for (k, _), ts in self.measured.items() if k == kind for t in ts]
         if same:
             return sum(same) / len(same), True
-        if job.kind == "cross_eval":  # an evaluation at another height costs about what one at its own does
-            return self.estimate(Job(job.id, "eval", job.what, job.prepare, model=job.model))[0], True
-        if job.kind == "eval":  # no evaluation measured yet: a share of the model's training time
-            train, _ = self.estimate(Job(job.id, "train", job.what, job.prepare, model=job.model))
+        if kind == "cross_eval":  # an evaluation at another height costs about what one at its own does
+            return self._estimate("eval", model)[0], True
+        if kind == "eval":  # no evaluation measured yet: a share of the model's training time
+            train, _ = self._estimate("train", model)
             return (None if train is None else self.EVAL_SHARE * train), True
-        return (None, True) if job.kind == "train" else (0.0, False)
+        return (None, True) if kind == "train" else (0.0, False)
 
     def left_s(self, now: float | None = None) -> tuple[float | None, bool]:
         """(seconds left, a guess?): see the class docstring."""

@@ -136,7 +136,7 @@ def run_sweep(args: SweepOptions) -> dict:
     from detbench.studies.placement import EVIDENCE_SCALE_POINTS, VoxelGrid, ray_coverage
     from detbench.studies.sweep import HeightSweep
     from detbench.sim import load_sim_config
-    from detbench.sim.dataset import sim_calibration
+    from detbench.data.layout import sim_calibration
 
     sensor_changes, sim_overrides = split_overrides(args.overrides)
     lidars, base = sweep_lidars(args, sensor_changes)

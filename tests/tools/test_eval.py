@@ -127,6 +127,13 @@ def test_combine_cli(tmp_path, capsys):
         assert (out / name).stat().st_size > 0, name
     comb = json.loads((out / "combined.json").read_text())
     assert comb["models"] == ["A", "B"] and comb["sources"] == list(map(str, paths))
+    assert comb["data"] == "data source not recorded" and "warning" not in capsys.readouterr().err
+    # reports of two simulator calibrations: combined, named, and warned about
+    for p, cal in zip(paths, ("v1", "v2", "v1", "v2")):
+        atomic_write_json(p, dict(json.loads(p.read_text()), data_source={"kind": "simulator", "calibration": cal}))
+    assert run_main(tool.main, ["--combine", *map(str, paths), "--out", str(out), "--no-figures"]) == 0
+    assert "come from different data (simulator calibration v1 + simulator calibration v2)" in capsys.readouterr().err
+    assert "Frames: simulator calibration v1 + simulator calibration v2." in (out / "combined.md").read_text()
     # a report without a model name is refused with the fix
     bad = json.loads(paths[0].read_text())
     bad["model"] = None

@@ -80,7 +80,8 @@ def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
     # datasets written with the long form of the label ("v2" and a note in parentheses) read as "v2", in the
     # dataset.json source and in the config it holds; the bare ids pass unchanged
     from detbench.data import read_info
-    from detbench.sim.dataset import calibration_id, sim_calibration, simulate_dataset
+    from detbench.data.layout import calibration_id, sim_calibration
+    from detbench.sim.dataset import simulate_dataset
 
     long_label = f"v2 (issue {16})"
     assert calibration_id(long_label) == "v2" and calibration_id("v2") == "v2" and calibration_id("v1") == "v1"
@@ -97,7 +98,8 @@ def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
 def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path):
     from detbench.data import read_info
     from detbench.sim import load_sim_config
-    from detbench.sim.dataset import PREVIOUS_CALIBRATION, sim_calibration, simulate_dataset
+    from detbench.data.layout import PREVIOUS_CALIBRATION, sim_calibration
+    from detbench.sim.dataset import simulate_dataset
 
     v2 = load_sim_config("paper")["calibration"]  # the default is v2; v1 is a preset
     assert v2 == "v2" and load_sim_config("carla-tm") == load_sim_config("paper")
