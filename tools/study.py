@@ -57,8 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default="quick", choices=preset_names(),
                     help="training budget, configs/presets/NAME.yaml (data, epochs, model widths): quick (real "
                          "figures: the whole study of four detectors in about 50 min on 2 CPU cores), smoke (a "
-                         "minute; proves the pipeline, learns nothing: tests and CI), cpu (6-11 min per model and "
-                         "height on one core, PointRCNN about 30), "
+                         "minute; proves the pipeline, learns nothing: tests and CI), cpu (7-16 min per model and "
+                         "height on one core, PointRCNN the longest), "
                          "paper (the paper's scale; a GPU). Default quick")
     ap.add_argument("--models", nargs="+", default=None,
                     help=f"detectors, any of {', '.join(sorted(models.REGISTRY))} (default: the preset's "

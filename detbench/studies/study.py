@@ -56,7 +56,7 @@ PRESET_CAVEATS = {
              "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful "
              "within the intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
              "80 epochs). The ability figures are at the paper's scale.*",
-    "cpu": "*Preset `cpu` trains each detector 6-11 minutes (PointRCNN about 30) on one CPU core: absolute "
+    "cpu": "*Preset `cpu` trains each detector 7-16 minutes on one CPU core: absolute "
            "figures are below the "
            "paper's scale; differences between heights and models hold within the intervals shown.*",
     "paper": "*Preset `paper`: the paper's data size and schedule.*",
