@@ -49,7 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
                     help="training budget, configs/presets/NAME.yaml (data, epochs, model widths). "
                          "smoke: proves the pipeline in a minute or two; cpu: learns for real in 7-16 min "
-                         "per detector on one CPU core; paper: the paper's scale (8000 frames, full model; a GPU). Default cpu")
+                         "per detector on one CPU core; paper: the paper's scale (8000 frames, full model; "
+                         "a GPU). Default cpu")
     ap.add_argument("--config", default=None, help="a config file instead of configs/<model>.yaml")
     ap.add_argument("--epochs", type=int, default=None, help="override train.epochs")
     ap.add_argument("--batch-size", type=int, default=None, help="override train.batch_size (frames per process)")

@@ -6,7 +6,9 @@ loss or outputs went NaN, a full disk); its `__main__` guard is `sys.exit(run_ma
 which prints the message and returns exit status 2. `UserError` is a `SystemExit`, so a
 tool's `main` called in-process (tests) stops the same way and
 `pytest.raises(SystemExit, match=...)` sees the message. Anything else is a bug and keeps
-its traceback (exit status 1).
+its traceback (exit status 1). Ctrl-C ends with one line and exit status 130 (128 + SIGINT, as a
+shell reports it): a tool that saves its work on an interrupt (training, the study, the trade sweep)
+has said so by then, and a traceback would bury that.
 """
 from __future__ import annotations
 
@@ -19,10 +21,11 @@ from collections.abc import Callable, Sequence
 from detbench.utils.io import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
-__all__ = ["EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "check_out_dir", "require", "run_main",
-           "torch_device"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "check_out_dir", "require",
+           "run_main", "torch_device"]
 
 EXIT_USER_ERROR = 2
+EXIT_INTERRUPTED = 130
 
 
 class UserError(SystemExit):
@@ -41,14 +44,18 @@ def _escape_unencodable_output() -> None:
 
 
 def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
-    """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status.
-    Output the terminal cannot encode (a file name that is not UTF-8) is printed escaped (`\\xff`)."""
+    """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status,
+    and Ctrl-C as one 'interrupted' line and 130. Output the terminal cannot encode (a file name that is not
+    UTF-8) is printed escaped (`\\xff`)."""
     _escape_unencodable_output()
     try:
         return main(argv)
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR
+    except KeyboardInterrupt:
+        print("interrupted (Ctrl-C)", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def doc_parser(doc: str, **kwargs) -> argparse.ArgumentParser:

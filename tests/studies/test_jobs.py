@@ -194,6 +194,39 @@ def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp
     assert "interrupted: stopping train m" in out and "run the same command again to resume" in out
 
 
+TOOL_DRIVER = """
+import sys
+from pathlib import Path
+from detbench.studies.jobs import Job, LocalExecutor, run_graph
+from detbench.utils.cli import run_main
+d = Path(sys.argv[1])
+training = sys.argv[2]
+
+def main(_argv):
+    run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", training, str(d)], model="m")],
+              LocalExecutor(2), d / "logs", poll_s=0.05)
+    return 0
+
+sys.exit(run_main(main))
+"""
+
+
+def test_ctrl_c_ends_a_tool_with_one_line_and_status_130(tmp_path):
+    """As tools/study.py ends: the study's own lines on how to resume, then 'interrupted', no traceback."""
+    proc = subprocess.Popen([sys.executable, "-c", TOOL_DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+    for _ in range(600):
+        if (tmp_path / "started").exists():
+            break
+        time.sleep(0.05)
+    os.kill(proc.pid, signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out
+    assert "Traceback" not in out and "KeyboardInterrupt" not in out
+    assert "run the same command again to resume" in out and out.rstrip().endswith("interrupted (Ctrl-C)")
+    assert (tmp_path / "checkpoint").read_text() == "step 3"
+
+
 def test_a_cross_height_evaluation_borrows_the_time_of_an_evaluation():
     jobs = [job("train_a", [], model="a"), job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
             job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a")]
