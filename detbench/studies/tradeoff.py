@@ -29,10 +29,11 @@ from pathlib import Path
 from collections.abc import Iterable, Mapping, Sequence
 
 from detbench.data.regions import RANGE_NAMES, range_extent_label
+from detbench.eval.report import data_label
 from detbench.utils.figures import save_figure
 
 __all__ = ["pareto_flags", "mark_pareto", "Task", "Plan", "plan_within_budget", "CostModel", "PRIOR_SECONDS",
-           "train_seconds_at_step", "tradeoff_markdown", "plot_tradeoff", "plot_learning_curves"]
+           "train_seconds_at_step", "tradeoff_markdown", "plot_tradeoff", "plot_learning_curves", "world_label"]
 
 
 # ---- Pareto front ---------------------------------------------------------------------------
@@ -245,11 +246,18 @@ def _front_cell(p: Mapping, key: str = "pareto") -> str:
     return "**" + ", ".join(on) + "**" if on else ""
 
 
+def world_label(meta: Mapping) -> str:
+    """What every point of a sweep was measured on, for titles: "quick preset, 1.8 m, simulator calibration v2,
+    seed 0" (`detbench.eval.report.data_label` of the meta's "data_source")."""
+    return (f"{meta.get('preset')} preset, {_f(meta.get('height'), 'g')} m, "
+            f"{data_label([{'data_source': meta.get('data_source')}])}")
+
+
 def tradeoff_markdown(result: Mapping) -> str:
     """tradeoff.md: the points with the Pareto front marked, the front per range, the region
     comparison, the learning curves, skipped and failed work. `result` is tradeoff.json's dict."""
     meta, points = result.get("meta", {}), result.get("points", [])
-    lines = [f"# Speed / accuracy trade ({meta.get('preset')} preset, {meta.get('height')} m)", "",
+    lines = [f"# Speed / accuracy trade ({world_label(meta)})", "",
              f"Machine: {meta.get('processor')}, {meta.get('cpu_count')} cores, torch {meta.get('torch')}; "
              f"1-min load average {meta.get('load_average_start')} at the start, {meta.get('load_average_end')} "
              f"at the end. Data: `{meta.get('data')}` (simulator config sha256 {meta.get('sim_config_sha256')}). "
@@ -359,10 +367,11 @@ def _ap_limits(ax, values) -> None:
     ax.set_ylim(-0.02, max(0.1, min(1.0, top) * 1.1))
 
 
-def plot_tradeoff(points: Sequence[Mapping], path: str | Path) -> Path:
+def plot_tradeoff(points: Sequence[Mapping], path: str | Path, world: str = "") -> Path:
     """Latency (median, ms per frame, log scale) against AP@R40, one panel per range; every point
     a marker (filled: trained at that point, hollow: the preset model changed at inference), one
-    line per model through its own Pareto front, a star on the front of all models. Returns path."""
+    line per model through its own Pareto front, a star on the front of all models; `world` (`world_label`)
+    heads the title. Returns path."""
     from matplotlib.figure import Figure
 
 
@@ -388,16 +397,16 @@ def plot_tradeoff(points: Sequence[Mapping], path: str | Path) -> Path:
         ax.set_title(range_extent_label(r))
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8, title="model (line: its Pareto front)", title_fontsize=8)
-    fig.suptitle("Latency against accuracy; filled: trained at the point, hollow: preset model changed at "
-                 "inference; star: on the front of all models")
+    fig.suptitle((f"{world}: " if world else "") + "latency against accuracy; filled: trained at the point, "
+                 "hollow: preset model changed at inference; star: on the front of all models")
     return save_figure(fig, path)
 
 
-def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset_points: Mapping[str, Mapping] = {}
-                         ) -> Path:
+def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset_points: Mapping[str, Mapping] = {},
+                         world: str = "") -> Path:
     """AP@R40 against training CPU-minutes, one panel per range, one line per model (its run's
     checkpoints); `preset_points` {model: {"train_cpu_s", "accuracy"}} adds the preset's own
-    final model as a cross. Returns path."""
+    final model as a cross; `world` (`world_label`) heads the title. Returns path."""
     from matplotlib.figure import Figure
 
 
@@ -422,5 +431,6 @@ def plot_learning_curves(curves: Mapping[str, Mapping], path: str | Path, preset
         ax.set_title(range_extent_label(r))
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8)
-    fig.suptitle("Learning curves: checkpoints of one run per model, evaluated on the test split")
+    fig.suptitle((f"{world}: " if world else "") + "learning curves, checkpoints of one run per model, "
+                 "evaluated on the test split")
     return save_figure(fig, path)

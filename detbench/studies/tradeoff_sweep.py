@@ -22,12 +22,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from detbench.config import CONFIG_DIR, ConfigError
+from detbench.data.layout import read_info
+from detbench.eval.run import data_source
 from detbench.data.regions import RANGE_NAMES
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.runner import CommandResult, log_tail, run_command
 from detbench.studies.tradeoff import (
     PRIOR_SECONDS, CostModel, Task, mark_pareto, plan_within_budget, plot_learning_curves, plot_tradeoff,
-    train_seconds_at_step, tradeoff_markdown,
+    train_seconds_at_step, tradeoff_markdown, world_label,
 )
 from detbench.studies.tradeoff_points import KNOBS, Point, sweep_points
 from detbench.train.run_config import load_run_config
@@ -400,6 +402,7 @@ def _meta(sw: Sweep) -> dict:
     return {"preset": sw.opts.preset, "height": sw.opts.height, "models": list(sw.preset_cfgs),
             "knobs": list(sw.opts.knobs), "device": sw.device, "data": str(sw.root),
             "sim_config_sha256": hashlib.sha256(sim.read_bytes()).hexdigest()[:12] if sim.is_file() else None,
+            "data_source": data_source(read_info(sw.root).source),
             "frames": sw.opts.frames, "warmup": sw.opts.warmup, "eval_frames": sw.opts.eval_frames,
             "budget_min": sw.opts.budget, "elapsed_s": round(time.perf_counter() - sw.t0, 1),
             "machine": platform.machine(), "processor": platform.processor() or platform.machine(),
@@ -419,9 +422,9 @@ def _write_outputs(sw: Sweep, skipped: list[dict], final: bool) -> dict:
     atomic_write_text(sw.out / "tradeoff.md", tradeoff_markdown(result))
     if final:
         if points:
-            plot_tradeoff(points, sw.out / "tradeoff.png")
+            plot_tradeoff(points, sw.out / "tradeoff.png", world_label(result["meta"]))
         if curves:
-            plot_learning_curves(curves, sw.out / "learning_curve.png", ends)
+            plot_learning_curves(curves, sw.out / "learning_curve.png", ends, world_label(result["meta"]))
     return result
 
 

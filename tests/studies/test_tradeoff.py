@@ -13,7 +13,7 @@ from detbench.config import ConfigError
 from detbench.studies.runner import run_command
 from detbench.studies.tradeoff import (
     CostModel, Task, mark_pareto, pareto_flags, plan_within_budget, plot_learning_curves, plot_tradeoff,
-    train_seconds_at_step, tradeoff_markdown,
+    train_seconds_at_step, tradeoff_markdown, world_label,
 )
 from detbench.studies.tradeoff_points import KNOBS, fit_range, scale_widths, set_dotted, sweep_points
 from detbench.utils.bench import median_p90
@@ -165,6 +165,10 @@ def test_markdown_marks_the_front_and_unmodelled_ranges(tmp_path):
               "skipped": [{"task": "measure a width x2", "estimated_s": 99.0, "reason": "too long"}],
               "failed": [{"task": "train a voxel", "error": "boom\nlast line"}]}
     md = tradeoff_markdown(result)
+    assert md.splitlines()[0] == "# Speed / accuracy trade (smoke preset, 1.8 m, data source not recorded)"
+    sim = {"kind": "simulator", "calibration": "v2", "seed": 3, "preset": "paper", "overrides": []}
+    label = world_label({**result["meta"], "data_source": sim})
+    assert label == "smoke preset, 1.8 m, simulator calibration v2, seed 3"
     rows = {ln.split(" | ")[1]: ln for ln in md.splitlines() if ln.startswith("| a |")}
     assert rows["preset"].endswith("**small, moderate, large** |")
     assert rows["region small"].endswith("**small** |") and rows["region small"].count("n/m") == 4
@@ -309,6 +313,8 @@ def test_reduced_smoke_sweep_writes_points_with_pareto_flags(tiny_dataset, tmp_p
     assert by["random 4096 points"]["points_per_frame"] <= 4096
     assert any(any(v for v in p["pareto"].values()) for p in pts)  # some point is on a front
     assert (out / "tradeoff.md").read_text().count("| second |") == len(pts)
+    assert (out / "tradeoff.md").read_text().splitlines()[0] == f"# Speed / accuracy trade ({world_label(res['meta'])})"
+    assert "data source not recorded" not in world_label(res["meta"])  # the dataset's source is read
     assert (out / "tradeoff.png").stat().st_size > 10_000
     # the learning curve: a 4-epoch run (2 x the preset's 2), every checkpoint evaluated, time increasing
     curve = res["curves"]["second"]
