@@ -398,7 +398,7 @@ def plot_tradeoff(points: Sequence[Mapping], path: str | Path, world: str = "") 
         ax.grid(True, alpha=0.3)
     axes[0].legend(fontsize=8, title="model (line: its Pareto front)", title_fontsize=8)
     fig.suptitle((f"{world}: " if world else "") + "latency against accuracy; filled: trained at the point, "
-                 "hollow: preset model changed at inference; star: on the front of all models")
+                 "hollow: the preset's model, as is or changed at inference; star: on the front of all models")
     return save_figure(fig, path)
 
 
