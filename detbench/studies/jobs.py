@@ -12,7 +12,9 @@ once it succeeded. Both run in the driver process, one at a time.
 while the executor has a free slot, prints one progress line per event (`GraphProgress`), and
 on a failed job prints its log's path and last lines, starts nothing new and sends SIGINT to the
 running jobs so a training writes its checkpoint and exits (train_summary.json "interrupted");
-Ctrl-C does the same. The study resumes afterwards with the same command.
+Ctrl-C does the same, and so does SIGTERM (`kill PID`: a study started with nohup or `&` from a
+script ignores Ctrl-C's SIGINT, as the shell starts it). The study resumes afterwards with the same
+command.
 
 `LocalExecutor` runs the jobs as child processes of this machine: `slots` at once, each with
 one torch and one numba thread (`JOB_ENV`) whatever the number of slots, so results do not
@@ -27,7 +29,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -391,12 +394,37 @@ class GraphResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
+@contextmanager
+def _sigterm_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt in the driver while the graph runs, so `kill PID` stops a study as
+    Ctrl-C does (its trainings write their checkpoints). Only the main thread can set a handler; elsewhere
+    (a test's thread) SIGTERM keeps its default."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None = None,
               poll_s: float = 1.0) -> GraphResult:
     """Run `jobs` (the longest remaining path first among those ready) on `executor`; each job's output in
     `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
-    naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C
+    naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C (or SIGTERM)
     stopped them. See the module's docstring."""
+    with _sigterm_as_ctrl_c():
+        return _run_graph(jobs, executor, logs, progress=progress, poll_s=poll_s)
+
+
+def _run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None,
+               poll_s: float) -> GraphResult:
     check_graph(jobs)
     for j in jobs:
         j.log = Path(logs) / f"{j.id}.log"

@@ -45,8 +45,8 @@ def _escape_unencodable_output() -> None:
 
 def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status,
-    and Ctrl-C as one 'interrupted' line and 130. Output the terminal cannot encode (a file name that is not
-    UTF-8) is printed escaped (`\\xff`)."""
+    and Ctrl-C (KeyboardInterrupt) as one 'interrupted' line and 130. Output the terminal cannot encode (a file
+    name that is not UTF-8) is printed escaped (`\\xff`)."""
     _escape_unencodable_output()
     try:
         return main(argv)
@@ -54,7 +54,7 @@ def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | 
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
-        print("interrupted (Ctrl-C)", file=sys.stderr)
+        print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 
