@@ -8,7 +8,7 @@ split; (4) each evaluated on the same height's test split (Table VII); (5) one c
 report with the paper's Fig. 8-10.
 
 Examples:
-  python tools/study.py --preset quick                 # the quick start: real figures in ~50 min on 2 CPU cores
+  python tools/study.py --preset quick                 # the quick start: real figures in ~45 min on 2 CPU cores
   python tools/study.py --preset smoke                 # the pipeline end to end in a minute (tests, CI)
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--preset", default="quick", choices=preset_names(),
                     help="training budget, configs/presets/NAME.yaml (data, epochs, model widths): quick (real "
-                         "figures: the whole study of four detectors in about 50 min on 2 CPU cores), smoke (a "
+                         "figures: the whole study of four detectors in about 45 min on 2 CPU cores), smoke (a "
                          "minute; proves the pipeline, learns nothing: tests and CI), cpu (7-16 min per model and "
                          "height on one core, PointRCNN the longest), "
                          "paper (the paper's scale; a GPU). Default quick")

@@ -169,7 +169,7 @@ def test_every_model_config_says_its_drop():
     from detbench.train.run_config import load_run_config
 
     drops = {m: load_run_config(m, "quick")["road"]["drop"] for m in ("pointrcnn", "second", "pillarnet", "ct3d")}
-    assert drops == {"pointrcnn": True, "second": False, "pillarnet": False, "ct3d": False}
+    assert drops == {"pointrcnn": True, "second": False, "pillarnet": True, "ct3d": True}
     with pytest.raises(ConfigError, match="road.mrgin"):
         load_run_config("second", "quick", overrides=["road.mrgin=0.1"])
 
