@@ -169,6 +169,12 @@ def test_a_failed_job_keeps_the_users_error_apart_from_a_bug(tmp_path, status, e
         run_graph([job("train_m", py(f"import sys; sys.exit({status})"))], LocalExecutor(1), tmp_path, poll_s=0.05)
 
 
+def as_in_a_terminal() -> None:
+    """The driver's SIGINT as a terminal's foreground process has it: a suite started with nohup or `&` from a
+    script passes SIGINT on ignored, and Ctrl-C would then be tested against a process that cannot see it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 DRIVER = """
 import sys
 from pathlib import Path
@@ -182,7 +188,8 @@ run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", tra
 
 def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
+                            preexec_fn=as_in_a_terminal)
     for _ in range(600):
         if (tmp_path / "started").exists():
             break
@@ -216,7 +223,8 @@ def test_ctrl_c_or_sigterm_ends_a_tool_with_one_line_and_status_130(tmp_path, si
     """As tools/study.py ends on Ctrl-C or `kill PID`: the running training writes its checkpoint, the study says
     how to resume, then one 'interrupted' line, no traceback."""
     proc = subprocess.Popen([sys.executable, "-c", TOOL_DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT)
+                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
+                            preexec_fn=as_in_a_terminal)
     for _ in range(600):
         if (tmp_path / "started").exists():
             break
