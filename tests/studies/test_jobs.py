@@ -186,14 +186,20 @@ run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", tra
 """
 
 
-def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp_path):
-    proc = subprocess.Popen([sys.executable, "-c", DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
+def start_driver(script: str, d: Path) -> subprocess.Popen:
+    """`script` run with the fake training in `d`, SIGINT as in a terminal; returns once the training started."""
+    proc = subprocess.Popen([sys.executable, "-c", script, str(d), TRAINING], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
                             preexec_fn=as_in_a_terminal)
     for _ in range(600):
-        if (tmp_path / "started").exists():
+        if (d / "started").exists():
             break
         time.sleep(0.05)
+    return proc
+
+
+def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp_path):
+    proc = start_driver(DRIVER, tmp_path)
     os.kill(proc.pid, signal.SIGINT)  # the driver only: it passes SIGINT on to its jobs
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode != 0 and "KeyboardInterrupt" in out
@@ -222,13 +228,7 @@ sys.exit(run_main(main))
 def test_ctrl_c_or_sigterm_ends_a_tool_with_one_line_and_status_130(tmp_path, sig):
     """As tools/study.py ends on Ctrl-C or `kill PID`: the running training writes its checkpoint, the study says
     how to resume, then one 'interrupted' line, no traceback."""
-    proc = subprocess.Popen([sys.executable, "-c", TOOL_DRIVER, str(tmp_path), TRAINING], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
-                            preexec_fn=as_in_a_terminal)
-    for _ in range(600):
-        if (tmp_path / "started").exists():
-            break
-        time.sleep(0.05)
+    proc = start_driver(TOOL_DRIVER, tmp_path)
     os.kill(proc.pid, sig)
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 130, out
