@@ -10,11 +10,14 @@ once it succeeded. Both run in the driver process, one at a time.
 
 `run_graph` is the driver both executors share: it starts every job whose dependencies are done
 while the executor has a free slot, prints one progress line per event (`GraphProgress`), and
-on a failed job prints its log's path and last lines, starts nothing new and sends SIGINT to the
+on a failed job prints its log's path and last lines, starts nothing new and sends SIGTERM to the
 running jobs so a training writes its checkpoint and exits (train_summary.json "interrupted");
-Ctrl-C does the same, and so does SIGTERM (`kill PID`: a study started with nohup or `&` from a
-script ignores Ctrl-C's SIGINT, as the shell starts it). The study resumes afterwards with the same
-command.
+Ctrl-C does the same, and so does SIGTERM to the driver (`kill PID`: a study started with nohup or
+`&` from a script ignores Ctrl-C's SIGINT, as the shell starts it). The jobs get SIGTERM, not
+SIGINT, because they inherit that ignored SIGINT: a job still starting, before the training loop
+installs its handler, would not see SIGINT and would run on until the kill after STOP_GRACE_S;
+SIGTERM ends it at once (it has not trained yet) and, once the loop runs, makes it save a
+checkpoint. The study resumes afterwards with the same command.
 
 `LocalExecutor` runs the jobs as child processes of this machine: `slots` at once, each with
 one torch and one numba thread (`JOB_ENV`) whatever the number of slots, so results do not
@@ -350,10 +353,10 @@ class LocalExecutor:
             time.sleep(0.05)
 
     def interrupt(self) -> None:
-        """SIGINT to every running job (a training writes its checkpoint and exits)."""
+        """SIGTERM to every running job (a training writes its checkpoint and exits; a job still starting ends)."""
         for p, _, _ in self.procs.values():
             if p.poll() is None:
-                p.send_signal(signal.SIGINT)
+                p.send_signal(signal.SIGTERM)
 
     def kill(self) -> None:
         for p, _, _ in self.procs.values():
@@ -521,7 +524,7 @@ def _report_failure(job: Job, rc: int, progress: GraphProgress, others: list[str
 
 
 def _stop_all(executor, progress: GraphProgress, by_id: dict[str, Job]) -> None:
-    """SIGINT to the running jobs, then wait for them (a kill after STOP_GRACE_S); a second Ctrl-C kills at once."""
+    """SIGTERM to the running jobs, then wait for them (a kill after STOP_GRACE_S); a second Ctrl-C kills at once."""
     executor.interrupt()
     deadline = time.monotonic() + STOP_GRACE_S
     try:

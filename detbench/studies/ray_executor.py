@@ -9,7 +9,7 @@ function is pickled by value and imports only the standard library, so a worker 
 the project's Python environment, not this module. Why Ray: docs/cluster.md.
 
 A stopped study (a failed job, Ctrl-C) cancels the running tasks: Ray raises KeyboardInterrupt in
-each, which sends SIGINT to its command (a training writes its checkpoint) and waits for it.
+each, which sends SIGTERM to its command (a training writes its checkpoint) and waits for it.
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def _job_task(grace_s: float):
             try:
                 return proc.wait()
             except BaseException:  # ray.cancel: KeyboardInterrupt in this task
-                proc.send_signal(_signal.SIGINT)
+                proc.send_signal(_signal.SIGTERM)
                 try:
                     proc.wait(timeout=grace_s)
                 except _subprocess.TimeoutExpired:

@@ -10,22 +10,25 @@ from pathlib import Path
 
 import pytest
 
+import detbench.studies.jobs as jobs_mod
 from detbench.studies.jobs import (
     GraphProgress, Job, LocalExecutor, busy_cores, check_graph, free_cpus, run_graph,
 )
 from detbench.utils.cli import UserError
 from tests.helpers import ROOT
 
-# A job that stands for a training: it marks itself started, and on SIGINT writes its "checkpoint" and exits
-# 130 (as tools/train.py does); given "resume" it finishes at once, noting that it resumed.
+# A job that stands for a training: it marks itself started, and on SIGINT or SIGTERM writes its "checkpoint"
+# and exits 130 (as tools/train.py does); given "resume" it finishes at once, noting that it resumed.
 TRAINING = """
 import signal, sys, time
 from pathlib import Path
 d = Path(sys.argv[1])
-def stop(*_):
+def stop(signum, _frame):
     (d / "checkpoint").write_text("step 3")
+    (d / "stopped_by").write_text(signal.Signals(signum).name)
     sys.exit(130)
 signal.signal(signal.SIGINT, stop)
+signal.signal(signal.SIGTERM, stop)
 if sys.argv[2:] == ["resume"]:
     (d / "done").write_text("resumed from " + (d / "checkpoint").read_text())
     sys.exit(0)
@@ -123,7 +126,7 @@ def test_one_job_at_a_time_streams_its_output_and_keeps_its_log(tmp_path, capfd)
 
 
 def test_a_failed_job_stops_the_study_and_the_running_training_checkpoints_then_it_resumes(tmp_path, capsys):
-    """The failed job's log is named and its last lines shown; the training running beside it gets SIGINT and
+    """The failed job's log is named and its last lines shown; the training running beside it gets SIGTERM and
     writes its checkpoint; the job waiting for a slot never starts. The same graph again (the error fixed)
     keeps what finished, resumes the training and runs the rest."""
     run, fixed = tmp_path / "train", tmp_path / "fixed"
@@ -155,6 +158,7 @@ def test_a_failed_job_stops_the_study_and_the_running_training_checkpoints_then_
     assert "ValueError: the config is wrong" in out and "log line 29" in out and "log line 5\n" not in out
     assert "stopping train m" in out
     assert (run / "checkpoint").read_text() == "step 3" and not (run / "done").exists()
+    assert (run / "stopped_by").read_text() == "SIGTERM"
     assert not (tmp_path / "waiting").exists()
 
     fixed.write_text("1")
@@ -167,6 +171,36 @@ def test_a_failed_job_stops_the_study_and_the_running_training_checkpoints_then_
 def test_a_failed_job_keeps_the_users_error_apart_from_a_bug(tmp_path, status, error):
     with pytest.raises(error, match="train m failed"):
         run_graph([job("train_m", py(f"import sys; sys.exit({status})"))], LocalExecutor(1), tmp_path, poll_s=0.05)
+
+
+class RecordingExecutor(LocalExecutor):
+    """A LocalExecutor that keeps every ended job's exit status."""
+
+    def __init__(self, slots: int):
+        super().__init__(slots)
+        self.ended: dict[str, int] = {}
+
+    def wait(self, timeout: float) -> list[tuple[str, int]]:
+        ended = super().wait(timeout)
+        self.ended.update(ended)
+        return ended
+
+
+def test_a_job_still_starting_under_nohup_ends_on_the_stop_at_once(tmp_path, monkeypatch):
+    """A job started by a study run with nohup or `&` inherits SIGINT ignored; before the training loop installs
+    its handler it sees only SIGTERM, which the stop sends: it ends by that signal, not by the kill that follows
+    STOP_GRACE_S (set long here, so a missed signal would show as the kill's status, or the test's timeout)."""
+    monkeypatch.setattr(jobs_mod, "STOP_GRACE_S", 60.0)
+    starting = ("import pathlib, signal, sys, time\nsignal.signal(signal.SIGINT, signal.SIG_IGN)\n"
+                "pathlib.Path(sys.argv[1]).write_text('1')\ntime.sleep(120)\npathlib.Path(sys.argv[2]).write_text('ran')")
+    fail = ("import pathlib, sys, time\nfor _ in range(500):\n    if pathlib.Path(sys.argv[1]).exists(): break\n"
+            "    time.sleep(0.02)\nsys.exit(3)")
+    executor = RecordingExecutor(2)
+    with pytest.raises(SystemExit):
+        run_graph([job("train_m", py(starting, tmp_path / "started", tmp_path / "ran")),
+                   job("eval_bad", py(fail, tmp_path / "started"), kind="eval")], executor, tmp_path / "logs",
+                  poll_s=0.05)
+    assert executor.ended["train_m"] == -signal.SIGTERM and not (tmp_path / "ran").exists()
 
 
 def as_in_a_terminal() -> None:
@@ -205,6 +239,7 @@ def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp
     assert proc.returncode != 0 and "KeyboardInterrupt" in out
     assert (tmp_path / "checkpoint").read_text() == "step 3" and not (tmp_path / "done").exists()
     assert "interrupted: stopping train m" in out and "run the same command again to resume" in out
+    assert (tmp_path / "stopped_by").read_text() == "SIGTERM"  # what the driver sends its jobs
 
 
 TOOL_DRIVER = """
