@@ -71,11 +71,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from itertools import combinations
 
 import numpy as np
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
+from detbench.eval.paper import paper_recall
 from detbench.eval.report import check_report
 
 METRICS: tuple[str, ...] = ("recall", "ap_r40")
@@ -561,6 +563,77 @@ def seed_height_summary(groups: Mapping, pool: bool = True) -> dict:
             for m, items in by_model.items() if len(items) > 1}
 
 
+def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
+    """Every pair of models at each height, in every range, for recall and AP@R40 (All vehicles).
+
+    groups as in `seed_summary`. Returns {height: {range: {metric: {"ranking": [{"model", "mean",
+    "ci95"}] (by seed mean, best first), "pairs": [{"model", "over", **lead}]}}}}: one entry per pair,
+    the better-ranked model first, with lead as in `seed_summary` ("diff", "ci95", "ahead", "verdict",
+    ...). A pair counts as resolved ("ahead") only where the 95 % interval of the lead, scenes and both
+    models' seed spread together, excludes 0. Fractions in [0, 1], leads in [-1, 1]."""
+    out: dict[float, dict] = {}
+    for h, items in _combined_groups(groups, pool).items():
+        by_range: dict[str, dict] = {}
+        for r in RANGE_NAMES:
+            for metric in METRICS:
+                cell = {m: comb["results"][r]["all"][metric] for m, (_, comb) in items.items()}
+                ranked = sorted((m for m in items if cell[m]["mean"] is not None), key=lambda m: -cell[m]["mean"])
+                pairs = []
+                for a, b in combinations(ranked, 2):
+                    lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], r, "all", metric,
+                                 items[a][1]["confidence"])
+                    if lead is not None:
+                        pairs.append({"model": a, "over": b, **lead})
+                by_range.setdefault(r, {})[metric] = {
+                    "ranking": [{"model": m, "mean": cell[m]["mean"], "ci95": cell[m]["ci95"]} for m in ranked],
+                    "pairs": pairs}
+        out[h] = by_range
+    return out
+
+
+def pairwise_markdown(leads: Mapping) -> list[str]:
+    """study.md's table of `pairwise_leads`: per height, range and metric the ranking and the resolved pairs."""
+    lines = ["Every pair of models at each height (All vehicles): the ranking by seed mean, then each lead whose "
+             "95 % interval (test scenes and both models' seed spread) excludes 0; a pair not listed is not "
+             "resolved. Leads are differences of fractions.", "",
+             "| Height | Range | Metric | Ranking (seed mean) | Resolved leads [95 %] |", "|---|---|---|---|---|"]
+    for h, by_range in leads.items():
+        for r, by_metric in by_range.items():
+            for metric, entry in by_metric.items():
+                ranking = " > ".join(f"{e['model']} {_f(e['mean'], 2)}" for e in entry["ranking"]) or "-"
+                resolved = "; ".join(f"{p['model']} over {p['over']} {_f(p['diff'], 2, signed=True)} "
+                                     f"{_ci2(p['ci95'], signed=True)}" for p in entry["pairs"] if p["ahead"]) or "none"
+                lines.append(f"| {h:g} m | {r} | {METRIC_WORDS[metric]} | {ranking} | {resolved} |")
+    return lines
+
+
+def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> list[str]:
+    """The one-table answer to "which detector": per model and height the seed mean of AP@R40 (small range)
+    and of recall (small with its interval, moderate, large), All vehicles, with intervals over test scenes
+    and seeds, the paper's Table VII recall for the same cell and the mean training minutes.
+
+    groups as in `seed_summary`; train_minutes: {(model, height): minutes per training} or None."""
+    lines = ["| Detector | Height | Seeds | AP@R40 small [95 %] | Recall small [95 %] / moderate / large | "
+             "The paper's recall (Table VII) | Training min |", "|---|---|---:|---|---|---|---:|"]
+    by_model: dict[str, list[tuple[float, dict]]] = {}
+    for h, items in _combined_groups(groups, pool).items():
+        for m, (_, comb) in items.items():
+            by_model.setdefault(m, []).append((h, comb))
+    for m, cells in by_model.items():
+        for h, comb in sorted(cells, key=lambda x: x[0]):
+            res = comb["results"]
+            ap, rs = res["small"]["all"]["ap_r40"], res["small"]["all"]["recall"]
+            paper = paper_recall(m, h)
+            minutes = (train_minutes or {}).get((m, h))
+            lines.append(
+                f"| {m} | {h:g} m | {comb['num_seeds']} | {_f(ap['mean'], 2)} {_ci2(ap['ci95'])} | "
+                f"{_f(rs['mean'], 2)} {_ci2(rs['ci95'])} / {_f(res['moderate']['all']['recall']['mean'], 2)} / "
+                f"{_f(res['large']['all']['recall']['mean'], 2)} | "
+                f"{' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} | "
+                f"{'-' if minutes is None else f'{minutes:.1f}'} |")
+    return lines
+
+
 # --------------------------------------------------------------------------------------------
 # Markdown for study.md
 # --------------------------------------------------------------------------------------------
@@ -575,6 +648,13 @@ def _ci(ci, signed: bool = False) -> str:
     if not ci:
         return "(no interval)"
     return f"[{_f(ci[0], signed=signed)}, {_f(ci[1], signed=signed)}]"
+
+
+def _ci2(ci, signed: bool = False) -> str:
+    """An interval to two decimals, as the README's tables give it."""
+    if not ci:
+        return "(no interval)"
+    return f"[{_f(ci[0], 2, signed)}, {_f(ci[1], 2, signed)}]"
 
 
 def _seeds_text(seeds: Sequence) -> str:
@@ -669,5 +749,6 @@ def seed_markdown(groups: Mapping, pool: bool = True) -> list[str]:
 
 
 __all__ = ["seed_combined", "pool_seed_spread", "seed_summary", "seed_height_summary", "seed_markdown",
+           "pairwise_leads", "pairwise_markdown", "detector_table",
            "student_t_quantile", "METRICS",
            "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "RECALL_CELL", "AP_CELL"]

@@ -30,7 +30,9 @@ from detbench.studies.cross_height import cross_height_markdown, cross_height_ma
 from detbench.studies.jobs import (LOGS_DIR, Job, LocalExecutor, check_graph, cuda_devices, default_jobs, job_counts,
                                    run_graph)
 from detbench.studies.registry import ModelRegistry
-from detbench.studies.seeds import seed_height_summary, seed_markdown, seed_summary
+from detbench.studies.seeds import (
+    detector_table, pairwise_leads, pairwise_markdown, seed_height_summary, seed_markdown, seed_summary,
+)
 from detbench.studies.split_check import compare_splits, split_check_markdown, split_check_warnings
 from detbench.studies.stage_inputs import (
     RECORDS_DIR, FileHashes, changes, config_digest, dataset_fingerprint, training_config, write_record,
@@ -285,10 +287,12 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     source_detect = detect_source()
     # training time per model from the runs' own summaries: true across resumed invocations
     train_s: dict[str, float] = {}
+    train_min: dict[tuple[str, float], list[float]] = {}  # per model and height: minutes of each seed's training
     for name in names:
         for h, seed in ((h, seed) for h in heights for seed in seeds):
             summ = read_json(run_dir_of(name, h, seed) / "train_summary.json")
             train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
+            train_min.setdefault((name, h), []).append(float(summ.get("train_seconds") or 0.0) / 60.0)
     train_words = (f"Training time (the runs' own, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
                    "resumed invocations included): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
@@ -316,7 +320,8 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         atomic_write_text(out / "cross_height" / "cross_height.md", "\n".join(["# Cross-height matrix", "",
                                                                              *cross_lines[2:]]))
         study["cross_height"] = mats
-    seed_lines = _seed_section(study, seeds, seed_reports)
+    seed_lines = _seed_section(study, seeds, seed_reports,
+                               {k: sum(v) / len(v) for k, v in train_min.items()})
     atomic_write_json(out / "study.json", study)
 
     def embed(md_path: Path, source: str) -> str:
@@ -502,9 +507,11 @@ def _study_jobs(args: StudyOptions, out: Path, names: list[str], heights: list[f
     return jobs, reports, cross_reports, seed_reports
 
 
-def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, float], list[Path]]) -> list[str]:
-    """With several seeds: study["seeds"] and study.md's section, per model and height the mean over seeds with
-    the interval holding seed spread and scene bootstrap next to the single-seed scene bootstrap interval."""
+def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, float], list[Path]],
+                  train_minutes: dict[tuple[str, float], float]) -> list[str]:
+    """With several seeds: study["seeds"] and study.md's section: the detector table (seed means with the
+    interval of scenes and seeds, the paper's Table VII recall, training minutes), every resolved pair of
+    models, then per model and height the mean over seeds next to the single-seed scene bootstrap interval."""
     if len(seeds) < 2:
         return []
     groups = {}
@@ -516,9 +523,14 @@ def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, f
             groups[key].append(rep)
     # detbench.studies.seeds: the seed mean per model and height with the interval of scenes and seeds, next to
     # the scene-only interval; a model or height called ahead only where that interval of its lead excludes 0
+    leads = pairwise_leads(groups)
     study["seeds"] = {"seeds": seeds, "by_height": {f"{h:g}": cell for h, cell in seed_summary(groups).items()},
-                      "by_model": seed_height_summary(groups)}
-    return [*seed_markdown(groups), ""]
+                      "by_model": seed_height_summary(groups),
+                      "pairs": {f"{h:g}": cell for h, cell in leads.items()},
+                      "train_minutes": {f"{m} {h:g}": round(t, 2) for (m, h), t in train_minutes.items()}}
+    return ["**Which detector** (seed means; small range 0-50 m, moderate 0-100 m, large 0-150 m; training "
+            "minutes: the mean over seeds, as the runs report them):", "",
+            *detector_table(groups, train_minutes), "", *pairwise_markdown(leads), "", *seed_markdown(groups), ""]
 
 
 def _cuda_available() -> bool:

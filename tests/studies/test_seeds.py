@@ -16,6 +16,7 @@ import pytest
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.studies.seeds import (
+    detector_table, pairwise_leads, pairwise_markdown,
     LEAD_REPLICATES, METRICS, pool_seed_spread, seed_combined, seed_height_summary, seed_markdown, seed_summary,
     student_t_quantile,
 )
@@ -351,3 +352,40 @@ def test_the_seed_spread_is_pooled_over_a_models_heights():
     # one height only: nothing to pool
     single = seed_summary({("second", 1.8): groups[("second", 1.8)]})[1.8]["models"]["second"]
     assert "seed_df" not in single["results"]["small"]["all"]["recall"]
+
+
+def test_every_pair_is_compared_and_only_the_resolved_leads_are_listed():
+    """Three models: two clearly ahead of the third, and within each other's seed spread."""
+    groups = {("second", 1.8): _seeds("second", (0.8, 0.7, 0.75)),
+              ("ct3d", 1.8): _seeds("ct3d", (0.72, 0.78, 0.76)),
+              ("pillarnet", 1.8): _seeds("pillarnet", (0.2, 0.22, 0.21))}
+    leads = pairwise_leads(groups)[1.8]
+    for r in RANGE_NAMES:
+        for metric in METRICS:
+            entry = leads[r][metric]
+            assert [e["model"] for e in entry["ranking"]][-1] == "pillarnet", (r, metric)
+            assert len(entry["pairs"]) == 3  # every pair once, the better-ranked model first
+            for p in entry["pairs"]:
+                assert p["diff"] >= 0 and p["ahead"] == (p["ci95"][0] > 0), p
+            by_pair = {(p["model"], p["over"]): p for p in entry["pairs"]}
+            assert by_pair[(entry["ranking"][0]["model"], "pillarnet")]["ahead"], (r, metric)
+            top_two = [e["model"] for e in entry["ranking"][:2]]
+            assert not by_pair[tuple(top_two)]["ahead"], (r, metric, "within the seed spread")
+    text = "\n".join(pairwise_markdown(pairwise_leads(groups)))
+    assert "| 1.8 m | large | Recall |" in text and " over pillarnet +0." in text
+    assert "second over ct3d" not in text and "ct3d over second" not in text
+
+
+def test_the_detector_table_sets_the_papers_table_vii_beside_each_cell():
+    groups = {("second", h): _seeds("second", (0.8, 0.7), height=h, hidden=hidden)
+              for h, hidden in ((0.5, (3, 5)), (1.8, ()))}
+    groups[("mymodel", 1.8)] = _seeds("mymodel", (0.6, 0.65))
+    lines = detector_table(groups, {("second", 0.5): 4.25, ("second", 1.8): 5.0})
+    rows = {tuple(c.strip() for c in ln.split("|")[1:3]): ln for ln in lines[2:]}
+    assert set(rows) == {("second", "0.5 m"), ("second", "1.8 m"), ("mymodel", "1.8 m")}
+    comb = seed_combined(groups[("second", 0.5)])["results"]
+    ap = comb["small"]["all"]["ap_r40"]["mean"]
+    assert f"| {ap:.2f} [" in rows[("second", "0.5 m")]
+    assert "| 0.97 / 0.90 / 0.85 | 4.2 |" in rows[("second", "0.5 m")]  # Table VII: SECOND at 0.5 m
+    assert "| 0.97 / 0.91 / 0.85 | 5.0 |" in rows[("second", "1.8 m")]
+    assert rows[("mymodel", "1.8 m")].endswith("| - | - |")  # not in the paper, no training time given

@@ -85,6 +85,10 @@ def test_seeds_train_each_run_once_per_seed_and_the_report_gives_the_spread(tiny
     assert comb["num_seeds"] == 2 and comb["seeds"] == [0, 1]
     md = (out / "study.md").read_text()
     assert "**Over the training seeds** 0, 1" in md and "seed sd" in md and "scene-only" in md
+    # the one-table answer: seed means, the paper's Table VII recall beside them, the training minutes
+    minutes = got["seeds"]["train_minutes"]["second 0.5"]
+    assert minutes > 0 and "| second | 0.5 m | 2 | " in md and f"| 0.97 / 0.90 / 0.85 | {minutes:.1f} |" in md
+    assert "| 0.5 m | large | Recall | second " in md and got["seeds"]["pairs"]["0.5"]["large"]["recall"]["pairs"] == []
     # the same command again: every job is kept
     capsys.readouterr()
     study(tiny_dataset, out, [0.5], jobs=2, seeds=[0, 1])
