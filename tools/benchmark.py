@@ -4,9 +4,10 @@
 Latency is the median over --frames real (simulated or --data) frames after --warmup
 passes, split by stage (voxelize / backbone / head / post-processing; each model names its
 stages), on CPU and on CUDA when present. With --study DIR (a tools/study.py output) the
-models' trained checkpoints are used and each model's AP@R40 / recall is joined to its cost,
-like the paper's Table III next to its accuracy. --train-steps N also times N training steps
-(forward, loss, backward, AdamW step) on batches of --train-batch frames. --load N measures
+models' trained checkpoints are used, timed on the test frames of the study's own dataset, and
+each model's AP@R40 / recall is joined to its cost, like the paper's Table III next to its accuracy.
+--train-steps N also times N training steps (forward, loss, backward, AdamW step) on batches of
+--train-batch frames. --load N measures
 everything again beside N busy-loop processes (started for it, stopped after) and reports
 idle and loaded figures side by side.
 
@@ -51,10 +52,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="training budget, configs/presets/NAME.yaml: the model size to build when no checkpoint is "
                          "given (default cpu)")
     ap.add_argument("--study", default=None, metavar="DIR",
-                    help="a tools/study.py output: use its trained checkpoints and join their reports")
+                    help="a tools/study.py output: use its trained checkpoints, time them on its dataset's test "
+                         "frames and join their reports")
     ap.add_argument("--height", type=float, default=1.8, help="LiDAR height of the frames (and of --study runs)")
     ap.add_argument("--data", default=None, metavar="ROOT",
-                    help="dataset for the frames (default: simulated smoke set)")
+                    help="dataset for the frames (default: the --study's dataset, else the simulated smoke set)")
     ap.add_argument("--frames", type=int, default=10, help="timed frames (default 10)")
     ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
@@ -106,6 +108,20 @@ def worker(args) -> dict:
                             train_steps=args.train_steps, train_batch=args.train_batch, road=road)
 
 
+def study_data(study: str | None) -> str | None:
+    """The dataset a tools/study.py output was trained and tested on (its study.json "data"), so --study times
+    the frames its models were tested on; None without --study or when that study has not finished yet."""
+    if not study:
+        return None
+    path = Path(study) / "study.json"
+    root = read_json(path).get("data") if path.is_file() else None
+    if root and Path(root).is_dir():
+        return str(root)
+    print(f"note: {path} names no dataset on this machine (the study has not finished, or its data moved): "
+          f"timing frames of the smoke preset's simulated dataset instead; --data ROOT picks others", flush=True)
+    return None
+
+
 def check_arguments(args: argparse.Namespace) -> None:
     """UserError for a value that would time nothing or cannot run, before any model is built."""
     for flag, v, low in (("--frames", args.frames, 1), ("--warmup", args.warmup, 0),
@@ -138,6 +154,7 @@ def main(argv=None) -> int:
             raise UserError(f"--models: {e}") from None
     if args.study and not Path(args.study).is_dir():
         raise UserError(f"--study {args.study}: no such folder; give the --out folder of a tools/study.py run")
+    data = args.data or study_data(args.study)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     results = []
     for name in names:
@@ -156,8 +173,8 @@ def main(argv=None) -> int:
                    "--frames", str(args.frames), "--warmup", str(args.warmup)]
             if args.threads:
                 cmd += ["--threads", str(args.threads)]
-            if args.data:
-                cmd += ["--data", args.data]
+            if data:
+                cmd += ["--data", data]
             if args.train_steps > 0:
                 cmd += ["--train-steps", str(args.train_steps), "--train-batch", str(args.train_batch)]
 
@@ -185,7 +202,8 @@ def main(argv=None) -> int:
             "python": platform.python_version(), "torch": torch.__version__,
             "threads": results[0]["threads"] if results else args.threads,
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
-            "preset": args.preset, "study": args.study, "height": args.height}
+            "preset": args.preset, "study": args.study, "height": args.height,
+            "frames_from": data or "the smoke preset's simulated dataset"}
     out = Path(args.out)
     atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
     atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results))
