@@ -7,9 +7,8 @@ stages), on CPU and on CUDA when present. With --study DIR (a tools/study.py out
 models' trained checkpoints are used, timed on the test frames of the study's own dataset, and
 each model's AP@R40 / recall is joined to its cost, like the paper's Table III next to its accuracy.
 --train-steps N also times N training steps (forward, loss, backward, AdamW step) on batches of
---train-batch frames. --load N measures
-everything again beside N busy-loop processes (started for it, stopped after) and reports
-idle and loaded figures side by side.
+--train-batch frames. --load N measures everything again beside N busy-loop processes (started
+for it, stopped after) and reports idle and loaded figures side by side.
 
 Examples:
   python tools/benchmark.py                         # every model, its cpu-preset size, CPU
