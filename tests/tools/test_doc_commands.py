@@ -4,7 +4,8 @@ The commands are taken from the ```bash / ```sh blocks (continuation lines joine
 dropped, `;` and `&&` split) and from inline code that starts with `python tools/...` or
 `python -m detbench...`. Each one is parsed by its tool's own argument parser (the tool's
 `main` runs until its `parse_args` returns, then stops), so a flag or a choice that does not
-exist fails here with the file and line that show it. Placeholders the docs use on purpose
+exist fails here with the file and line that show it, and so does a `--set KEY=VALUE` whose key
+the config it overrides does not have. Placeholders the docs use on purpose
 (`...`, `[--flag X]` for an optional part) are read as such.
 
 The slow test runs a chain of the README's commands for real, at the smoke preset and a few
@@ -127,7 +128,15 @@ def _argv(argv: list[str]) -> list[str] | None:
     None when the command is elided (`...` standing for arguments) and cannot be parsed whole."""
     if "..." in argv:
         return None
-    return [a.strip("[]") for a in argv if a.strip("[]")]
+    out, optional = [], False
+    for a in argv:
+        if a.startswith("[-"):  # `[--flag X]`: the brackets mark an optional part, the values inside stay
+            a, optional = a[1:], True
+        if optional and a.endswith("]"):
+            a, optional = a[:-1], False
+        if a:
+            out.append(a)
+    return out
 
 
 def parse_with_tool(module: str, argv: list[str]) -> argparse.Namespace:
@@ -165,12 +174,41 @@ def test_doc_command_parses(where, line, cmd, capsys):
     if argv is None:
         pytest.skip("elided command (`...`)")
     try:
-        parse_with_tool(module, argv)
+        ns = parse_with_tool(module, argv)
     except SystemExit as e:
         if e.code == 0 and "--help" in argv:
             return
         raise AssertionError(f"{where}:{line}: `{cmd}` is refused by {module}'s parser: "
                              f"{capsys.readouterr().err.strip().splitlines()[-1:]}") from e
+    problem = check_overrides(ns)
+    assert problem is None, f"{where}:{line}: `{cmd}`: {problem}"
+
+
+def check_overrides(ns: argparse.Namespace) -> str | None:
+    """The --set KEY=VALUE of a parsed command checked against the config it overrides (a run config for the
+    training tools, the simulator's for the simulator tools): the loader's error, or None when every key exists.
+    Placeholder values (upper-case words such as VALUE) are not checked."""
+    sets = [o for o in getattr(ns, "overrides", None) or [] if not re.fullmatch(r"[\w.]+=[A-Z_]+", o)]
+    if not sets:
+        return None
+    from detbench.config import ConfigError
+    from detbench.utils.cli import UserError
+    try:
+        if hasattr(ns, "sim_preset"):
+            from detbench.sim import load_sim_config
+            if hasattr(ns, "lidar"):  # tools/sweep.py: sensor.FIELD=VALUE changes the swept sensor
+                from detbench.studies.sweep_sim import split_overrides
+                _, sets = split_overrides(sets)
+            load_sim_config(ns.sim_preset, overrides=tuple(sets))
+        else:
+            from detbench.train.run_config import load_run_config
+            from models import REGISTRY
+            model = getattr(ns, "model", None) or (getattr(ns, "models", None) or ["second"])[0]
+            model = model if model in REGISTRY else "second"  # a placeholder (`--model M`): any detector's config
+            load_run_config(model, getattr(ns, "preset", None), overrides=sets)
+    except (ConfigError, UserError) as e:
+        return f"--set {' '.join(sets)}: {e}"
+    return None
 
 
 def help_commands() -> list[tuple[str, str]]:
@@ -204,10 +242,12 @@ def test_help_example_parses(tool, cmd, capsys):
     if argv is None or module.startswith("?"):
         pytest.skip("elided command (`...`)")
     try:
-        parse_with_tool(module, argv)
+        ns = parse_with_tool(module, argv)
     except SystemExit as e:
         raise AssertionError(f"tools/{tool}.py --help shows `{cmd}`, which {module}'s parser refuses: "
                              f"{capsys.readouterr().err.strip().splitlines()[-1:]}") from e
+    problem = check_overrides(ns)
+    assert problem is None, f"tools/{tool}.py --help shows `{cmd}`: {problem}"
 
 
 def test_a_wrong_flag_fails_the_parse(capsys):
@@ -218,6 +258,13 @@ def test_a_wrong_flag_fails_the_parse(capsys):
         parse_with_tool("tools.study", ["--preset", "huge"])
     ns = parse_with_tool("tools.sweep", ["--frames", "8", "--sim-preset", "v1"])
     assert ns.sim_preset == "v1" and ns.frames == 8
+    # and a --set key the config does not have, for a training tool and for a simulator tool
+    assert "no_such_key" in check_overrides(parse_with_tool("tools.train", ["--height", "1.8", "--set",
+                                                                            "train.no_such_key=1"]))
+    assert check_overrides(parse_with_tool("tools.train", ["--height", "1.8", "--set", "train.epochs=3"])) is None
+    assert "no_such_key" in check_overrides(parse_with_tool("tools.simulate", ["--out", "x", "--set",
+                                                                                "traffic.no_such_key=1"]))
+    assert _argv(["[--resume]", "--set", "k=[1,2]", "[--jobs", "2]"]) == ["--resume", "--set", "k=[1,2]", "--jobs", "2"]
     cmds = _segments("python tools/a.py --x 1 \\\n    --y 2   # note\npython tools/b.py; python tools/c.py && echo hi")
     assert cmds == ["python tools/a.py --x 1 --y 2", "python tools/b.py", "python tools/c.py", "echo hi"]
 
