@@ -82,7 +82,8 @@ def add_sim_preset_argument(parser: argparse.ArgumentParser, default: str = "pap
     is kept as its deprecated spelling for one release: accepted, with a note on stderr."""
     parser.add_argument("--sim-preset", dest="sim_preset", default=default, metavar="NAME",
                         help=f"simulator calibration: a preset of configs/sim.yaml (default {default}){detail}; "
-                             f"not a training budget")
+                             f"paper (also carla-tm) is calibration v2, the CARLA-like world every figure of the "
+                             f"README uses; v1 the earlier world fitted to Table IV; not a training budget")
     parser.add_argument("--preset", dest="sim_preset", action=_DeprecatedSimPreset, metavar="NAME",
                         help="deprecated spelling of --sim-preset, accepted for one release")
 
