@@ -62,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt     # its own height\n"
                "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt --test-height 0.5\n"
                "  python tools/eval.py --data data/sim --height 1.8 --pred PRED_DIR --out runs/eval_second_1.8\n"
-               "  python tools/eval.py --combine runs/study_quick/*_h*/eval_*_test/report.json --out runs/combined\n"
+               "  python tools/eval.py --combine runs/study_quick/*_h?.?/eval_*_test/report.json --out runs/combined\n"
                "--ckpt writes OUT/report.json, report.md, report.csv and OUT/pred/ (default OUT: the run folder's\n"
                "eval_h<height>_<split>, with _proposals for --stage proposals). --combine refuses cross-height and\n"
                "first-stage-only reports unless --with-variants. Units: metres, radians; recall, AP@R40 and LDR\n"

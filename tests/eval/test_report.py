@@ -104,8 +104,12 @@ def test_combine_and_table_vii_layout():
 
 def test_combine_rejects_inconsistent_reports():
     reps = reports_grid()
-    with pytest.raises(ValueError, match="also in"):
+    with pytest.raises(ValueError, match="also in") as e:
         combine_reports(reps + [reps[0]])
+    assert "training seeds" not in str(e.value)
+    # the same model and height from two training seeds: the error says so and how to combine one seed
+    with pytest.raises(ValueError, match="training seeds 0 and 1: combine one seed's reports"):
+        combine_reports([dict(reps[0], train_seed=0), *reps[1:], dict(reps[0], train_seed=1)])
     no_model = dict(reps[0], model=None)
     with pytest.raises(ValueError, match="no 'model'"):
         combine_reports([no_model])
