@@ -32,13 +32,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from detbench.studies.runner import STOP_GRACE_S
-from detbench.utils.cli import EXIT_USER_ERROR, UserError
+from detbench.utils.cli import EXIT_USER_ERROR, UserError, sigterm_as_ctrl_c
 
 LOGS_DIR = "logs"  # OUT/logs/<job id>.log
 TAIL_LINES = 20  # lines of a failed job's log printed with its path
@@ -397,32 +396,13 @@ class GraphResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-@contextmanager
-def _sigterm_as_ctrl_c() -> Iterator[None]:
-    """SIGTERM raises KeyboardInterrupt in the driver while the graph runs, so `kill PID` stops a study as
-    Ctrl-C does (its trainings write their checkpoints). Only the main thread can set a handler; elsewhere
-    (a test's thread) SIGTERM keeps its default."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def handler(signum, frame):
-        raise KeyboardInterrupt
-
-    old = signal.signal(signal.SIGTERM, handler)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, old)
-
-
 def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None = None,
               poll_s: float = 1.0) -> GraphResult:
     """Run `jobs` (the longest remaining path first among those ready) on `executor`; each job's output in
     `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
     naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C (or SIGTERM)
     stopped them. See the module's docstring."""
-    with _sigterm_as_ctrl_c():
+    with sigterm_as_ctrl_c():  # `kill PID` of a driver run outside a tool's run_main, too
         return _run_graph(jobs, executor, logs, progress=progress, poll_s=poll_s)
 
 

@@ -8,21 +8,26 @@ tool's `main` called in-process (tests) stops the same way and
 `pytest.raises(SystemExit, match=...)` sees the message. Anything else is a bug and keeps
 its traceback (exit status 1). Ctrl-C ends with one line and exit status 130 (128 + SIGINT, as a
 shell reports it): a tool that saves its work on an interrupt (training, the study, the trade sweep)
-has said so by then, and a traceback would bury that.
+has said so by then, and a traceback would bury that. SIGTERM (`kill PID`, and how a stopped study
+stops its jobs) is taken as Ctrl-C, so a tool killed so unwinds the same way: a file being
+written atomically is dropped rather than left as a stray temporary, and a training saves.
 """
 from __future__ import annotations
 
 import argparse
 import io
+import signal
 import sys
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
-from collections.abc import Callable, Sequence
 
 from detbench.utils.io import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "check_out_dir", "require",
-           "run_main", "torch_device"]
+           "run_main", "sigterm_as_ctrl_c", "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -49,13 +54,33 @@ def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | 
     name that is not UTF-8) is printed escaped (`\\xff`)."""
     _escape_unencodable_output()
     try:
-        return main(argv)
+        with sigterm_as_ctrl_c():
+            return main(argv)
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+
+
+@contextmanager
+def sigterm_as_ctrl_c() -> Iterator[None]:
+    """SIGTERM raises KeyboardInterrupt while the block runs, so `kill PID` stops a command as Ctrl-C does
+    (a training loop installs its own handler for both and saves first). Only the main thread can set a
+    handler; elsewhere (a test's thread) SIGTERM keeps its default."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
 
 
 def doc_parser(doc: str, **kwargs) -> argparse.ArgumentParser:

@@ -24,6 +24,8 @@ import signal, sys, time
 from pathlib import Path
 d = Path(sys.argv[1])
 def stop(signum, _frame):
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the first signal decides; the checkpoint is written once
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     (d / "checkpoint").write_text("step 3")
     (d / "stopped_by").write_text(signal.Signals(signum).name)
     sys.exit(130)
@@ -220,11 +222,12 @@ run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", tra
 """
 
 
-def start_driver(script: str, d: Path) -> subprocess.Popen:
-    """`script` run with the fake training in `d`, SIGINT as in a terminal; returns once the training started."""
+def start_driver(script: str, d: Path, *, own_group: bool = False) -> subprocess.Popen:
+    """`script` run with the fake training in `d`, SIGINT as in a terminal (`own_group`: in a process group of
+    its own, as a terminal's foreground job); returns once the training started."""
     proc = subprocess.Popen([sys.executable, "-c", script, str(d), TRAINING], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, env={**os.environ, "PYTHONPATH": str(ROOT)}, cwd=ROOT,
-                            preexec_fn=as_in_a_terminal)
+                            preexec_fn=as_in_a_terminal, start_new_session=own_group)
     for _ in range(600):
         if (d / "started").exists():
             break
@@ -234,12 +237,23 @@ def start_driver(script: str, d: Path) -> subprocess.Popen:
 
 def test_ctrl_c_stops_the_jobs_after_their_checkpoint_and_says_how_to_resume(tmp_path):
     proc = start_driver(DRIVER, tmp_path)
-    os.kill(proc.pid, signal.SIGINT)  # the driver only: it passes SIGINT on to its jobs
+    os.kill(proc.pid, signal.SIGINT)  # the driver only: it passes the stop on to its jobs as SIGTERM
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode != 0 and "KeyboardInterrupt" in out
     assert (tmp_path / "checkpoint").read_text() == "step 3" and not (tmp_path / "done").exists()
     assert "interrupted: stopping train m" in out and "run the same command again to resume" in out
     assert (tmp_path / "stopped_by").read_text() == "SIGTERM"  # what the driver sends its jobs
+
+
+def test_ctrl_c_in_a_terminal_reaches_driver_and_training_and_the_checkpoint_is_written_once(tmp_path):
+    """A terminal's Ctrl-C goes to the whole foreground group: the training gets SIGINT itself, then the
+    driver's SIGTERM; it checkpoints on the first and the second does not stop it short."""
+    proc = start_driver(DRIVER, tmp_path, own_group=True)
+    os.killpg(proc.pid, signal.SIGINT)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode != 0 and "interrupted: stopping train m" in out
+    assert (tmp_path / "checkpoint").read_text() == "step 3" and not (tmp_path / "done").exists()
+    assert (tmp_path / "stopped_by").read_text() in ("SIGINT", "SIGTERM")
 
 
 TOOL_DRIVER = """
