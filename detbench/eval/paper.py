@@ -2,10 +2,12 @@
 
 Table VII gives, per range and height, the number of vehicles the LiDAR detected and each
 detector's recall of them at 3D IoU 0.7 and score >= 0.1, All vehicles (full-size models trained
-on 4723 CARLA frames for 80 epochs). It reports no AP. Tables VIII and IX (Top3, Top6) are held
-back as an independent check and are not here.
+on 4723 CARLA frames and tested on 2290; the paper does not give its schedule). It reports no
+AP. Tables VIII and IX (Top3, Top6) are held back as an independent check and are not here.
 """
 from __future__ import annotations
+
+from detbench.data.frame import height_key
 
 # recall of the LiDAR-detected vehicles, All vehicles: {model: {height (m, as text): (small, moderate, large)}}
 PAPER_TABLE_VII_RECALL: dict[str, dict[str, tuple[float, float, float]]] = {
@@ -18,8 +20,9 @@ PAPER_RANGES = ("small", "moderate", "large")
 
 
 def paper_recall(model: str, height: float) -> tuple[float, float, float] | None:
-    """Table VII's recall (small, moderate, large) of `model` at `height` m, or None where the paper has none."""
-    return PAPER_TABLE_VII_RECALL.get(str(model).lower(), {}).get(f"{float(height):.1f}")
+    """Table VII's recall (small, moderate, large) of `model` at exactly `height` m (0.5, 1.0 or 1.8), or None
+    where the paper has none."""
+    return PAPER_TABLE_VII_RECALL.get(str(model).lower(), {}).get(height_key(height))
 
 
 __all__ = ["PAPER_RANGES", "PAPER_TABLE_VII_RECALL", "paper_recall"]

@@ -577,7 +577,11 @@ def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
         for r in RANGE_NAMES:
             for metric in METRICS:
                 cell = {m: comb["results"][r]["all"][metric] for m, (_, comb) in items.items()}
-                ranked = sorted((m for m in items if cell[m]["mean"] is not None), key=lambda m: -cell[m]["mean"])
+                other = {m: comb["results"][r]["all"]["ap_r40" if metric == "recall" else "recall"]["mean"] or 0.0
+                         for m, (_, comb) in items.items()}
+                # ties broken on the other metric, as `seed_summary` ranks
+                ranked = sorted((m for m in items if cell[m]["mean"] is not None),
+                                key=lambda m: (-cell[m]["mean"], -other[m]))
                 pairs = []
                 for a, b in combinations(ranked, 2):
                     lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], r, "all", metric,
@@ -626,8 +630,8 @@ def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: 
             paper = paper_recall(m, h)
             minutes = (train_minutes or {}).get((m, h))
             lines.append(
-                f"| {m} | {h:g} m | {comb['num_seeds']} | {_f(ap['mean'], 2)} {_ci2(ap['ci95'])} | "
-                f"{_f(rs['mean'], 2)} {_ci2(rs['ci95'])} / {_f(res['moderate']['all']['recall']['mean'], 2)} / "
+                f"| {m} | {h:g} m | {comb['num_seeds']} | {_with_ci(ap)} | "
+                f"{_with_ci(rs)} / {_f(res['moderate']['all']['recall']['mean'], 2)} / "
                 f"{_f(res['large']['all']['recall']['mean'], 2)} | "
                 f"{' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} | "
                 f"{'-' if minutes is None else f'{minutes:.1f}'} |")
@@ -655,6 +659,11 @@ def _ci2(ci, signed: bool = False) -> str:
     if not ci:
         return "(no interval)"
     return f"[{_f(ci[0], 2, signed)}, {_f(ci[1], 2, signed)}]"
+
+
+def _with_ci(cell: dict) -> str:
+    """A cell's seed mean with its interval, to two decimals; "-" where nothing is evaluated."""
+    return "-" if cell["mean"] is None else f"{_f(cell['mean'], 2)} {_ci2(cell['ci95'])}"
 
 
 def _seeds_text(seeds: Sequence) -> str:

@@ -42,7 +42,9 @@ from detbench.studies.study_summary import (
 )
 from detbench.train.run_config import load_run_config
 from detbench.train.checkpoint import CheckpointManager
-from detbench.train.run_layout import STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir
+from detbench.train.run_layout import (
+    STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir, training_seconds,
+)
 from detbench.utils.cli import UserError
 from detbench.utils.io import (
     FolderNotReplaceable, atomic_write_json, atomic_write_text, check_replaceable, claim_folder, clear_folder,
@@ -285,16 +287,17 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
                 f"{test_frames} test frames" + (f" from {test_scenes} scenes" if test_scenes else "") + ".*")
 
     source_detect = detect_source()
-    # training time per model from the runs' own summaries: true across resumed invocations
+    # training time per model: the epochs' own seconds from each run's history.json, so a training that was
+    # stopped and resumed counts every invocation's epochs
     train_s: dict[str, float] = {}
     train_min: dict[tuple[str, float], list[float]] = {}  # per model and height: minutes of each seed's training
     for name in names:
         for h, seed in ((h, seed) for h in heights for seed in seeds):
-            summ = read_json(run_dir_of(name, h, seed) / "train_summary.json")
-            train_s[name] = train_s.get(name, 0.0) + float(summ.get("train_seconds") or 0.0)
-            train_min.setdefault((name, h), []).append(float(summ.get("train_seconds") or 0.0) / 60.0)
-    train_words = (f"Training time (the runs' own, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
-                   "resumed invocations included): "
+            secs = training_seconds(run_dir_of(name, h, seed))
+            train_s[name] = train_s.get(name, 0.0) + secs
+            train_min.setdefault((name, h), []).append(secs / 60.0)
+    train_words = (f"Training time (the runs' epochs, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
+                   "a resumed training counts every invocation; evaluation excluded): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     study = {"preset": args.preset, "data": str(root), "heights": heights, "models": names, "left_out": left_out,

@@ -19,7 +19,7 @@ import os
 from pathlib import Path
 
 from detbench.data.frame import height_key
-from detbench.utils.io import FolderKind
+from detbench.utils.io import FolderKind, read_json
 
 RUNS_DIR = Path("runs")  # default parent of runs and studies, relative to the working directory
 
@@ -85,5 +85,21 @@ def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:
     return Path(ckpt).resolve().parent.parent
 
 
+def training_seconds(run_dir: str | os.PathLike) -> float:
+    """How long a run trained, in seconds: the sum of its history.json epochs' `seconds` (each epoch's
+    training, evaluation excluded), so a run stopped and resumed counts the epochs of every invocation,
+    where train_summary.json's `train_seconds` holds the last invocation only. Without a history, that
+    `train_seconds`; 0.0 when the run has neither."""
+    run_dir = Path(run_dir)
+    if (run_dir / "history.json").is_file():
+        epochs = read_json(run_dir / "history.json").get("epochs", [])
+        if epochs:
+            return float(sum(float(e.get("seconds") or 0.0) for e in epochs))
+    if (run_dir / "train_summary.json").is_file():
+        return float(read_json(run_dir / "train_summary.json").get("train_seconds") or 0.0)
+    return 0.0
+
+
 __all__ = ["RUNS_DIR", "RUN_FOLDER", "STUDY_FOLDER", "model_run_name", "default_train_dir", "default_study_dir",
-           "study_run_dir", "eval_dir_name", "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint"]
+           "study_run_dir", "eval_dir_name", "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint",
+           "training_seconds"]

@@ -1,4 +1,5 @@
 """Run-folder names (detbench.train.run_layout): the names tools/train.py, eval.py, study.py and benchmark.py share."""
+import json
 from pathlib import Path
 
 from detbench.train import run_layout as rl
@@ -25,3 +26,16 @@ def test_a_study_names_the_runs_of_other_seeds_after_their_seed_and_owns_them():
     assert re.fullmatch(pattern, "second_h1.8_s1") and re.fullmatch(pattern, "second_h1.8")
     assert not re.fullmatch(pattern, "second_h1.8_x1")
     assert "logs" in rl.STUDY_FOLDER.entries  # the jobs' logs
+
+
+def test_training_seconds_count_every_invocation_of_a_resumed_run(tmp_path):
+    run = tmp_path / "second_h1.8"
+    run.mkdir()
+    assert rl.training_seconds(run) == 0.0
+    # the summary of the last invocation only: 1 epoch of a run resumed after 2
+    (run / "train_summary.json").write_text(json.dumps({"train_seconds": 100.0}))
+    assert rl.training_seconds(run) == 100.0
+    (run / "history.json").write_text(json.dumps({"epochs": [{"epoch": 1, "seconds": 120.5},
+                                                             {"epoch": 2, "seconds": 110.0},
+                                                             {"epoch": 3, "seconds": 99.5}]}))
+    assert rl.training_seconds(run) == 330.0
