@@ -99,26 +99,24 @@ def worker(args) -> dict:
         cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
         road = RoadConfig.of_run_config(cfg)
         model = models.build_model(name, cfg_model).to(device).eval()
-    data_root = default_dataset({"root": args.data} if args.data else load_run_config(name, "smoke")["data"],
+    source = frames_source(args.data, ck if ckpt else None)
+    data_root = default_dataset({"root": source} if source else load_run_config(name, "smoke")["data"],
                                 progress=False)
     test = Height3Dataset(data_root, args.height, "test")
-    return measure_detector(model, name, test, cfg_model["point_cloud_range"], device, frames=args.frames,
-                            warmup=args.warmup, checkpoint=ckpt, rss_before_model=rss0,
-                            train_steps=args.train_steps, train_batch=args.train_batch, road=road)
+    res = measure_detector(model, name, test, cfg_model["point_cloud_range"], device, frames=args.frames,
+                           warmup=args.warmup, checkpoint=ckpt, rss_before_model=rss0,
+                           train_steps=args.train_steps, train_batch=args.train_batch, road=road)
+    return {**res, "frames_from": str(data_root)}
 
 
-def study_data(study: str | None) -> str | None:
-    """The dataset a tools/study.py output was trained and tested on (its study.json "data"), so --study times
-    the frames its models were tested on; None without --study or when that study has not finished yet."""
-    if not study:
-        return None
-    path = Path(study) / "study.json"
-    root = read_json(path).get("data") if path.is_file() else None
-    if root and Path(root).is_dir():
-        return str(root)
-    print(f"note: {path} names no dataset on this machine (the study has not finished, or its data moved): "
-          f"timing frames of the smoke preset's simulated dataset instead; --data ROOT picks others", flush=True)
-    return None
+def frames_source(data: str | None, ck: dict | None) -> str | None:
+    """The dataset whose test frames are timed: --data; else the one a checkpoint was trained on (so a --study's
+    models run on the frames they were tested on), when it is on this machine; else None, the smoke preset's
+    simulated set."""
+    if data:
+        return data
+    source = ((ck or {}).get("data") or {}).get("source")
+    return str(source) if source and Path(source).is_dir() else None
 
 
 def check_arguments(args: argparse.Namespace) -> None:
@@ -153,7 +151,6 @@ def main(argv=None) -> int:
             raise UserError(f"--models: {e}") from None
     if args.study and not Path(args.study).is_dir():
         raise UserError(f"--study {args.study}: no such folder; give the --out folder of a tools/study.py run")
-    data = args.data or study_data(args.study)
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else []) if args.device == "auto" else [args.device]
     results = []
     for name in names:
@@ -172,8 +169,8 @@ def main(argv=None) -> int:
                    "--frames", str(args.frames), "--warmup", str(args.warmup)]
             if args.threads:
                 cmd += ["--threads", str(args.threads)]
-            if data:
-                cmd += ["--data", data]
+            if args.data:
+                cmd += ["--data", args.data]
             if args.train_steps > 0:
                 cmd += ["--train-steps", str(args.train_steps), "--train-batch", str(args.train_batch)]
 
@@ -202,7 +199,7 @@ def main(argv=None) -> int:
             "threads": results[0]["threads"] if results else args.threads,
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             "preset": args.preset, "study": args.study, "height": args.height,
-            "frames_from": data or "the smoke preset's simulated dataset"}
+            "frames_from": sorted({r["frames_from"] for r in results})}
     out = Path(args.out)
     atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
     atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results))

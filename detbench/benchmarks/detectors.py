@@ -115,7 +115,9 @@ def benchmark_markdown(meta: dict, results: list[dict]) -> str:
     lines = [f"# Detector cost ({meta['processor']}, torch {meta['torch']}, {meta['threads']} CPU threads"
              f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
              "Latency: median per frame after warm-up, batch of 1. Weights: the state_dict as torch.save writes it "
-             "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes.", "",
+             "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes."
+             + (f" Frames: the test split of {', '.join(meta['frames_from'])}." if meta.get("frames_from") else ""),
+             "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:
         lat = r["latency_ms"]

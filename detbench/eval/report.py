@@ -278,8 +278,8 @@ def _entries(reports: Sequence[dict], sources: Sequence[str] | None = None) -> l
             seeds = (seen[key][1], rep.get("train_seed"))
             why = ""
             if None not in seeds and seeds[0] != seeds[1]:
-                why = (f" (training seeds {seeds[0]} and {seeds[1]}: combine one seed's reports, e.g. a study's "
-                       f"<model>_h<H> folders without the _s<N> ones; study.md combines the seeds itself)")
+                why = (f" (training seeds {seeds[0]} and {seeds[1]}: combine one seed's reports, the run folders of "
+                       f"one seed; a study's study.md combines its seeds itself)")
             raise ValueError(f"{where}: model {key[0]!r} at height {key[1]:g} m is also in {seen[key][0]}; "
                              f"combine each model and height once{why}")
         seen[key] = (where, rep.get("train_seed"))
