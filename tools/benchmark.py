@@ -4,7 +4,7 @@
 Latency is the median over --frames real (simulated or --data) frames after --warmup
 passes, split by stage (voxelize / backbone / head / post-processing; each model names its
 stages), on CPU and on CUDA when present. With --study DIR (a tools/study.py output) the
-models' trained checkpoints are used, timed on the test frames of the study's own dataset, and
+models' trained checkpoints are used, timed on the test frames of the dataset they were trained on, and
 each model's AP@R40 / recall is joined to its cost, like the paper's Table III next to its accuracy.
 --train-steps N also times N training steps (forward, loss, backward, AdamW step) on batches of
 --train-batch frames. --load N measures everything again beside N busy-loop processes (started
@@ -55,7 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "frames and join their reports")
     ap.add_argument("--height", type=float, default=1.8, help="LiDAR height of the frames (and of --study runs)")
     ap.add_argument("--data", default=None, metavar="ROOT",
-                    help="dataset for the frames (default: the --study's dataset, else the simulated smoke set)")
+                    help="dataset for the frames (default: the one each checkpoint was trained on, as with --study, "
+                         "else the smoke preset's simulated set)")
     ap.add_argument("--frames", type=int, default=10, help="timed frames (default 10)")
     ap.add_argument("--warmup", type=int, default=3, help="untimed passes first (default 3)")
     ap.add_argument("--device", default="auto", help="cpu, cuda, or auto = cpu and also cuda when present")
