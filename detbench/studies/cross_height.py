@@ -96,7 +96,8 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
         if k == 0:
             ax.set_ylabel("trained at (m)")
         ax.set_title(m, fontsize=9)
-    data = f"; {mat['data']}" if mat.get("data") else ""
+    data = "".join(f"; {w}" for w in (f"{mat['training_preset']} preset" if mat.get("training_preset") else None,
+                                        mat.get("data")) if w)
     fig.suptitle(f"{name}, {mat['range']} range, {mat['level']} level (red: same height{data})", fontsize=9)
     fig.colorbar(im, ax=fig.axes, shrink=0.8)
     return save_figure(fig, path)

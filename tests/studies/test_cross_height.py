@@ -52,6 +52,9 @@ def test_the_figure_title_names_the_data_source(tmp_path, monkeypatch):
     monkeypatch.setattr(ch, "save_figure", lambda fig, path: titles.append(fig.get_suptitle()) or real_save(fig, path))
     plot_cross_height(mat, tmp_path / "y.png")
     assert titles == ["AP@R40, small range, all level (red: same height; simulator calibration v2, seed 0)"]
+    plot_cross_height({**mat, "training_preset": "cpu"}, tmp_path / "z.png")  # as a study draws it
+    assert titles[-1] == ("AP@R40, small range, all level (red: same height; cpu preset; simulator calibration v2, "
+                          "seed 0)")
 
 
 def test_bad_reports_are_refused():
