@@ -176,6 +176,8 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
     args.trained_height = trained_h
     seed = (ck.get("config") or {}).get("train", {}).get("seed")
     args.train_seed = int(seed) if isinstance(seed, (int, float)) and not isinstance(seed, bool) else None
+    preset = (ck.get("config") or {}).get("preset")
+    args.train_preset = str(preset) if isinstance(preset, str) and preset else None
     if args.test_height is not None:
         args.height = args.test_height
     if args.out is None:
@@ -229,7 +231,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         skipped = []
         model = model or ckpt_model
         checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage,
-                                   train_seed=args.train_seed)
+                                   train_seed=args.train_seed, train_preset=args.train_preset)
         write_predictions(preds, checkpoint.predictions_dir)
     settings = EvalSettings(iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
                             iou_kind=args.iou_kind, extras=not args.no_extras, bootstrap=args.bootstrap,

@@ -92,6 +92,8 @@ def _header(report: dict) -> list[str]:
         bits.append(f"split {report['split']}")
     n = report["num_frames"]
     bits.append(f"{n} frame{'' if n == 1 else 's'}")
+    if report.get("train_preset"):
+        bits.append(f"trained at the {report['train_preset']} preset")
     if isinstance(report.get("data_source"), dict):
         bits.append(data_label([report]))
     return bits
@@ -421,6 +423,14 @@ def data_label(reports: Sequence[dict]) -> str:
     return " + ".join(data_labels(reports)) or "no reports"
 
 
+def source_label(reports: Sequence[dict]) -> str:
+    """What a figure of detector reports shows: the training presets of the checkpoints (reports that record
+    `train_preset`), then `data_label`: "cpu preset; simulator calibration v2, seed 0"."""
+    presets = list(dict.fromkeys(str(r["train_preset"]) for r in reports if r.get("train_preset")))
+    words = f"{' + '.join(presets)} preset{'s' if len(presets) > 1 else ''}; " if presets else ""
+    return words + data_label(reports)
+
+
 def _grid(reports: Sequence[dict]):
     comb = combine_reports(reports)
     cell = {(e["model"], e["height"]): e["results"] for e in comb["entries"]}
@@ -496,7 +506,7 @@ def plot_by_height(reports: Sequence[dict], path: str | Path, range_name: str = 
     _line_axes(axes[2], comb, cell, "ap_r40", range_name, level, "(c) AP@R40")
     axes[1].legend(fontsize=8)
     fig.suptitle(f"{RANGE_LABELS[range_name]} range, {LEVEL_LABELS[level]} vehicles, "
-                 f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g} ({data_label(reports)})")
+                 f"{comb['iou_kind'].upper()} IoU >= {comb['iou_threshold']:g} ({source_label(reports)})")
     return save_figure(fig, path)
 
 
@@ -513,7 +523,7 @@ def plot_by_range(reports: Sequence[dict], path: str | Path, level: str = "all",
     for ax, r in zip(axes, RANGE_NAMES):
         _line_axes(ax, comb, cell, metric, r, level, f"{RANGE_LABELS[r]} range")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{METRIC_LABELS[metric]} by range, {LEVEL_LABELS[level]} vehicles ({data_label(reports)})")
+    fig.suptitle(f"{METRIC_LABELS[metric]} by range, {LEVEL_LABELS[level]} vehicles ({source_label(reports)})")
     return save_figure(fig, path)
 
 
@@ -531,12 +541,12 @@ def plot_by_level(reports: Sequence[dict], path: str | Path, range_name: str = "
         _line_axes(ax, comb, cell, metric, range_name, lv, f"{LEVEL_LABELS[lv]} vehicles")
     axes[0].legend(fontsize=8)
     fig.suptitle(f"{METRIC_LABELS[metric]} by importance level, {RANGE_LABELS[range_name]} range "
-                 f"({data_label(reports)})")
+                 f"({source_label(reports)})")
     return save_figure(fig, path)
 
 
 __all__ = [
-    "check_report", "report_to_markdown", "report_to_csv", "report_rows", "summary_lines",
+    "check_report", "source_label", "report_to_markdown", "report_to_csv", "report_rows", "summary_lines",
     "combine_reports", "combined_markdown", "combined_csv", "label_variants", "report_variant",
     "plot_by_height", "plot_by_range", "plot_by_level", "data_label", "data_labels", "METRIC_FIELDS",
 ]

@@ -45,6 +45,7 @@ class CheckpointRun:
     predictions_dir: Path
     stage: str = "refined"  # or "proposals": a two-stage model's first stage alone
     train_seed: int | None = None  # the training's train.seed (the seed statistics name runs by it)
+    train_preset: str | None = None  # the training budget (configs/presets/), for the figures' titles
 
 
 def load_split(root: Path, height: float, split: str) -> tuple[Height3Dataset, list[str]]:
@@ -110,6 +111,8 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
         full["stage"] = checkpoint.stage
         if checkpoint.train_seed is not None:
             full["train_seed"] = checkpoint.train_seed
+        if checkpoint.train_preset:
+            full["train_preset"] = checkpoint.train_preset
     if saved is not None:
         full["prediction_files"] = len(preds)
         full["files_of_other_splits_skipped"] = len(saved.skipped)

@@ -13,6 +13,7 @@ from detbench.eval.report import (
     combined_markdown,
     label_variants,
     data_label,
+    source_label,
     plot_by_height,
     plot_by_level,
     plot_by_range,
@@ -179,6 +180,12 @@ def test_figure_titles_name_the_data_source(tmp_path, monkeypatch):
     assert "simulator calibration v2, seed 0" in report_to_markdown(reps[0])
     assert combine_reports(reps)["data"] == "simulator calibration v2, seed 0"
     assert "Frames: simulator calibration v2, seed 0." in combined_markdown(reps)
+    # reports of checkpoints that record their training preset: the titles name it before the world
+    trained = [dict(r, train_preset="cpu") for r in reps]
+    plot_by_range(trained, tmp_path / "d.png")
+    assert titles[-1].endswith("(cpu preset; simulator calibration v2, seed 0)")
+    assert source_label(trained[:1] + [dict(reps[1], train_preset="quick")]).startswith("cpu + quick presets; ")
+    assert "trained at the cpu preset" in report_to_markdown(trained[0])
 
 
 def test_combine_refuses_cross_height_and_first_stage_reports_unless_labelled():

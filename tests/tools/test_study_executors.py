@@ -76,6 +76,8 @@ def test_seeds_train_each_run_once_per_seed_and_the_report_gives_the_spread(tiny
     # seed 0 is the config's train.seed: today's folder; seed 1 its own, trained with --set train.seed=1
     assert (out / "second_h0.5" / "eval_h0.5_test" / "report.json").is_file()
     assert (out / "second_h0.5_s1" / "eval_h0.5_test" / "report.json").is_file()
+    rep = json.loads((out / "second_h0.5_s1" / "eval_h0.5_test" / "report.json").read_text())
+    assert (rep["train_seed"], rep["train_preset"]) == (1, "smoke")  # the figures' titles name the preset
     rec = json.loads((out / "stage_inputs" / "train_second_h0.5_s1.json").read_text())
     assert rec["inputs"]["config"]["train"]["seed"] == 1
     assert json.loads((out / "stage_inputs" / "train_second_h0.5.json").read_text())["inputs"]["config"]["train"][
