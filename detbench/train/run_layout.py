@@ -88,7 +88,9 @@ def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:
 def training_seconds(run_dir: str | os.PathLike) -> float:
     """How long a run trained, in seconds: the sum of its history.json epochs' `seconds` (each epoch's
     training, evaluation excluded), so a run stopped and resumed counts the epochs of every invocation,
-    where train_summary.json's `train_seconds` holds the last invocation only. Without a history, that
+    where train_summary.json's `train_seconds` holds the last invocation only. An epoch resumed from a
+    mid-epoch checkpoint counts from its resumption (the part before the stop is not recorded), so a
+    stopped run reads short by at most one partial epoch per stop. Without a history, that
     `train_seconds`; 0.0 when the run has neither."""
     run_dir = Path(run_dir)
     if (run_dir / "history.json").is_file():
