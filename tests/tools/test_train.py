@@ -131,7 +131,7 @@ def test_study_runs_end_to_end_with_summary_progress_and_resume(tiny_dataset, tm
     study = json.loads((out / "study.json").read_text())
     assert set(study["summary"]) == {"heights", "detectors"} and study["test_frames"] == 3
     assert study["models"] == ["second"] and study["left_out"] == ["ct3d", "pillarnet", "pointrcnn"]
-    assert study["train_seconds"]["second"] > 0 and "Training time (the runs' own" in md
+    assert study["train_seconds"]["second"] > 0 and "Training time (the runs' epochs" in md
     rep = json.loads((out / "second_h1.8" / "eval_h1.8_test" / "report.json").read_text())
     assert "uncertainty" in rep  # the evaluation ran with the scene bootstrap
     # --cross-height: each checkpoint tested at the other height, a matrix per model in the report
