@@ -12,7 +12,7 @@ from pathlib import Path
 from collections.abc import Sequence
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
-from detbench.eval.report import data_label
+from detbench.eval.report import source_label
 from detbench.utils.figures import save_figure
 
 METRICS = {"ap_r40": "AP@R40", "recall": "Recall"}  # report key -> the name printed
@@ -20,8 +20,9 @@ METRICS = {"ap_r40": "AP@R40", "recall": "Recall"}  # report key -> the name pri
 
 def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_name: str = "small",
                         level: str = "all") -> dict:
-    """{"heights": sorted, "models": [...], "values": {model: [[v(train i, test j)]]}, "data": where the frames
-    come from (`detbench.eval.report.data_label`, the figure's title names it), ...}.
+    """{"heights": sorted, "models": [...], "values": {model: [[v(train i, test j)]]}, "data": the checkpoints'
+    training preset and where the frames come from (`detbench.eval.report.source_label`, the figure's title
+    names it), ...}.
 
     Every report needs "model", "height" (tested) and "trained_height"; two reports for the
     same (model, trained, tested) triple are an error.
@@ -47,7 +48,7 @@ def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_n
     hs = sorted(heights)
     values = {m: [[cells.get((m, tr, te)) for te in hs] for tr in hs] for m in models}
     return {"metric": metric, "range": range_name, "level": level, "heights": hs, "models": models,
-            "values": values, "data": data_label(reports)}
+            "values": values, "data": source_label(reports)}
 
 
 def cross_height_markdown(mat: dict) -> list[str]:
@@ -96,8 +97,7 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
         if k == 0:
             ax.set_ylabel("trained at (m)")
         ax.set_title(m, fontsize=9)
-    data = "".join(f"; {w}" for w in (f"{mat['training_preset']} preset" if mat.get("training_preset") else None,
-                                        mat.get("data")) if w)
+    data = f"; {mat['data']}" if mat.get("data") else ""
     fig.suptitle(f"{name}, {mat['range']} range, {mat['level']} level (red: same height{data})", fontsize=9)
     fig.colorbar(im, ax=fig.axes, shrink=0.8)
     return save_figure(fig, path)

@@ -314,8 +314,6 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
         cross_dicts = [read_json(r) for r in cross_reports]
         mats = [cross_height_matrix(cross_dicts, "ap_r40", "small", "all"),
                 cross_height_matrix(cross_dicts, "recall", "large", "all")]
-        for mat in mats:
-            mat["training_preset"] = args.preset  # the figure's title names it beside the data
         (out / "cross_height").mkdir(exist_ok=True)
         atomic_write_json(out / "cross_height" / "cross_height.json", {"matrices": mats})
         for mat in mats:

@@ -52,7 +52,10 @@ def test_the_figure_title_names_the_data_source(tmp_path, monkeypatch):
     monkeypatch.setattr(ch, "save_figure", lambda fig, path: titles.append(fig.get_suptitle()) or real_save(fig, path))
     plot_cross_height(mat, tmp_path / "y.png")
     assert titles == ["AP@R40, small range, all level (red: same height; simulator calibration v2, seed 0)"]
-    plot_cross_height({**mat, "training_preset": "cpu"}, tmp_path / "z.png")  # as a study draws it
+    # reports of checkpoints that record their training preset (as tools/eval.py writes them): named first
+    trained = cross_height_matrix([{**r, "data_source": sim, "train_preset": "cpu"} for r in _reports()])
+    assert trained["data"] == "cpu preset; simulator calibration v2, seed 0"
+    plot_cross_height(trained, tmp_path / "z.png")
     assert titles[-1] == ("AP@R40, small range, all level (red: same height; cpu preset; simulator calibration v2, "
                           "seed 0)")
 
