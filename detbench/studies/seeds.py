@@ -567,7 +567,7 @@ def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
     """Every pair of models at each height, in every range, for recall and AP@R40 (All vehicles).
 
     groups as in `seed_summary`. Returns {height: {range: {metric: {"ranking": [{"model", "mean",
-    "ci95"}] (by seed mean, best first), "pairs": [{"model", "over", **lead}]}}}}: one entry per pair,
+    "ci95", "num_seeds"}] (by seed mean, best first), "pairs": [{"model", "over", **lead}]}}}}: one entry per pair,
     the better-ranked model first, with lead as in `seed_summary` ("diff", "ci95", "ahead", "verdict",
     ...). A pair counts as resolved ("ahead") only where the 95 % interval of the lead, scenes and both
     models' seed spread together, excludes 0. Fractions in [0, 1], leads in [-1, 1]."""
@@ -576,21 +576,16 @@ def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
         by_range: dict[str, dict] = {}
         for r in RANGE_NAMES:
             for metric in METRICS:
-                cell = {m: comb["results"][r]["all"][metric] for m, (_, comb) in items.items()}
-                other = {m: comb["results"][r]["all"]["ap_r40" if metric == "recall" else "recall"]["mean"] or 0.0
-                         for m, (_, comb) in items.items()}
-                # ties broken on the other metric, as `seed_summary` ranks
-                ranked = sorted((m for m in items if cell[m]["mean"] is not None),
-                                key=lambda m: (-cell[m]["mean"], -other[m]))
+                # ranked as `seed_summary` ranks (ties broken on the other metric)
+                ranking = _leader("model", items, (r, "all"), metric,
+                                  "ap_r40" if metric == "recall" else "recall")["ranking"]
                 pairs = []
-                for a, b in combinations(ranked, 2):
+                for a, b in combinations([e["model"] for e in ranking], 2):
                     lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], r, "all", metric,
                                  items[a][1]["confidence"])
                     if lead is not None:
                         pairs.append({"model": a, "over": b, **lead})
-                by_range.setdefault(r, {})[metric] = {
-                    "ranking": [{"model": m, "mean": cell[m]["mean"], "ci95": cell[m]["ci95"]} for m in ranked],
-                    "pairs": pairs}
+                by_range.setdefault(r, {})[metric] = {"ranking": ranking, "pairs": pairs}
         out[h] = by_range
     return out
 
