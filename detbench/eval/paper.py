@@ -16,7 +16,6 @@ PAPER_TABLE_VII_RECALL: dict[str, dict[str, tuple[float, float, float]]] = {
     "second": {"0.5": (0.97, 0.90, 0.85), "1.0": (0.97, 0.91, 0.85), "1.8": (0.97, 0.91, 0.85)},
     "ct3d": {"0.5": (0.98, 0.92, 0.88), "1.0": (0.98, 0.93, 0.88), "1.8": (0.98, 0.93, 0.88)},
 }
-PAPER_RANGES = ("small", "moderate", "large")
 
 
 def paper_recall(model: str, height: float) -> tuple[float, float, float] | None:
@@ -25,4 +24,4 @@ def paper_recall(model: str, height: float) -> tuple[float, float, float] | None
     return PAPER_TABLE_VII_RECALL.get(str(model).lower(), {}).get(height_key(height))
 
 
-__all__ = ["PAPER_RANGES", "PAPER_TABLE_VII_RECALL", "paper_recall"]
+__all__ = ["PAPER_TABLE_VII_RECALL", "paper_recall"]
