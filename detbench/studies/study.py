@@ -289,13 +289,9 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     source_detect = detect_source()
     # training time per model: the epochs' own seconds from each run's history.json, so a training that was
     # stopped and resumed counts every invocation's epochs
-    train_s: dict[str, float] = {}
-    train_min: dict[tuple[str, float], list[float]] = {}  # per model and height: minutes of each seed's training
-    for name in names:
-        for h, seed in ((h, seed) for h in heights for seed in seeds):
-            secs = training_seconds(run_dir_of(name, h, seed))
-            train_s[name] = train_s.get(name, 0.0) + secs
-            train_min.setdefault((name, h), []).append(secs / 60.0)
+    train_min = {(name, h): [training_seconds(run_dir_of(name, h, seed)) / 60.0 for seed in seeds]
+                 for name in names for h in heights}  # per model and height: minutes of each seed's training
+    train_s = {name: 60.0 * sum(sum(train_min[(name, h)]) for h in heights) for name in names}
     train_words = (f"Training time (the runs' epochs, summed over heights{' and seeds' if len(seeds) > 1 else ''}; "
                    "a resumed training counts every invocation; evaluation excluded): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
@@ -532,7 +528,7 @@ def _seed_section(study: dict, seeds: list[int], seed_reports: dict[tuple[str, f
                       "pairs": {f"{h:g}": cell for h, cell in leads.items()},
                       "train_minutes": {f"{m} {h:g}": round(t, 2) for (m, h), t in train_minutes.items()}}
     return ["**Which detector** (seed means; small range 0-50 m, moderate 0-100 m, large 0-150 m; training "
-            "minutes: the mean over seeds, as the runs report them):", "",
+            "minutes: the mean over seeds of each run's training epochs):", "",
             *detector_table(groups, train_minutes), "", *pairwise_markdown(leads), "", *seed_markdown(groups), ""]
 
 
