@@ -609,11 +609,13 @@ def pairwise_markdown(leads: Mapping) -> list[str]:
 def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> list[str]:
     """The one-table answer to "which detector": per model and height the seed mean of AP@R40 (small range)
     and of recall (small with its interval, moderate, large), All vehicles, with intervals over test scenes
-    and seeds, the paper's Table VII recall for the same cell and the mean training minutes.
+    and seeds; the recall of the Top3 and Top6 vehicles of the large range (the importance levels); the
+    paper's Table VII recall for the same cells and the mean training minutes.
 
     groups as in `seed_summary`; train_minutes: {(model, height): minutes per training} or None."""
     lines = ["| Detector | Height | Seeds | AP@R40 small [95 %] | Recall small [95 %] / moderate / large | "
-             "The paper's recall (Table VII) | Training min |", "|---|---|---:|---|---|---|---:|"]
+             "Recall large, Top3 / Top6 | The paper's recall (Table VII) | Training min |",
+             "|---|---|---:|---|---|---|---|---:|"]
     by_model: dict[str, list[tuple[float, dict]]] = {}
     for h, items in _combined_groups(groups, pool).items():
         for m, (_, comb) in items.items():
@@ -628,6 +630,7 @@ def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: 
                 f"| {m} | {h:g} m | {comb['num_seeds']} | {_with_ci(ap)} | "
                 f"{_with_ci(rs)} / {_f(res['moderate']['all']['recall']['mean'], 2)} / "
                 f"{_f(res['large']['all']['recall']['mean'], 2)} | "
+                f"{_f(res['large']['top3']['recall']['mean'], 2)} / {_f(res['large']['top6']['recall']['mean'], 2)} | "
                 f"{' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} | "
                 f"{'-' if minutes is None else f'{minutes:.1f}'} |")
     return lines

@@ -386,6 +386,8 @@ def test_the_detector_table_sets_the_papers_table_vii_beside_each_cell():
     comb = seed_combined(groups[("second", 0.5)])["results"]
     ap = comb["small"]["all"]["ap_r40"]["mean"]
     assert f"| {ap:.2f} [" in rows[("second", "0.5 m")]
+    top3, top6 = (comb["large"][lv]["recall"]["mean"] for lv in ("top3", "top6"))
+    assert f"| {top3:.2f} / {top6:.2f} | 0.97" in rows[("second", "0.5 m")]  # the importance levels, large range
     assert "| 0.97 / 0.90 / 0.85 | 4.2 |" in rows[("second", "0.5 m")]  # Table VII: SECOND at 0.5 m
     assert "| 0.97 / 0.91 / 0.85 | 5.0 |" in rows[("second", "1.8 m")]
     assert rows[("mymodel", "1.8 m")].endswith("| - | - |")  # not in the paper, no training time given
