@@ -24,14 +24,33 @@ _CYL_MAX_CELLS = 1 << 22  # grid cells of the numba path at most (the cell grows
 
 
 @njit(cache=True)
+def _cell_span(c, rr, lo, cell, n):  # pragma: no cover - numba
+    """The grid cells [first, last] a cylinder of radius rr around c overlaps, clamped to 0..n-1 while still
+    floats (so a centre or radius far outside the grid cannot overflow the int conversion); first > last when
+    none."""
+    a, b = (c - rr - lo) / cell, (c + rr - lo) / cell
+    if not (b >= 0.0) or not (a <= n - 1.0):
+        return 1, 0
+    return (0 if a <= 0.0 else int(a)), (n - 1 if b >= n - 1.0 else int(b))
+
+
+@njit(cache=True)
 def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pragma: no cover - numba
     n, r = px.shape[0], cx.shape[0]
-    rmax = np.float32(0.0)
+    rmax = 0.0
     for j in range(r):
-        rmax = max(rmax, np.float32(math.sqrt(r2[j])))
-    x0, x1 = cx.min() - rmax - 1.0, cx.max() + rmax + 1.0
-    y0, y1 = cy.min() - rmax - 1.0, cy.max() + rmax + 1.0
-    while (int((x1 - x0) / cell) + 1) * (int((y1 - y0) / cell) + 1) > _CYL_MAX_CELLS:
+        rmax = max(rmax, math.sqrt(r2[j]))
+    # the grid covers the points that can lie in some cylinder: the cylinders' extent cut to the points'
+    # (a proposal of an untrained model can be finite yet 1e13 m wide; its extent alone would overflow int64)
+    x0, x1 = max(cx.min() - rmax, px.min()) - 1.0, min(cx.max() + rmax, px.max()) + 1.0
+    y0, y1 = max(cy.min() - rmax, py.min()) - 1.0, min(cy.max() + rmax, py.max()) + 1.0
+    if x1 < x0 or y1 < y0:  # no point near any centre
+        for j in range(r):
+            out_cnt[j] = 0
+            for s in range(k):
+                out_idx[j, s] = EMPTY_INDEX
+        return
+    while ((x1 - x0) / cell + 1.0) * ((y1 - y0) / cell + 1.0) > _CYL_MAX_CELLS:  # in floats: no overflow
         cell *= 2.0
     nx, ny = int((x1 - x0) / cell) + 1, int((y1 - y0) / cell) + 1
     start = np.zeros(nx * ny + 1, np.int64)
@@ -55,8 +74,8 @@ def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pra
     ties = np.empty(n, np.int64)
     for j in range(r):
         rr = math.sqrt(r2[j])
-        ix0, ix1 = max(0, int((cx[j] - rr - x0) / cell)), min(nx - 1, int((cx[j] + rr - x0) / cell))
-        iy0, iy1 = max(0, int((cy[j] - rr - y0) / cell)), min(ny - 1, int((cy[j] + rr - y0) / cell))
+        ix0, ix1 = _cell_span(cx[j], rr, x0, cell, nx)
+        iy0, iy1 = _cell_span(cy[j], rr, y0, cell, ny)
         m = 0
         for ix in range(ix0, ix1 + 1):
             for iy in range(iy0, iy1 + 1):

@@ -21,7 +21,8 @@ def _reference(xy, keys, centres, radius, k):
     index, count = np.full((len(c), k), EMPTY_INDEX, np.int64), np.zeros(len(c), np.int64)
     for j in range(len(c)):
         d = c[j, :2] - xy[:, :2]
-        inside = np.flatnonzero((d * d).sum(1, dtype=np.float32) <= r[j] * r[j])
+        with np.errstate(over="ignore"):  # a centre or radius of 1e30 m squares to inf, as in the op
+            inside = np.flatnonzero((d * d).sum(1, dtype=np.float32) <= r[j] * r[j])
         count[j] = len(inside)
         if len(inside):
             ordered = inside[np.lexsort((inside, keys[inside]))]
@@ -63,6 +64,27 @@ def test_extremes():
         assert c0.tolist() == [0, 0, 0] and i0.tolist() == [[EMPTY_INDEX] * 3] * 3
         ie, ce = cylinder_query(xy, keys, centres[:0], radius[:0], 3, backend=backend)
         assert ie.shape == (0, 3) and ce.shape == (0,)
+
+
+def test_huge_finite_proposals_match_the_reference():
+    """An untrained CT3D proposes boxes 1e13 m wide (radius squared 1e27, inf in float32) or centred 1e30 m
+    away: finite, so accepted; a huge cylinder holds every point, a far one none, and the grid of the numba
+    path stays the size of the point cloud."""
+    g = torch.Generator().manual_seed(3)
+    xy = torch.rand(2000, 2, generator=g) * torch.tensor([120.0, 40.0]) - torch.tensor([0.0, 20.0])
+    keys = torch.rand(2000, generator=g)
+    centres = torch.tensor([[10.0, 0.0], [-1.2, -141.0], [1e30, 0.0], [0.0, -1e30], [60.0, 5.0], [-1e25, 1e25]])
+    radius = torch.tensor([4.0, 3.7e13, 3.0, 1e20, 2.5, 1e26])
+    ref = _reference(xy, keys, centres, radius, 16)
+    assert ref[1].tolist()[1:4] == [2000, 0, 2000] and ref[1][-1] == 2000
+    for backend in ("numba", "torch"):
+        idx, cnt = cylinder_query(xy, keys, centres, radius, 16, backend=backend)
+        assert np.array_equal(cnt.numpy(), ref[1]), backend
+        assert np.array_equal(idx.numpy(), ref[0]), backend
+    # every centre beyond the points: no cell grid at all, every slot empty
+    idx, cnt = cylinder_query(xy, keys, torch.tensor([[500.0, 0.0], [0.0, 900.0]]), torch.tensor([3.0, 3.0]), 4,
+                              backend="numba")
+    assert cnt.tolist() == [0, 0] and idx.tolist() == [[EMPTY_INDEX] * 4] * 2
 
 
 def test_bad_input_is_named():
