@@ -31,11 +31,12 @@ import torch
 
 import models
 from detbench.config import ConfigError
+from detbench.data.errors import DatasetError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
                                 make_eval_fn, option_overrides, training_data_info, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
-from detbench.utils.cli import UserError, doc_parser, run_main
+from detbench.utils.cli import UserError, as_user_error, doc_parser, run_main
 from detbench.utils.io import DiskFullError, FolderNotReplaceable
 
 
@@ -132,7 +133,8 @@ def train_in(args, cfg: dict, out: Path) -> int:
                                                          model_cfg["point_cloud_range"], info.device,
                                                          tcfg.batch_size, road=road)
     except (FileNotFoundError, ValueError, KeyError, ConfigError, CheckpointError) as e:
-        raise UserError(str(e)) from None
+        raise as_user_error(e, always=(FileNotFoundError, KeyError, ConfigError, CheckpointError,
+                                       DatasetError)) from None
 
     if info.is_main and init:
         print(f"initialised {init['loaded_tensors']} weight tensors from {init['path']} ({init['model']}); "
@@ -149,7 +151,8 @@ def train_in(args, cfg: dict, out: Path) -> int:
                        resume_hint=f"run the same command again with --resume (--out {out})")
     except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
         cleanup(info, wait_for_peers=False)  # a peer may not reach its cleanup: no barrier
-        raise UserError(str(e)) from None
+        # a bad frame, config or checkpoint is one line; a bug keeps its traceback
+        raise as_user_error(e, always=(CheckpointError, ConfigError, DatasetError)) from None
     except DiskFullError as e:
         cleanup(info, wait_for_peers=False)  # a peer may not reach its cleanup: no barrier
         raise UserError(f"{e}; the run then continues from its last complete checkpoint with --resume") from None

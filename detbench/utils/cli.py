@@ -19,6 +19,7 @@ import io
 import signal
 import sys
 import threading
+import traceback
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -26,8 +27,8 @@ from pathlib import Path
 from detbench.utils.io import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "check_out_dir", "require",
-           "run_main", "sigterm_as_ctrl_c", "torch_device"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",
+           "check_out_dir", "raised_on_purpose", "require", "run_main", "sigterm_as_ctrl_c", "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -81,6 +82,35 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         yield
     finally:
         signal.signal(signal.SIGTERM, old)
+
+
+_PROJECT_ROOT = Path(__file__).resolve().parents[2]  # detbench/, models/ and tools/ live here
+
+
+def raised_on_purpose(e: BaseException) -> bool:
+    """Whether `e` comes from a `raise` statement of this project's code (a check that names the problem)
+    rather than from inside numpy, numba or torch, or from a line of ours that is not a raise (a call into a
+    compiled kernel): the first is the user's to fix, the second a bug whose traceback must stay."""
+    frames = traceback.extract_tb(e.__traceback__)
+    if not frames:
+        return True  # raised and caught without a frame of its own: nothing to tell apart
+    last = frames[-1]
+    try:
+        ours = Path(last.filename).resolve().is_relative_to(_PROJECT_ROOT)
+    except (OSError, ValueError):
+        ours = False
+    return ours and (last.line or "").lstrip().startswith("raise")
+
+
+def as_user_error(e: BaseException, prefix: str = "", always: tuple[type[BaseException], ...] = ()) -> UserError:
+    """`UserError(prefix + str(e))` for an error of one of the `always` types (the project's own: a config, a
+    dataset or a checkpoint error, whose messages name the file and the fix, also when a DataLoader worker
+    raised them) or raised on purpose (`raised_on_purpose`); any other error is raised again as it is, so a
+    bug (numpy's "negative dimensions not allowed" from a kernel) keeps its traceback and exit status 1
+    instead of reading like a mistake in the command. Use as `raise as_user_error(e) from None`."""
+    if not isinstance(e, always) and not raised_on_purpose(e):
+        raise e
+    return UserError(f"{prefix}{e}")
 
 
 def doc_parser(doc: str, **kwargs) -> argparse.ArgumentParser:

@@ -81,6 +81,31 @@ def test_train_rejects_unknown_config_key(tiny_dataset, tmp_path):
     assert proc.returncode != 0 and "did you mean 'epochs'" in proc.stderr
 
 
+def test_a_bug_during_training_keeps_its_traceback_a_checked_error_is_one_line(tiny_dataset, tmp_path, monkeypatch,
+                                                                                capsys):
+    """numpy's ValueError from inside a kernel is a bug (exit 1, traceback), not "error: ..." with exit 2;
+    a ValueError a check of ours raises stays one line."""
+    import numpy as np
+
+    import detbench.train
+    import tools.train
+
+    def kernel_bug(*a, **k):
+        return np.zeros(-1)  # what an overflowed grid size does inside a numba kernel
+
+    def checked(*a, **k):
+        raise ValueError("frame 000003: points must be float32; rewrite it with the dataset writer")
+
+    argv = ["--model", "second", "--height", "1.8", "--preset", "smoke", "--data", str(tiny_dataset), "--epochs", "1",
+            "--no-progress", "--set", "train.tensorboard=false"]
+    monkeypatch.setattr(detbench.train, "train", kernel_bug)
+    with pytest.raises(ValueError, match="negative dimensions"):
+        run_main(tools.train.main, [*argv, "--out", str(tmp_path / "bug")])
+    monkeypatch.setattr(detbench.train, "train", checked)
+    assert run_main(tools.train.main, [*argv, "--out", str(tmp_path / "checked")]) == 2
+    assert "error: frame 000003: points must be float32" in capsys.readouterr().err
+
+
 def test_benchmark_reports_every_model(tiny_dataset, tmp_path):
     run(["tools/benchmark.py", "--preset", "smoke", "--data", str(tiny_dataset), "--frames", "2", "--warmup", "1",
          "--threads", "1", "--out", str(tmp_path / "b")])
