@@ -12,12 +12,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detbench.data import Height3Dataset, split_ids
+from detbench.data.errors import DatasetError
 from detbench.data.layout import sim_calibration
 from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
 from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, data_labels, label_variants,
                                   plot_by_height, plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
-from detbench.utils.cli import UserError
+from detbench.utils.cli import UserError, as_user_error
 from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["CheckpointRun", "EvalSettings", "combine_report_files", "evaluation_report", "load_split",
@@ -100,8 +101,8 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
             dataset, preds, iou_threshold=settings.iou_threshold, score_threshold=settings.score_threshold,
             iou_kind=settings.iou_kind, extras=settings.extras, progress=settings.progress,
             bootstrap=settings.bootstrap)
-    except (ValueError, KeyError) as e:
-        raise UserError(str(e)) from None
+    except (ValueError, KeyError) as e:  # a check of ours is one line; numpy's or a kernel's error is a bug
+        raise as_user_error(e, always=(DatasetError,)) from None
     full = {"model": model, "height": float(height), "split": split, "data": str(data),
             "data_source": data_source(dataset.info.source),
             "predictions": str(source), **report}
