@@ -28,7 +28,8 @@ from detbench.utils.io import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",
-           "check_out_dir", "raised_on_purpose", "require", "run_main", "sigterm_as_ctrl_c", "torch_device"]
+           "check_out_dir", "is_project_file", "raised_on_purpose", "require", "run_main", "sigterm_as_ctrl_c",
+           "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -84,7 +85,24 @@ def sigterm_as_ctrl_c() -> Iterator[None]:
         signal.signal(signal.SIGTERM, old)
 
 
-_PROJECT_ROOT = Path(__file__).resolve().parents[2]  # detbench/, models/ and tools/ live here
+_PACKAGE = Path(__file__).resolve().parents[1]  # detbench/
+_CHECKOUT = _PACKAGE.parent  # models/, tools/ and tests/ beside it, when run from a checkout
+_INSTALLED_DIRS = {"site-packages", "dist-packages"}
+
+
+def is_project_file(filename: str | Path) -> bool:
+    """Whether a source file is this project's: in the detbench package, or elsewhere in its checkout but
+    not in an environment installed there (a `.venv/lib/.../site-packages/numpy` inside the checkout is
+    numpy's). Installed as a package (no checkout), only the package counts."""
+    try:
+        path = Path(filename).resolve()
+    except (OSError, ValueError):
+        return False
+    if path.is_relative_to(_PACKAGE):
+        return True
+    if _INSTALLED_DIRS & set(_CHECKOUT.parts) or not path.is_relative_to(_CHECKOUT):
+        return False
+    return not _INSTALLED_DIRS & set(path.relative_to(_CHECKOUT).parts)
 
 
 def raised_on_purpose(e: BaseException) -> bool:
@@ -95,11 +113,7 @@ def raised_on_purpose(e: BaseException) -> bool:
     if not frames:
         return True  # raised and caught without a frame of its own: nothing to tell apart
     last = frames[-1]
-    try:
-        ours = Path(last.filename).resolve().is_relative_to(_PROJECT_ROOT)
-    except (OSError, ValueError):
-        ours = False
-    return ours and (last.line or "").lstrip().startswith("raise")
+    return is_project_file(last.filename) and (last.line or "").lstrip().startswith("raise")
 
 
 def as_user_error(e: BaseException, prefix: str = "", always: tuple[type[BaseException], ...] = ()) -> UserError:

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from detbench.data.errors import DatasetError
-from detbench.utils.cli import UserError, as_user_error, raised_on_purpose
+from detbench.utils import cli
+from detbench.utils.cli import UserError, as_user_error, is_project_file, raised_on_purpose
 
 
 def _checked(n):
@@ -49,3 +50,17 @@ def test_as_user_error_keeps_a_bug_as_it_is():
 
 def _raise_from_outside(e):
     np.vectorize(lambda _: (_ for _ in ()).throw(e))([0])  # raised inside numpy's frames
+
+
+def test_the_project_s_files_are_its_package_and_checkout_but_not_an_environment_inside_it(monkeypatch, tmp_path):
+    root = cli._CHECKOUT
+    assert is_project_file(root / "detbench" / "ops" / "cylinder.py") and is_project_file(root / "tools" / "train.py")
+    assert is_project_file(__file__)
+    assert not is_project_file(root / ".venv" / "lib" / "python3.11" / "site-packages" / "numpy" / "core" / "x.py")
+    assert not is_project_file(np.__file__) and not is_project_file(tmp_path / "x.py")
+    # installed as a package: its folder's parent is site-packages, which is not the project's
+    site = tmp_path / "lib" / "site-packages"
+    monkeypatch.setattr(cli, "_PACKAGE", site / "detbench")
+    monkeypatch.setattr(cli, "_CHECKOUT", site)
+    assert is_project_file(site / "detbench" / "train" / "loop.py")
+    assert not is_project_file(site / "numpy" / "lib" / "format.py")
