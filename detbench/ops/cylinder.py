@@ -37,9 +37,7 @@ def _cell_span(c, rr, lo, cell, n):  # pragma: no cover - numba
 @njit(cache=True)
 def _cylinder_numba(px, py, keys, cx, cy, r2, k, cell, out_idx, out_cnt):  # pragma: no cover - numba
     n, r = px.shape[0], cx.shape[0]
-    rmax = 0.0
-    for j in range(r):
-        rmax = max(rmax, math.sqrt(r2[j]))
+    rmax = math.sqrt(r2.max())  # r >= 1: the caller returns before for no centre
     # the grid covers the points that can lie in some cylinder: the cylinders' extent cut to the points'
     # (a proposal of an untrained model can be finite yet 1e13 m wide; its extent alone would overflow int64)
     x0, x1 = max(cx.min() - rmax, px.min()) - 1.0, min(cx.max() + rmax, px.max()) + 1.0
