@@ -229,3 +229,28 @@ class TinyDetector(nn.Module):
 
 RUN_CONFIG = {"model": {"name": "tiny"}, "train": {"epochs": 2, "batch_size": 2, "workers": 0, "lr": 0.01}}
 DATA = {"source": "synthetic", "height": 1.8}
+
+
+# ---------------------------------------------------------------- golden files
+GOLDEN_DIR = ROOT / "tests" / "golden"
+
+
+def assert_golden(name: str, text: str) -> None:
+    """`text` equals tests/golden/<name>, the output pinned when the file was written.
+
+    A golden file holds what a tool or report printed for fixed inputs, so a restructuring that changes any
+    figure, row or word fails here. After a deliberate change of the output, rewrite the files with
+    DETBENCH_WRITE_GOLDEN=1 and review their diff."""
+    path = GOLDEN_DIR / name
+    if os.environ.get("DETBENCH_WRITE_GOLDEN") == "1":
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text, encoding="utf-8")
+        return
+    assert path.is_file(), f"{path}: no golden file; write it with DETBENCH_WRITE_GOLDEN=1 and review it"
+    expected = path.read_text(encoding="utf-8")
+    if text != expected:
+        import difflib
+
+        diff = "".join(difflib.unified_diff(expected.splitlines(True), text.splitlines(True), f"golden/{name}",
+                                            "now", n=1))
+        raise AssertionError(f"output differs from tests/golden/{name}:\n{diff[:6000]}")

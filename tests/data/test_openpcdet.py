@@ -380,3 +380,52 @@ def test_round_trip_through_openpcdet_on_simulated_data(tmp_path):
     assert Height3Dataset(back, 1.8, "test").frame_ids == \
         [f for f in Height3Dataset(sim, 1.8, "test").frame_ids if f not in empty]
     assert read_info(back).source["frames"]["1.8"]["frame"] == "sensor"
+
+
+# ----------------------------------------------------------------------------- both directions, pinned
+
+def _tree_text(root: Path, names: dict[str, str]) -> str:
+    """Every file under `root`, sorted: text files whole, arrays as shape, dtype and a digest of their values;
+    the paths in `names` (path -> placeholder) replaced, so the text does not depend on the test's folders. The
+    folder's owner file (detbench.utils.io's, the same for every folder it writes) is left out."""
+    import hashlib
+
+    out = []
+    for p in sorted(q for q in root.rglob("*") if q.is_file() and not q.name.startswith(".detbench-")):
+        rel = p.relative_to(root).as_posix()
+        if p.suffix == ".npy":
+            a = np.load(p)
+            out.append(f"== {rel}: {a.dtype} {a.shape} sha256 {hashlib.sha256(a.tobytes()).hexdigest()[:16]}")
+            continue
+        text = p.read_text()
+        for path, placeholder in names.items():
+            text = text.replace(path, placeholder)
+        out.append(f"== {rel}\n{text}")
+    return "\n".join(out) + "\n"
+
+
+def test_export_and_import_are_pinned(hand_dataset, tmp_path, capsys):
+    """tools/export_openpcdet.py (sensor frame at the pitched 1.8 m, ground frame at 0.5 m, classes mapped and
+    dropped) and the import of both exports back (python -m detbench.data.convert): every file each writes and
+    every line each prints, for a fixed dataset."""
+    import re
+
+    from tests.helpers import assert_golden
+
+    names = {str(tmp_path.resolve()): "TMP", str(hand_dataset.resolve()): "DATA"}
+    parts = []
+    for h, frame in (("1.8", "sensor"), ("0.5", "ground")):
+        out = tmp_path / f"opc_{h}"
+        assert tools.export_openpcdet.main([str(hand_dataset), "--height", h, "--out", str(out), "--frame", frame,
+                                            "--class-map", "car=Car,truck=Truck,van=Van,*=-", "--no-progress"]) == 0
+        printed = re.sub(r"\(\d+\.\d s\)", "(N s)", capsys.readouterr().out)
+        parts += [f"### export {h} m, {frame} frame: printed", printed, _tree_text(out, names)]
+    back = tmp_path / "back"
+    assert convert_main(["--src", f"1.8={tmp_path / 'opc_1.8'}", "--src", f"0.5={tmp_path / 'opc_0.5'}",
+                         "--pitch", "1.8=2.5", "--points-frame", "auto", "--frames-per-scene", "2", "--out",
+                         str(back), "--no-progress"]) == 0
+    parts += ["### import: printed", capsys.readouterr().out, _tree_text(back, names)]
+    text = "\n".join(parts)
+    for path, placeholder in names.items():
+        text = text.replace(path, placeholder)
+    assert_golden("openpcdet_round_trip.txt", text)

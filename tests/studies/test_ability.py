@@ -6,6 +6,7 @@ import pytest
 
 from detbench.data import DatasetWriter, Frame, Sensor
 from detbench.studies.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
+from tests.helpers import assert_golden
 import tools.analyze
 
 
@@ -355,3 +356,42 @@ def test_uncertainty_needs_two_scenes_and_frames_without_scene_count_alone():
     assert unc["clusters"] == "frame" and unc["num_clusters"] == 3
     md = ability_markdown(_scene_study([0.4, 0.9, 0.6]).report())
     assert "## Sampling uncertainty" in md and "1.8-0.5 m difference" in md
+
+
+# ----------------------------------------------------------------------------- the Markdown, pinned
+
+def _golden_study(heights, scenes=5, frames=3, vary_traffic=False, scene_ids=True):
+    """A fixed study: per frame 14 cars over the three ranges and five lanes; counts drawn from a seeded
+    generator, fewer points on a car at lower heights. `vary_traffic` drops the last car at the lowest height,
+    so totals differ between heights."""
+    rng = np.random.default_rng(5)
+    st = AbilityStudy(bootstrap=200, bootstrap_seed=2, keep_example=False)
+    for s in range(scenes):
+        for i in range(frames):
+            fid = f"{s:04d}_{i:03d}"
+            xs = rng.uniform(2, 148, 14)
+            ys = rng.choice([-7.0, -3.5, 0.0, 3.5, 7.0, 12.0], 14) + rng.uniform(-0.4, 0.4, 14)
+            boxes = [car(x, y) for x, y in zip(xs, ys)]
+            lanes = np.round(np.asarray(ys) / 3.5).astype(np.int64)
+            fs, cs = [], []
+            for j, h in enumerate(heights):
+                keep = len(boxes) - 1 if vary_traffic and j == 0 else len(boxes)
+                f = frame(boxes[:keep], [], lanes[:keep], height=h, fid=fid)
+                if not scene_ids:
+                    f.scene_id = ""
+                share = 0.45 + 0.2 * j
+                cs.append(np.where(rng.uniform(size=keep) < share, rng.integers(1, 40, keep), 0))
+                fs.append(f)
+            st.add(fs, counts=cs)
+    return st
+
+
+def test_ability_markdown_is_pinned():
+    """Every table of ability.md for fixed reports: the paper's three heights (with the paper's tables beside
+    ours), two heights with different traffic (totals per height) and frames without a scene id, and none."""
+    three = _golden_study([0.5, 1.0, 1.8]).report(source={"kind": "test", "seed": 4, "nested": {"a": 1}})
+    two = _golden_study([0.5, 1.8], vary_traffic=True, scene_ids=False).report()
+    empty = AbilityStudy().report(source={"kind": "empty"})
+    text = "\n\n<!-- next report -->\n\n".join(
+        [ability_markdown(three), ability_markdown(two, title="Two heights"), ability_markdown(empty)])
+    assert_golden("ability.md", text)

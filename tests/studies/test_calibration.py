@@ -256,3 +256,38 @@ def test_paper_tables_are_consistent():
         assert t3[0] <= t6[0] <= a[0]
         for h in cc.HEIGHTS:
             assert t3[1][h][0] <= t6[1][h][0] <= a[1][h][0]
+
+
+# ----------------------------------------------------------------------------- the check's output, pinned
+
+def _paper_like_scenes(seed: int, frames: int, frames_per_scene: int, cfg, progress) -> np.ndarray:
+    """Stand-in for the simulator: scene counts near the paper's tables, drawn from `seed` (detected <= total)."""
+    rng = np.random.default_rng(seed)
+    per_scene = cc.paper_counts().astype(float) * frames_per_scene / cc.PAPER_FRAMES
+    scenes = np.stack([np.round(per_scene * rng.uniform(0.85, 1.15, per_scene.shape))
+                       for _ in range(frames // frames_per_scene)]).astype(np.int64)
+    scenes[..., 1:] = np.minimum(scenes[..., 1:], scenes[..., :1])
+    return scenes
+
+
+@pytest.mark.parametrize("name, options", [
+    ("one_seed_blocks", dict(seeds=[0], frames=800, frames_per_scene=100, block_frames=400)),
+    ("three_seeds", dict(seeds=[0, 1, 2], frames=600, frames_per_scene=200, tolerance=0.04, allowed_misses=1)),
+])
+def test_check_calibration_output_is_pinned(monkeypatch, capsys, name, options):
+    """calibration.json, calibration.md, the verdict and the printed lines of check_calibration for fixed scene
+    counts (the simulator replaced by counts drawn near the paper's tables); wall-clock seconds are blanked."""
+    import re
+
+    from detbench.studies import calibration_check
+    from tests.helpers import assert_golden
+
+    monkeypatch.setattr(calibration_check, "simulated_scene_counts", _paper_like_scenes)
+    report, md, failed = calibration_check.check_calibration(
+        calibration_check.CalibrationOptions(no_progress=True, **options))
+    printed = re.sub(r" in \d+ s,", " in N s,", capsys.readouterr().out)
+    for seed in report["seeds"].values():
+        seed["seconds"] = "N"
+    text = "\n".join([f"failed: {failed}", "--- printed", printed, "--- calibration.md", md, "--- calibration.json",
+                      json.dumps(report, indent=1)]) + "\n"
+    assert_golden(f"calibration_{name}.txt", text)

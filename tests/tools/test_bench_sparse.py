@@ -79,3 +79,40 @@ def test_markdown_report_idle_and_loaded():
     md = sparse_bench_markdown(r)
     assert "| case | median ms | best ms | loaded median ms | x idle |" in md
     assert "| a | 1.00 | 1.00 | 2.50 | 2.50 |  | sites=5 |" in md and "1 busy-loop process" in md
+
+
+def test_sparse_bench_results_are_pinned(monkeypatch, capsys):
+    """run_sparse_bench on a fixed small scan, idle and 'loaded', with the clock replaced by a counter: every
+    case, its counts (voxels, sites, rule-book pairs, shapes), GFLOP/s from the given times, the printed lines
+    and the Markdown. Machine facts (threads, torch, cpu, thread runtimes) are blanked."""
+    import sys
+
+    from detbench.benchmarks import sparse as sb
+    from tests.helpers import assert_golden
+
+    clock = iter(range(1, 1000))
+
+    def fake_timed(fn, repeats, sync):
+        fn()
+        sync()
+        ms = float(next(clock))
+        return {"ms": ms, "ms_best": ms / 2}
+
+    def fake_idle_and_loaded(measure, load):
+        idle = measure()
+        return (idle, None, None) if load <= 0 else (idle, measure(), {"processes": load})
+
+    monkeypatch.setattr(sb, "timed", fake_timed)
+    monkeypatch.setattr(sb, "idle_and_loaded", fake_idle_and_loaded)
+    monkeypatch.setitem(sys.modules, "spconv", None)  # as when spconv is not installed
+    scan = synthetic_scan(0)
+    scan = scan[(scan[:, 0] < 24) & (np.abs(scan[:, 1]) < 8)]
+    settings = sb.SparseBenchSettings(range=[0.0, -8.0, -1.0, 24.0, 8.0, 3.0], repeats=3, dense_crop_x=6.0, load=1)
+    results = sb.run_sparse_bench([scan, scan[::2]], "synthetic (cropped)", settings, torch.device("cpu"))
+    printed = capsys.readouterr().out
+    for key in ("threads", "torch", "cpu"):
+        results[key] = "-"
+    assert set(results.pop("runtime")) >= {"env", "torch_threads"}
+    text = "\n".join(["--- printed", printed, "--- bench_sparse.md", sparse_bench_markdown(results),
+                      "--- bench_sparse.json", json.dumps(results, indent=1)]) + "\n"
+    assert_golden("bench_sparse.txt", text)
