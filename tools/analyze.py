@@ -23,7 +23,8 @@ from pathlib import Path
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
-from detbench.studies.ability import DEFAULT_THRESHOLDS, ability_markdown
+from detbench.studies.ability import DEFAULT_THRESHOLDS
+from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
 from detbench.utils.cli import add_sim_preset_argument, check_out_dir, require, run_main

@@ -1,6 +1,7 @@
 """The studies built on the simulator, the evaluator and training (one layer above detbench.train).
 
 ability, ability_plots       how many vehicles a LiDAR at each height hits (the paper's Tables IV-VI, Fig. 5-7)
+ability_tables               an ability report as Markdown (ability.md)
 ability_run                  the ability study fed from the simulator or a dataset (tools/analyze.py)
 calibration                  the statistics that judge the simulator's ability figures against the paper's
 calibration_check            the seeds simulated and judged, the report laid out (tools/check_calibration.py)

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from detbench.data import DatasetWriter, Frame, Sensor
-from detbench.studies.ability import CELLS, AbilityStudy, ability_markdown, stacked_masks
+from detbench.studies.ability import CELLS, AbilityStudy, stacked_masks
+from detbench.studies.ability_tables import ability_markdown
 from tests.helpers import assert_golden
 import tools.analyze
 
