@@ -19,10 +19,8 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.data.errors import DatasetError
-from detbench.data.openpcdet import (
-    CLASS_MAP_PRESETS, DEFAULT_EXPORT_CLASS_MAP, EXPORT_MANIFEST, EXPORT_MARKDOWN, class_count_lines,
-    export_openpcdet, parse_class_map,
-)
+from detbench.data.openpcdet import CLASS_MAP_PRESETS, DEFAULT_EXPORT_CLASS_MAP, class_count_lines, parse_class_map
+from detbench.data.openpcdet_export import EXPORT_MANIFEST, EXPORT_MARKDOWN, export_openpcdet
 from detbench.utils.cli import UserError, run_main
 
 

@@ -16,9 +16,8 @@ import yaml
 
 from detbench.data import DatasetWriter, Frame, Height3Dataset, Sensor, read_info
 from detbench.data.convert import main as convert_main
-from detbench.data.openpcdet import (
-    EXPORT_MANIFEST, export_openpcdet, guess_points_frame, parse_class_map,
-)
+from detbench.data.openpcdet import guess_points_frame, parse_class_map
+from detbench.data.openpcdet_export import EXPORT_MANIFEST, export_openpcdet
 from detbench.data.readers import format_labels
 from detbench.data.regions import detected_point_counts
 from detbench.data.transforms import ground_to_sensor
