@@ -34,6 +34,7 @@ import math
 import os
 import shutil
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -178,6 +179,211 @@ def _check_label_bottoms(k: str, src: Path, sample: list[str], labels_frame: str
         f"anyway)", path=src / "labels")
 
 
+def _check_settings(points_frame: str, labels_frame: str, frames_per_scene, test_fraction, lane_width,
+                    label_tolerance) -> None:
+    """ValueError naming the flag for a setting out of its range."""
+    if points_frame not in POINTS_FRAME_CHOICES:
+        raise ValueError(f"points_frame must be one of {', '.join(POINTS_FRAME_CHOICES)}, got {points_frame!r}")
+    if labels_frame not in LABELS_FRAME_CHOICES:
+        raise ValueError(f"labels_frame must be one of {', '.join(LABELS_FRAME_CHOICES)}, got {labels_frame!r}")
+    if isinstance(frames_per_scene, bool) or not isinstance(frames_per_scene, (int, np.integer)) \
+            or frames_per_scene < 1:
+        raise ValueError(f"--frames-per-scene {frames_per_scene}: must be an integer >= 1 (consecutive frame ids "
+                         f"forming one scene; Height3: 200)")
+    if not 0.0 <= float(test_fraction) < 1.0:
+        raise ValueError(f"--test-fraction {test_fraction}: must be in [0, 1) (the share of scenes in test)")
+    if lane_width is not None and not (math.isfinite(float(lane_width)) and float(lane_width) > 0):
+        raise ValueError(f"--lane-width {lane_width}: must be a positive number of metres (default 3.5)")
+    if not (math.isfinite(float(label_tolerance)) and float(label_tolerance) >= 0):
+        raise ValueError(f"--label-tolerance {label_tolerance}: must be a number of metres >= 0 (default 0.05)")
+
+
+@dataclass(frozen=True)
+class Source:
+    """One height's OpenPCDet custom folder as the conversion reads it."""
+
+    key: str  # height key, "1.8"
+    folder: Path
+    sensor: Sensor  # the paper's LiDAR at this height and --pitch
+    ext: str  # suffix of its point files, ".npy" or ".bin"
+
+
+def _open_sources(sources: dict, out: Path, pitch_deg: dict | None, overwrite: bool) -> dict[str, Source]:
+    """The sources by height key, in the order given (the first is the label reference), after checking that
+    `out` may be written (not a source, replaceable) and that every --pitch has its --src."""
+    pitch = {height_key(float(k)): float(v) for k, v in (pitch_deg or {}).items()}
+    folders = {height_key(float(k)): Path(v) for k, v in sources.items()}
+    for k, src in folders.items():  # a replaced --out is removed whole: it must not hold a source
+        if out.exists() and src.exists() and (out.resolve() == src.resolve() or out.resolve() in src.resolve().parents):
+            raise ValueError(f"--out {out} holds the source folder {src} (--src {k}=...); choose another --out")
+    recover_staged(out)
+    check_replaceable(out, overwrite, DATASET_FOLDER)
+    unknown = sorted(set(pitch) - set(folders))
+    if unknown:
+        raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")
+    sensors = {k: paper_sensor(float(k), pitch.get(k, 0.0)) for k in folders}
+    out_sources = {}
+    for k, src in folders.items():
+        if not (src / "labels").is_dir() or not (src / "points").is_dir():
+            raise MissingFileError("expected an OpenPCDet custom folder with points/ and labels/ inside", path=src)
+        out_sources[k] = Source(k, src, sensors[k], _points_ext(src))
+    return out_sources
+
+
+def _labelled_ids(ref: Source) -> list[str]:
+    """The frame ids of the reference height's label files, sorted and checked."""
+    labelled = sorted(p.stem for p in (ref.folder / "labels").glob("*.txt"))
+    if not labelled:
+        raise MissingFileError("no label files (*.txt) found", path=ref.folder / "labels")
+    for fid in labelled:
+        check_frame_id(fid, str(ref.folder / "labels" / f"{fid}.txt"))
+    return labelled
+
+
+@dataclass
+class FrameChoice:
+    """The frames a conversion converts and the source's own split of them (None: the split is made by scene)."""
+
+    ids: list[str]
+    kept: tuple[list[str], list[str], str] | None  # (train ids, test ids, the split files read)
+    notes: list[str]
+
+
+def choose_frames(ref: Source, labelled: list[str], keep_split: bool) -> FrameChoice:
+    """With `keep_split`, the frames the reference source's ImageSets list (every labelled frame when it has
+    no train.txt); otherwise every labelled frame."""
+    notes: list[str] = []
+    kept = _source_split(ref.folder) if keep_split else None
+    if keep_split and kept is None:
+        notes.append(f"{ref.folder / 'ImageSets' / 'train.txt'} not found: the split is re-made by scene")
+    if kept is None:
+        return FrameChoice(labelled, None, notes)
+    train, test, split_files = kept
+    known = set(labelled)
+    missing = [f for f in train + test if f not in known]
+    if missing:
+        raise DatasetError(f"{len(missing)} listed id(s) have no label file (e.g. {missing[0]!r}); fix the lists "
+                           f"or pass --resplit", path=ref.folder / "ImageSets")
+    ids = sorted(train + test)
+    left = len(labelled) - len(ids)
+    if left:
+        notes.append(f"{left} labelled frame(s) are in neither split list ({split_files}) and were not "
+                     f"converted (pass --resplit to use every labelled frame)")
+    return FrameChoice(ids, kept, notes)
+
+
+@dataclass(frozen=True)
+class SourceFrames:
+    """The frames of one source's points and labels: `record` (dataset.json's source.frames entry: the frame,
+    how it was found, the road and box-bottom evidence) and the labels' frame."""
+
+    record: dict
+    labels_frame: str
+
+    @property
+    def points_frame(self) -> str:
+        return self.record["frame"]
+
+
+def resolve_frames(srcs: dict[str, Source], sample: list[str], points_frame: str, labels_frame: str,
+                   checks: bool) -> dict[str, SourceFrames]:
+    """Each source's points frame and labels frame, found or checked on the `sample` frames before anything is
+    written (DatasetError naming the flag when the road or the boxes contradict them)."""
+    out = {}
+    for k, src in srcs.items():
+        for fid in sample:
+            if not (src.folder / "points" / f"{fid}{src.ext}").is_file():
+                raise MissingFileError(f"points of frame {fid!r} not found (the folders must hold the same frames)",
+                                       path=src.folder / "points" / f"{fid}{src.ext}")
+        pf, rec = _resolve_points_frame(k, src.folder, src.ext, sample, src.sensor.pitch_deg, points_frame, checks)
+        lf = pf if labels_frame == "points" else labels_frame
+        rec["labels"] = dict(frame=lf, **_check_label_bottoms(k, src.folder, sample, lf, src.sensor.pitch_deg, checks))
+        out[k] = SourceFrames(rec, lf)
+    return out
+
+
+def _ground_labels(src: Source, fid: str, labels_frame: str, cmap: ClassMap, class_counts: dict | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's labels of one source after the class map, in the ground frame; the lines are counted into
+    `class_counts` when given."""
+    boxes, names = read_labels(src.folder / "labels" / f"{fid}.txt", root=src.folder)
+    if class_counts is not None:
+        count_classes(names.tolist(), cmap, class_counts)
+    keep, new_names = cmap.apply(names.tolist())
+    boxes, names = boxes[keep], np.asarray(new_names, dtype=str).reshape(-1)
+    if labels_frame == "sensor":
+        boxes = boxes_sensor_to_ground(boxes, float(src.key), src.sensor.pitch_deg)
+    return boxes, names
+
+
+@dataclass
+class CopiedFrames:
+    """What copying the frames found: the classes written (in order of first appearance), the label lines per
+    source class of the reference height, and each height's road height in its first converted frame (m)."""
+
+    classes: list[str]
+    class_counts: dict
+    road_z: dict[str, float]
+
+
+def copy_frames(staged: Path, ids: list[str], srcs: dict[str, Source], frames: dict[str, SourceFrames],
+                cmap: ClassMap, label_tolerance: float, link: bool, progress: bool) -> CopiedFrames:
+    """Write the reference height's labels (ground frame, after the class map) and copy or hard-link every
+    height's point files into `staged`; DatasetError when another height's labels differ by more than
+    `label_tolerance` metres."""
+    ref_key = next(iter(srcs))
+    iterator = ids
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(ids, desc="convert", unit="frame")
+    copied = CopiedFrames(classes=[], class_counts={}, road_z={})
+    for k in srcs:
+        (staged / "points" / k).mkdir(parents=True, exist_ok=True)
+    (staged / "labels").mkdir(parents=True, exist_ok=True)
+    for fid in iterator:
+        ground = {k: _ground_labels(src, fid, frames[k].labels_frame, cmap,
+                                    copied.class_counts if k == ref_key else None) for k, src in srcs.items()}
+        rb, rn = ground[ref_key]
+        for k, (b, n) in ground.items():
+            if k != ref_key and (len(b) != len(rb) or (len(b) and (np.abs(b[:, :6] - rb[:, :6]).max() > label_tolerance
+                                                                   or not np.array_equal(n, rn)))):
+                raise DatasetError(
+                    f"labels at {k} m do not match those at {ref_key} m after moving both to the ground frame "
+                    f"(tolerance {label_tolerance} m); check --pitch/--labels-frame, or that both folders hold the "
+                    f"same frames", path=srcs[k].folder / "labels" / f"{fid}.txt")
+        copied.classes += [n for n in dict.fromkeys(rn.tolist()) if n not in copied.classes]
+        atomic_write_text(label_path(staged, fid), format_labels(rb, rn))
+        for k, src in srcs.items():
+            sp = src.folder / "points" / f"{fid}{src.ext}"
+            pts = read_points(sp, root=src.folder)  # validates before copying
+            dst = points_path(staged, k, fid, src.ext)
+            if k not in copied.road_z:
+                g = pts if frames[k].points_frame == "ground" else sensor_to_ground(pts, float(k), src.sensor.pitch_deg)
+                copied.road_z[k] = road_surface_z(g)
+            dst.unlink(missing_ok=True)
+            if link:
+                os.link(sp, dst)
+            else:
+                shutil.copyfile(sp, dst)
+    return copied
+
+
+def write_split(staged: Path, choice: FrameChoice, ref: Source, rule: SceneRule, test_fraction: float) -> dict:
+    """Write ImageSets/train.txt and test.txt: the source's split when kept, else by scene; returns the split's
+    description for dataset.json."""
+    if choice.kept is not None:
+        train, test, split_files = choice.kept
+        split = {"rule": "kept", "source": str(ref.folder / "ImageSets"), "files": split_files,
+                 "num_train": len(train), "num_test": len(test)}
+    else:
+        train, test, split = assign_splits(choice.ids, rule.scenes(choice.ids), test_fraction)
+        split = dict(split, num_train=len(train), num_test=len(test))
+    atomic_write_text(imageset_path(staged, "train"), "".join(f + "\n" for f in train))
+    atomic_write_text(imageset_path(staged, "test"), "".join(f + "\n" for f in test))
+    return split
+
+
 def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | os.PathLike, *,
                              pitch_deg: dict[str, float] | None = None, points_frame: str = "auto",
                              labels_frame: str = "points", class_map: ClassMap | str | list | None = None,
@@ -201,153 +407,32 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
     test_fraction = shipped_default("data.test_fraction", test_fraction)
     if not sources:
         raise ValueError("no sources given; pass --src HEIGHT=FOLDER for each height")
-    if points_frame not in POINTS_FRAME_CHOICES:
-        raise ValueError(f"points_frame must be one of {', '.join(POINTS_FRAME_CHOICES)}, got {points_frame!r}")
-    if labels_frame not in LABELS_FRAME_CHOICES:
-        raise ValueError(f"labels_frame must be one of {', '.join(LABELS_FRAME_CHOICES)}, got {labels_frame!r}")
-    if isinstance(frames_per_scene, bool) or not isinstance(frames_per_scene, (int, np.integer)) \
-            or frames_per_scene < 1:
-        raise ValueError(f"--frames-per-scene {frames_per_scene}: must be an integer >= 1 (consecutive frame ids "
-                         f"forming one scene; Height3: 200)")
-    if not 0.0 <= float(test_fraction) < 1.0:
-        raise ValueError(f"--test-fraction {test_fraction}: must be in [0, 1) (the share of scenes in test)")
-    if lane_width is not None and not (math.isfinite(float(lane_width)) and float(lane_width) > 0):
-        raise ValueError(f"--lane-width {lane_width}: must be a positive number of metres (default 3.5)")
-    if not (math.isfinite(float(label_tolerance)) and float(label_tolerance) >= 0):
-        raise ValueError(f"--label-tolerance {label_tolerance}: must be a number of metres >= 0 (default 0.05)")
+    _check_settings(points_frame, labels_frame, frames_per_scene, test_fraction, lane_width, label_tolerance)
     cmap = class_map if isinstance(class_map, ClassMap) else parse_class_map(class_map, DEFAULT_IMPORT_CLASS_MAP)
     out = Path(out)
-    pitch_deg = {height_key(float(k)): float(v) for k, v in (pitch_deg or {}).items()}
-    srcs = {height_key(float(k)): Path(v) for k, v in sources.items()}
-    for k, src in srcs.items():  # a replaced --out is removed whole: it must not hold a source
-        if out.exists() and src.exists() and (out.resolve() == src.resolve() or out.resolve() in src.resolve().parents):
-            raise ValueError(f"--out {out} holds the source folder {src} (--src {k}=...); choose another --out")
-    recover_staged(out)
-    check_replaceable(out, overwrite, DATASET_FOLDER)
-    unknown = sorted(set(pitch_deg) - set(srcs))
-    if unknown:
-        raise ValueError(f"--pitch for height(s) {unknown} without a --src of that height")
-    sensors = {k: paper_sensor(float(k), pitch_deg.get(k, 0.0)) for k in srcs}
-    ref_key = next(iter(srcs))
-    exts: dict[str, str] = {}
-    for k, src in srcs.items():
-        if not (src / "labels").is_dir() or not (src / "points").is_dir():
-            raise MissingFileError("expected an OpenPCDet custom folder with points/ and labels/ inside", path=src)
-        exts[k] = _points_ext(src)
-    ref_src = srcs[ref_key]
-    labelled = sorted(p.stem for p in (ref_src / "labels").glob("*.txt"))
-    if not labelled:
-        raise MissingFileError("no label files (*.txt) found", path=ref_src / "labels")
-    for fid in labelled:
-        check_frame_id(fid, str(ref_src / "labels" / f"{fid}.txt"))
-    notes: list[str] = []
+    srcs = _open_sources(sources, out, pitch_deg, overwrite)
+    ref = next(iter(srcs.values()))
+    choice = choose_frames(ref, _labelled_ids(ref), keep_split)
+    frames = resolve_frames(srcs, _sample(choice.ids), points_frame, labels_frame, frame_checks)
+    rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
 
-    # ---- the split decides which frames are converted
-    kept = _source_split(ref_src) if keep_split else None
-    if keep_split and kept is None:
-        notes.append(f"{ref_src / 'ImageSets' / 'train.txt'} not found: the split is re-made by scene")
-    if kept is not None:
-        train, test, split_files = kept
-        known = set(labelled)
-        missing = [f for f in train + test if f not in known]
-        if missing:
-            raise DatasetError(f"{len(missing)} listed id(s) have no label file (e.g. {missing[0]!r}); fix the lists "
-                               f"or pass --resplit", path=ref_src / "ImageSets")
-        ids = sorted(train + test)
-        left = len(labelled) - len(ids)
-        if left:
-            notes.append(f"{left} labelled frame(s) are in neither split list ({split_files}) and were not "
-                         f"converted (pass --resplit to use every labelled frame)")
-    else:
-        ids = labelled
-
-    # ---- frames of points and labels, checked on a few frames before anything is written
-    sample = _sample(ids)
-    frames: dict[str, dict] = {}
-    lframes: dict[str, str] = {}
-    for k, src in srcs.items():
-        for fid in sample:
-            if not (src / "points" / f"{fid}{exts[k]}").is_file():
-                raise MissingFileError(f"points of frame {fid!r} not found (the folders must hold the same frames)",
-                                       path=src / "points" / f"{fid}{exts[k]}")
-        pf, rec = _resolve_points_frame(k, src, exts[k], sample, sensors[k].pitch_deg, points_frame, frame_checks)
-        lf = pf if labels_frame == "points" else labels_frame
-        rec["labels"] = dict(frame=lf, **_check_label_bottoms(k, src, sample, lf, sensors[k].pitch_deg,
-                                                              frame_checks))
-        frames[k], lframes[k] = rec, lf
-
-    # ---- the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
+    # the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
     # or is killed leaves `out` as it was (see detbench.utils.io.staged_folder)
     with staged_folder(out) as staged:
         write_owner(staged, DATASET_FOLDER)
-        iterator = ids
-        if progress:
-            from tqdm import tqdm
-
-            iterator = tqdm(ids, desc="convert", unit="frame")
-        classes: list[str] = []
-        class_counts: dict = {}
-        road_z: dict[str, float] = {}
-        for k in srcs:
-            (staged / "points" / k).mkdir(parents=True, exist_ok=True)
-        (staged / "labels").mkdir(parents=True, exist_ok=True)
-        for fid in iterator:
-            ground = {}
-            for k, src in srcs.items():
-                boxes, names = read_labels(src / "labels" / f"{fid}.txt", root=src)
-                if k == ref_key:
-                    count_classes(names.tolist(), cmap, class_counts)
-                keep, new_names = cmap.apply(names.tolist())
-                boxes, names = boxes[keep], np.asarray(new_names, dtype=str).reshape(-1)
-                if lframes[k] == "sensor":
-                    boxes = boxes_sensor_to_ground(boxes, float(k), sensors[k].pitch_deg)
-                ground[k] = (boxes, names)
-            rb, rn = ground[ref_key]
-            for k, (b, n) in ground.items():
-                if k == ref_key:
-                    continue
-                if len(b) != len(rb) or (len(b) and (np.abs(b[:, :6] - rb[:, :6]).max() > label_tolerance
-                                                     or not np.array_equal(n, rn))):
-                    raise DatasetError(
-                        f"labels at {k} m do not match those at {ref_key} m after moving both to the ground frame "
-                        f"(tolerance {label_tolerance} m); check --pitch/--labels-frame, or that both folders hold the "
-                        f"same frames", path=srcs[k] / "labels" / f"{fid}.txt")
-            for n in rn.tolist():
-                if n not in classes:
-                    classes.append(n)
-            atomic_write_text(label_path(staged, fid), format_labels(rb, rn))
-            for k, src in srcs.items():
-                sp = src / "points" / f"{fid}{exts[k]}"
-                pts = read_points(sp, root=src)  # validates before copying
-                dst = points_path(staged, k, fid, exts[k])
-                if k not in road_z:
-                    g = pts if frames[k]["frame"] == "ground" else sensor_to_ground(pts, float(k), sensors[k].pitch_deg)
-                    road_z[k] = road_surface_z(g)
-                dst.unlink(missing_ok=True)
-                if link:
-                    os.link(sp, dst)
-                else:
-                    shutil.copyfile(sp, dst)
-
-        rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
-        scene_of = rule.scenes(ids)
-        if kept is not None:
-            split = {"rule": "kept", "source": str(ref_src / "ImageSets"), "files": split_files,
-                     "num_train": len(train), "num_test": len(test)}
-        else:
-            train, test, split = assign_splits(ids, scene_of, test_fraction)
-            split = dict(split, num_train=len(train), num_test=len(test))
-        atomic_write_text(imageset_path(staged, "train"), "".join(f + "\n" for f in train))
-        atomic_write_text(imageset_path(staged, "test"), "".join(f + "\n" for f in test))
-        heights = {k: HeightInfo(key=k, sensor=sensors[k], points_frame=frames[k]["frame"], points_ext=exts[k])
-                   for k in srcs}
-        info = DatasetInfo(heights=heights, classes=classes or ["car"], split=split, has_meta=False,
+        copied = copy_frames(staged, choice.ids, srcs, frames, cmap, label_tolerance, link, progress)
+        split = write_split(staged, choice, ref, rule, test_fraction)
+        heights = {k: HeightInfo(key=k, sensor=src.sensor, points_frame=frames[k].points_frame, points_ext=src.ext)
+                   for k, src in srcs.items()}
+        info = DatasetInfo(heights=heights, classes=copied.classes or ["car"], split=split, has_meta=False,
                            lane_width=DEFAULT_LANE_WIDTH if lane_width is None else float(lane_width),
-                           scene_rule=rule, num_frames=len(ids), format=FORMAT_NAME, version=FORMAT_VERSION,
-                           source={"kind": "external", "converted_from": {k: str(v) for k, v in srcs.items()},
-                                   "format": "openpcdet-custom", "frames": frames,
-                                   "labels_frame": {k: lframes[k] for k in srcs}, "class_map": cmap.spec,
-                                   "class_counts": class_counts, "road_surface_z_m": road_z, "notes": notes})
+                           scene_rule=rule, num_frames=len(choice.ids), format=FORMAT_NAME, version=FORMAT_VERSION,
+                           source={"kind": "external",
+                                   "converted_from": {k: str(src.folder) for k, src in srcs.items()},
+                                   "format": "openpcdet-custom", "frames": {k: f.record for k, f in frames.items()},
+                                   "labels_frame": {k: f.labels_frame for k, f in frames.items()},
+                                   "class_map": cmap.spec, "class_counts": copied.class_counts,
+                                   "road_surface_z_m": copied.road_z, "notes": choice.notes})
         atomic_write_json(staged / "convert_report.json", {"out": str(out), "num_frames": info.num_frames,
                                                         "split": info.split, **info.source})
         atomic_write_text(staged / "convert_report.md", convert_report_markdown(info, out))
