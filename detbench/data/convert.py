@@ -21,7 +21,9 @@
   Pedestrian, Cyclist, Person_sitting, DontCare; keep every other name) and prints how many
   label lines of each class it kept and dropped;
 - keeps the source's split (ImageSets/train.txt, and val.txt or test.txt as detbench's test
-  split; frames in neither are not converted), or re-splits by scene with --resplit;
+  split; frames in neither are not converted), or re-splits by scene with --resplit; a kept
+  split that puts frames of one scene in both splits (the test leaks into training) is
+  warned about in one line naming how many scenes it cuts;
 - writes no meta files (`has_meta: false`): lanes are derived from the lateral offset with
   --lane-width, track ids are -1, scenes come from --frames-per-scene consecutive ids;
 - prints per height the road height it finds in the converted points of the first frame
@@ -384,6 +386,28 @@ def write_split(staged: Path, choice: FrameChoice, ref: Source, rule: SceneRule,
     return split
 
 
+def split_scene_warning(choice: FrameChoice, rule: SceneRule) -> str | None:
+    """One line when the source's kept split puts frames of one scene (scenes by `rule`) in both train and test,
+    naming how many scenes and --resplit; None when it keeps every scene whole or the split is made here."""
+    if choice.kept is None:
+        return None
+    train, test, files = choice.kept
+    scene_of = rule.scenes(choice.ids)
+    shared = {scene_of[f] for f in train} & {scene_of[f] for f in test}
+    if not shared:
+        return None
+    n_scenes = len(set(scene_of.values()))
+    how = f"blocks of {rule.frames_per_scene} consecutive frame ids, --frames-per-scene"
+    if n_scenes == 1:
+        what = (f"all {len(choice.ids)} frames form one scene ({how}), and the source's split ({files}) puts frames "
+                f"of it in both train and test")
+    else:
+        what = (f"the source's split ({files}) puts frames of {len(shared)} of {n_scenes} scenes ({how}) in both "
+                f"train and test")
+    return (f"{what}: frames of one scene are near-duplicates, so the test leaks into training; pass --resplit to "
+            f"split by scene")
+
+
 def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | os.PathLike, *,
                              pitch_deg: dict[str, float] | None = None, points_frame: str = "auto",
                              labels_frame: str = "points", class_map: ClassMap | str | list | None = None,
@@ -401,7 +425,8 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
     being `frames_per_scene` consecutive ids; None takes configs/default.yaml `data:`).
     `frame_checks` False turns the road and box-bottom refusals off. Returns the DatasetInfo written
     to out/dataset.json; its `source` records what was found and done (frames, class counts, split,
-    notes). See the module doc.
+    notes, and `warnings`: a kept split with frames of one scene in both splits, `split_scene_warning`).
+    See the module doc.
     """
     frames_per_scene = shipped_default("data.frames_per_scene", frames_per_scene)
     test_fraction = shipped_default("data.test_fraction", test_fraction)
@@ -415,6 +440,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
     choice = choose_frames(ref, _labelled_ids(ref), keep_split)
     frames = resolve_frames(srcs, _sample(choice.ids), points_frame, labels_frame, frame_checks)
     rule = SceneRule(kind="block", frames_per_scene=frames_per_scene)
+    warning = split_scene_warning(choice, rule)
 
     # the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
     # or is killed leaves `out` as it was (see detbench.utils.io.staged_folder)
@@ -432,7 +458,8 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
                                    "format": "openpcdet-custom", "frames": {k: f.record for k, f in frames.items()},
                                    "labels_frame": {k: f.labels_frame for k, f in frames.items()},
                                    "class_map": cmap.spec, "class_counts": copied.class_counts,
-                                   "road_surface_z_m": copied.road_z, "notes": choice.notes})
+                                   "road_surface_z_m": copied.road_z, "notes": choice.notes,
+                                   "warnings": [] if warning is None else [warning]})
         atomic_write_json(staged / "convert_report.json", {"out": str(out), "num_frames": info.num_frames,
                                                         "split": info.split, **info.source})
         atomic_write_text(staged / "convert_report.md", convert_report_markdown(info, out))
@@ -458,6 +485,8 @@ def convert_report_markdown(info: DatasetInfo, out: str | os.PathLike) -> str:
               "| source class | kept | dropped | as |", "|---|---:|---:|---|"]
     for name, c in sorted(s["class_counts"].items()):
         lines.append(f"| {name} | {c['kept']} | {c['dropped']} | {c['as'] or '-'} |")
+    if s.get("warnings"):
+        lines += ["", "Warnings:", ""] + [f"- {w}" for w in s["warnings"]]
     if s.get("notes"):
         lines += ["", "Notes:", ""] + [f"- {n}" for n in s["notes"]]
     return "\n".join(lines) + "\n"
@@ -551,6 +580,8 @@ def main(argv=None) -> int:
         print("  " + line)
     for n in src["notes"]:
         print("note: " + n)
+    for w in src["warnings"]:
+        print("warning: " + w, file=sys.stderr)
     out = Path(args.out)
     print(f"{args.out}: {info.num_frames} frames, heights {list(info.heights)}, "
           f"{info.split.get('num_train')} train / {info.split.get('num_test')} test "

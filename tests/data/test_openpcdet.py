@@ -287,6 +287,47 @@ def test_import_finds_ground_frame_points_and_keeps_ldr(tmp_path, capsys):
     assert Height3Dataset(tmp_path / "o3", 1.8, "test").frame_ids == ["000004", "000005"]
 
 
+def test_import_warns_when_the_kept_split_cuts_scenes(tmp_path, capsys):
+    """A source split that puts frames of one scene in both splits is kept with one warning line naming how many
+    scenes it cuts and --resplit; a split that keeps scenes whole, and --resplit, convert without one."""
+    frames = ground_frames(n=12)  # 4 scenes of 3 consecutive ids with --frames-per-scene 3
+    ids = sorted(frames)
+
+    def convert(split, name, *extra):
+        src = tmp_path / f"src_{name}"
+        write_opc_folder(src, frames, split)
+        out = tmp_path / name
+        assert convert_main(["--src", f"1.8={src}", "--out", str(out), "--frames-per-scene", "3", "--no-progress",
+                             *extra]) == 0
+        err = capsys.readouterr().err
+        return out, [line for line in err.splitlines() if line.startswith("warning:")]
+
+    by_frame = {"train": [f for i, f in enumerate(ids) if i not in (4, 10)], "val": [ids[4], ids[10]]}
+    out, warned = convert(by_frame, "by_frame")
+    assert len(warned) == 1, warned
+    assert "puts frames of 2 of 4 scenes (blocks of 3 consecutive frame ids, --frames-per-scene)" in warned[0]
+    assert "pass --resplit to split by scene" in warned[0]
+    info = read_info(out)
+    assert info.split["rule"] == "kept" and info.source["warnings"] == [warned[0].removeprefix("warning: ")]
+    assert "Warnings:" in (out / "convert_report.md").read_text()
+    assert Height3Dataset(out, 1.8, "test").frame_ids == [ids[4], ids[10]]  # kept as the source has it
+    # scenes whole in the source's split: no warning
+    out, warned = convert({"train": ids[:9], "val": ids[9:]}, "by_scene")
+    assert warned == [] and read_info(out).source["warnings"] == []
+    # --resplit splits by scene, whatever the source's lists say
+    out, warned = convert(by_frame, "resplit", "--resplit")
+    assert warned == [] and read_info(out).split["rule"] == "by-scene"
+    scene = {f: i // 3 for i, f in enumerate(ids)}
+    test, train = (Height3Dataset(out, 1.8, s).frame_ids for s in ("test", "train"))
+    assert test and {scene[f] for f in test}.isdisjoint(scene[f] for f in train)
+    # every frame in one scene (fewer ids than --frames-per-scene): the kept split cuts that scene
+    src = tmp_path / "src_one"
+    write_opc_folder(src, frames, by_frame)
+    assert convert_main(["--src", f"1.8={src}", "--out", str(tmp_path / "one"), "--no-progress"]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if line.startswith("warning:")]
+    assert len(warned) == 1 and "all 12 frames form one scene (blocks of 200" in warned[0]
+
+
 def test_import_sensor_frame_and_ambiguous_road(tmp_path, capsys):
     frames = ground_frames()
     src = tmp_path / "sensor"
