@@ -60,6 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=_HelpFormatter,
         epilog="examples:\n"
                "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt     # its own height\n"
+               "  python tools/eval.py --ckpt runs/second_h1.8_cpu            # the run's newest checkpoint\n"
                "  python tools/eval.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt --test-height 0.5\n"
                "  python tools/eval.py --data data/sim --height 1.8 --pred PRED_DIR --out runs/eval_second_1.8\n"
                "  python tools/eval.py --combine runs/study_quick/*_h?.?/eval_*_test/report.json --out runs/combined\n"
@@ -88,9 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
                           "but Pedestrian, Cyclist, Person_sitting, DontCare. Predictions without a class are "
                           "always kept")
     src.add_argument("--ckpt", type=Path,
-                     help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt) to run instead of --pred; "
-                          "--data and --height default to what it was trained on; its predictions are written "
-                          "to OUT/pred/ in the --pred format")
+                     help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt) to run instead of --pred, or "
+                          "a training run's folder (OUT) for its newest checkpoint; --data and --height default "
+                          "to what it was trained on; its predictions are written to OUT/pred/ in the --pred "
+                          "format")
     src.add_argument("--test-height", type=float, default=None,
                      help="with --ckpt: evaluate at this height instead of the training height (cross-height)")
     src.add_argument("--device", default="cpu", help="with --ckpt: cpu, cuda or cuda:N")
@@ -152,13 +154,18 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: i
 
 
 def checkpoint_defaults(args: argparse.Namespace) -> None:
-    """Fill --data and --height from the checkpoint when not given; resolve --test-height and --out."""
+    """Take a run folder's newest checkpoint for --ckpt RUN_DIR; fill --data and --height from the checkpoint when
+    not given; resolve --test-height and --out."""
     from detbench.train.checkpoint import CheckpointError, load_checkpoint
+    from detbench.train.run_layout import checkpoint_in
 
     try:
+        given, args.ckpt = args.ckpt, checkpoint_in(args.ckpt)
         ck = load_checkpoint(args.ckpt)
     except CheckpointError as e:
         raise UserError(str(e)) from None
+    if args.ckpt != given:
+        print(f"checkpoint: {args.ckpt} (the newest in {given})")
     trained_h = float(ck["data"].get("height", float("nan")))
     if args.model is not None and args.model != ck["model_name"]:
         raise UserError(f"--model {args.model}: --ckpt {args.ckpt} is a {ck['model_name']} checkpoint; leave --model "

@@ -19,6 +19,7 @@ import os
 from pathlib import Path
 
 from detbench.data.frame import height_key
+from detbench.train.checkpoint import CheckpointError, CheckpointManager
 from detbench.utils.io import FolderKind, read_json
 
 RUNS_DIR = Path("runs")  # default parent of runs and studies, relative to the working directory
@@ -85,6 +86,21 @@ def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:
     return Path(ckpt).resolve().parent.parent
 
 
+def checkpoint_in(path: str | os.PathLike) -> Path:
+    """The checkpoint `path` names: a file names itself; a training run's folder, or its checkpoints/ folder,
+    names the newest checkpoint in it (`CheckpointManager.latest`: the highest epoch, then step).
+    CheckpointError naming the folder when it holds none."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    folder = path if path.name == "checkpoints" and not (path / "checkpoints").is_dir() else path / "checkpoints"
+    latest = CheckpointManager(folder).latest()
+    if latest is None:
+        raise CheckpointError(f"{path}: holds no checkpoint ({folder}/epoch_*.pt); pass a training run's folder "
+                              f"(tools/train.py --out OUT) after its first epoch, or a checkpoint file")
+    return latest
+
+
 def training_seconds(run_dir: str | os.PathLike) -> float:
     """How long a run trained, in seconds: the sum of its history.json epochs' `seconds` (each epoch's
     training, evaluation excluded), so a run stopped and resumed counts the epochs of every invocation,
@@ -104,4 +120,4 @@ def training_seconds(run_dir: str | os.PathLike) -> float:
 
 __all__ = ["RUNS_DIR", "RUN_FOLDER", "STUDY_FOLDER", "model_run_name", "default_train_dir", "default_study_dir",
            "study_run_dir", "eval_dir_name", "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint",
-           "training_seconds"]
+           "checkpoint_in", "training_seconds"]

@@ -2,6 +2,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -252,3 +253,35 @@ def test_bench_eval_small_run(tmp_path, capsys):
     la = res["large_all"]
     assert la["tp"] > 0 and la["fp"] > 0 and la["lidar_detected"] < la["total"]
     assert "| **total** |" in (tmp_path / "bench_eval.md").read_text()
+
+
+# ------------------------------------------------------------------ --ckpt RUN_DIR: the run's newest checkpoint
+
+def test_ckpt_takes_a_run_folder_and_evaluates_its_newest_checkpoint(smoke_run, tmp_path, capsys):
+    """--ckpt RUN_DIR (or RUN_DIR/checkpoints) evaluates the newest checkpoint by epoch, then step, and says which;
+    the report equals the one of that checkpoint given as a file; a folder without one is one error line."""
+    import shutil
+
+    run = Path(shutil.copytree(smoke_run, tmp_path / "run"))
+    ckpt = run / "checkpoints" / "epoch_001.pt"
+    shutil.copy(ckpt, run / "checkpoints" / "epoch_000_step_000002.pt")  # older: a step inside epoch 1
+    assert run_main(tools.eval.main, ["--ckpt", str(ckpt), "--out", str(tmp_path / "file"), "--no-progress",
+                                      "--bootstrap", "0"]) == 0
+    capsys.readouterr()
+    assert run_main(tools.eval.main, ["--ckpt", str(run), "--no-progress", "--bootstrap", "0"]) == 0
+    out = capsys.readouterr().out
+    assert f"checkpoint: {ckpt} (the newest in {run})" in out
+    by_file = json.loads((tmp_path / "file" / "report.json").read_text())
+    by_run = json.loads((run / "eval_h1.8_test" / "report.json").read_text())  # the run's own eval folder
+    assert by_run["results"] == by_file["results"] and by_run["model"] == "second"
+    # a newer epoch is taken over the older ones, from the checkpoints/ folder too: here a damaged file,
+    # refused with its name
+    (run / "checkpoints" / "epoch_002.pt").write_bytes(b"not a checkpoint")
+    assert run_main(tools.eval.main, ["--ckpt", str(run / "checkpoints"), "--out", str(tmp_path / "e2"),
+                                      "--no-progress"]) == 2
+    assert "epoch_002.pt" in capsys.readouterr().err
+    empty = tmp_path / "empty_run"
+    (empty / "checkpoints").mkdir(parents=True)
+    assert run_main(tools.eval.main, ["--ckpt", str(empty), "--out", str(tmp_path / "e3"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{empty}: holds no checkpoint" in err and "tools/train.py --out" in err
