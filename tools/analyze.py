@@ -23,6 +23,7 @@ from pathlib import Path
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
+from detbench.data.regions import RANGES
 from detbench.studies.ability import DEFAULT_THRESHOLDS
 from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
@@ -36,8 +37,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="LiDAR detection-ability study: total and LiDAR-detected vehicles per mounting height, "
                     "range and importance level (Height3 paper, Section IV).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="Ranges by box centre (m): small 0<=x<=50 |y|<=5; moderate 0<=x<=100 |y|<=10; large 0<=x<=150 "
-               "|y|<=15.\nTop3/Top6: the 1/2 nearest vehicles in each of the ego, left and right lanes.")
+        epilog="Ranges by box centre (m): "
+               + "; ".join(f"{r} {x0:g}<=x<={x1:g} |y|<={ym:g}" for r, (x0, x1, ym) in RANGES.items())
+               + ".\nTop3/Top6: the 1/2 nearest vehicles in each of the ego, left and right lanes.\n"
+               "Writes OUT/ability.json (machine-readable), ability.md and the PNG figures. Units: LDR = detected / "
+               "total, a fraction in [0, 1]; Number = vehicles summed over frames; heights, ranges and distances "
+               "in metres.")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--data", metavar="ROOT", help="a dataset on disk in the detbench layout (docs/data-format.md)")
     src.add_argument("--simulate", type=int, metavar="N",

@@ -5,9 +5,9 @@ A training run of model M at mounting height H is a folder named `M_hH` inside a
 --out. A study trained with several seeds (`tools/study.py --seeds`) keeps the run of the config's
 own train.seed under that name and suffixes the others' with their seed: `second_h1.8_s1`.
 Its checkpoints are in `<run>/checkpoints/`, and the tools that start from a checkpoint write
-next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height tested at)
-and `<run>/precision_hH_<split>/` (tools/precision.py). Heights are written by
-`detbench.data.frame.height_key` (1.8, 1.0, 0.25).
+next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height tested at),
+`<run>/precision_hH_<split>/` (tools/precision.py) and `<run>/demo_hH_<split>/` (tools/demo.py).
+Heights are written by `detbench.data.frame.height_key` (1.8, 1.0, 0.25).
 
 `RUN_FOLDER` and `STUDY_FOLDER` say what such folders hold, for `detbench.utils.io.claim_folder`
 (a run or a study writes only into a folder that is new, empty or its own, and locks it while it
@@ -32,7 +32,8 @@ RUN_FOLDER = FolderKind(
     entries=("checkpoints", "tensorboard", "history.json", "config.yaml", "train_summary.json", "train_summary.md",
              "tradeoff_train.json"),
     foreign="part of a training run", unfinished="an unfinished training run", key="run",
-    patterns=(r"eval_h[0-9.]+_[a-z]+(_[a-z]+)?", r"precision_h[0-9.]+_[a-z]+"), evidence=("checkpoints/epoch_*.pt",))
+    patterns=(r"eval_h[0-9.]+_[a-z]+(_[a-z]+)?", r"precision_h[0-9.]+_[a-z]+", r"demo_h[0-9.]+_[a-z]+"),
+    evidence=("checkpoints/epoch_*.pt",))
 
 # a study's folder (tools/study.py): its reports, the ability study, the combined report and one training
 # run per model and height (`model_run_name`), each of which must itself be a run
@@ -81,6 +82,11 @@ def precision_dir_name(height: float, split: str) -> str:
     return f"precision_h{height_key(height)}_{split}"
 
 
+def demo_dir_name(height: float, split: str) -> str:
+    """The folder of tools/demo.py's drawings at `height` on `split`: "demo_h1.8_test"."""
+    return f"demo_h{height_key(height)}_{split}"
+
+
 def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:
     """The run folder holding a checkpoint (`<run>/checkpoints/epoch_020.pt` -> `<run>`), absolute."""
     return Path(ckpt).resolve().parent.parent
@@ -120,4 +126,4 @@ def training_seconds(run_dir: str | os.PathLike) -> float:
 
 __all__ = ["RUNS_DIR", "RUN_FOLDER", "STUDY_FOLDER", "model_run_name", "default_train_dir", "default_study_dir",
            "study_run_dir", "eval_dir_name", "eval_report_path", "precision_dir_name", "run_dir_of_checkpoint",
-           "checkpoint_in", "training_seconds"]
+           "checkpoint_in", "demo_dir_name", "training_seconds"]
