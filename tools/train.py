@@ -49,9 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="dataset root (docs/data-format.md); default: the simulated default dataset")
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
                     help="training budget, configs/presets/NAME.yaml (data, epochs, model widths). "
-                         "smoke: proves the pipeline in a minute or two; cpu: learns for real in 7-16 min "
-                         "per detector on one CPU core; paper: the paper's scale (8000 frames, full model; "
-                         "a GPU). Default cpu")
+                         "smoke: proves the pipeline, learns nothing; cpu: learns for real on one CPU core; "
+                         "paper: the paper's scale (8000 frames, full model; a GPU). Measured times: "
+                         "docs/results.md, 'What each preset costs'. Default cpu")
     ap.add_argument("--config", default=None, help="a config file instead of configs/<model>.yaml")
     ap.add_argument("--epochs", type=int, default=None, help="override train.epochs")
     ap.add_argument("--batch-size", type=int, default=None, help="override train.batch_size (frames per process)")
