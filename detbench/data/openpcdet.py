@@ -43,9 +43,9 @@ import numpy as np
 from detbench.data.layout import IMAGESETS_DIR, LABELS_DIR, POINTS_DIR, POINTS_FRAMES
 from detbench.data.readers import format_labels
 from detbench.data.transforms import boxes_ground_to_sensor, ground_to_sensor, sensor_to_ground
-from detbench.utils.io import (
-    FolderKind, atomic_save, atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder,
-)
+from detbench.utils.atomic import atomic_save, atomic_write_json, atomic_write_text
+from detbench.utils.folder_ownership import FolderKind, check_replaceable
+from detbench.utils.staged_folders import recover_staged, staged_folder
 
 # OpenPCDet's split files: DATA_SPLIT {'train': train, 'test': val} in its custom_dataset.yaml
 OPENPCDET_SPLITS = {"train": "train", "test": "val"}  # detbench split -> OpenPCDet ImageSets name
@@ -236,8 +236,8 @@ def label_bottom_z(boxes: np.ndarray) -> np.ndarray:
 
 # --------------------------------------------------------------------------- export
 
-# an export folder as `export_openpcdet` replaces it (`detbench.utils.io.check_replaceable`): only an earlier
-# export, holding the export's files and what OpenPCDet's info generation adds to it
+# an export folder as `export_openpcdet` replaces it (`detbench.utils.folder_ownership.check_replaceable`): only an
+# earlier export, holding the export's files and what OpenPCDet's info generation adds to it
 EXPORT_FOLDER = FolderKind(
     name="an earlier export", marker=EXPORT_MANIFEST,
     entries=(POINTS_DIR, LABELS_DIR, IMAGESETS_DIR, EXPORT_MANIFEST, EXPORT_MARKDOWN, EXPORT_YAML, EXPORT_SCRIPT)

@@ -17,7 +17,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 from detbench.data.detections import Detections
-from detbench.utils.io import atomic_write_text
+from detbench.utils.atomic import atomic_write_text
 from detbench.utils.untrusted import excerpt
 
 __all__ = ["PREDICTION_SUFFIX", "format_prediction_lines", "parse_prediction_file", "read_prediction_dir",

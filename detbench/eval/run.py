@@ -19,7 +19,7 @@ from detbench.eval.external import LoadedPredictions, load_predictions, vertical
 from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, data_labels, label_variants,
                                   plot_by_height, plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
 from detbench.utils.cli import UserError, as_user_error
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["CheckpointRun", "EvalSettings", "combine_report_files", "evaluation_report", "load_split",
            "read_saved_predictions", "report_title", "write_report"]

@@ -38,7 +38,7 @@ from torch import nn
 
 from detbench.train.seed import restore_rng_state
 from detbench.config import MAX_CONFIG_VALUES, shipped_default
-from detbench.utils.io import atomic_save
+from detbench.utils.atomic import atomic_save
 from detbench.utils.untrusted import clip, excerpt, structure_problem
 
 __all__ = [

@@ -55,7 +55,7 @@ from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buff
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
 from detbench.train.seed import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
-from detbench.utils.io import atomic_write_text, read_json, remove_stale_temporaries
+from detbench.utils.atomic import atomic_write_text, read_json, remove_stale_temporaries
 
 __all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "RESUME_IGNORE_KEYS", "NonFiniteTrainingError", "TrainConfig",
            "TrainResult", "train"]

@@ -23,7 +23,7 @@ from detbench.data.readers import format_labels
 from detbench.data.regions import detected_point_counts
 from detbench.data.transforms import ground_to_sensor
 from detbench.data.validate import validate_dataset
-from detbench.utils.io import read_json
+from detbench.utils.atomic import read_json
 from detbench.utils.cli import run_main
 import tools.analyze
 import tools.eval

@@ -60,7 +60,7 @@ def test_a_swap_interrupted_between_its_renames_is_repaired(tmp_path, monkeypatc
     """Where the system has no atomic exchange, a swap is two renames; a kill between them leaves the old
     folder aside and none at `dest`: the next run puts the old one back. After the swap, a leftover old
     folder is removed."""
-    import detbench.utils.io as io
+    import detbench.utils.staged_folders as staged_folders
 
     dead = 999999999  # no process has this id
     dest = tmp_path / "data"
@@ -69,18 +69,18 @@ def test_a_swap_interrupted_between_its_renames_is_repaired(tmp_path, monkeypatc
     (old / "dataset.json").write_text("{}")
     new = tmp_path / f".tmp-new-data-{dead}"
     new.mkdir()
-    notes = io.recover_staged(dest)
+    notes = staged_folders.recover_staged(dest)
     assert (dest / "dataset.json").read_text() == "{}" and not old.exists() and not new.exists()
     assert len(notes) == 2 and "put back" in notes[0]
     old.mkdir()
-    io.recover_staged(dest)
+    staged_folders.recover_staged(dest)
     assert not old.exists() and (dest / "dataset.json").is_file()
 
-    monkeypatch.setattr(io, "_exchange", lambda a, b: False)  # the two-rename path
-    with io.staged_folder(dest) as staged:
+    monkeypatch.setattr(staged_folders, "_exchange", lambda a, b: False)  # the two-rename path
+    with staged_folders.staged_folder(dest) as staged:
         (staged / "dataset.json").write_text('{"new": 1}')
     assert (dest / "dataset.json").read_text() == '{"new": 1}' and _siblings(dest) == []
-    with pytest.raises(RuntimeError), io.staged_folder(dest) as staged:
+    with pytest.raises(RuntimeError), staged_folders.staged_folder(dest) as staged:
         (staged / "dataset.json").write_text('{"newer": 1}')
         raise RuntimeError("failed half-way")
     assert (dest / "dataset.json").read_text() == '{"new": 1}' and _siblings(dest) == []

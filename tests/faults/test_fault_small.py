@@ -41,7 +41,7 @@ def test_dataset_size_estimate_matches_a_small_simulated_dataset(tmp_path):
 
 def test_default_dataset_larger_than_the_disk_is_refused(tmp_path, monkeypatch):
     import detbench.sim.dataset as simds
-    from detbench.utils.io import DiskFullError
+    from detbench.utils.atomic import DiskFullError
 
     frames = shutil.disk_usage(tmp_path).free // 500_000 + 1  # three heights write about 1.7 MB per frame
 

@@ -53,7 +53,7 @@ def test_argument_errors(tmp_path, capsys):
 
 def test_combine_cli(tmp_path, capsys):
     from detbench.eval import EvalFrame, evaluate
-    from detbench.utils.io import atomic_write_json
+    from detbench.utils.atomic import atomic_write_json
 
     car = [10, 0, 0.8, 4, 2, 1.6, 0]
     paths = []
