@@ -126,7 +126,7 @@ def test_typed_configs_read_their_defaults_from_default_yaml():
     from detbench.data.augment import AUGMENT_DEFAULTS, AugmentConfig
     from detbench.data.gt_database import GT_SAMPLING_DEFAULTS, GTSamplingConfig
     from detbench.sim.dataset import DATA_DEFAULTS
-    from detbench.train.loop import TRAIN_DEFAULTS, TrainConfig
+    from detbench.train.train_config import TRAIN_DEFAULTS, TrainConfig
 
     shipped = C.load_config(C.CONFIG_DIR / "default.yaml")
     aug_yaml = shipped["augment"]
