@@ -18,6 +18,8 @@ def _siblings(folder):
 
 
 def test_kill_during_simulate_overwrite_keeps_the_old_dataset(data_copy, tmp_path):
+    """kill -9 while `simulate --overwrite` builds the new dataset leaves the old one whole (same files, sizes,
+    times and digests); the next run removes the half-built folder and replaces the old dataset entirely."""
     before = snapshot(data_copy)
     assert "dataset.json" in before and "points/1.8/0000_000.npy" in before
     cmd = [sys.executable, "tools/simulate.py", "--out", str(data_copy), "--frames", "400", "--frames-per-scene",
@@ -46,6 +48,8 @@ def test_kill_during_simulate_overwrite_keeps_the_old_dataset(data_copy, tmp_pat
 
 
 def test_refused_simulate_changes_nothing(data_copy, tool):
+    """simulate into an existing dataset is refused without --overwrite, and with it when the folder holds a
+    file of the user's; both refusals change nothing and leave nothing beside the folder."""
     (data_copy / "notes.txt").write_text("the user's own file")
     before = snapshot(data_copy)
     code, err = tool("simulate", "--out", data_copy, "--frames", "2", "--heights", "1.8", "--no-progress")
