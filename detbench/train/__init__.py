@@ -3,7 +3,7 @@
 The detector contract (the loop, inference and the benchmark use nothing else) is the
 `Detector` protocol in detbench/train/detector.py: forward(batch), loss(outputs, batch),
 predict(outputs, batch), STAGES and prepare_config(model_cfg, train_boxes); the hand-offs
-`Sample`, `Batch`, `Detections` are in detbench/data/batch.py.
+`Sample`, `Batch`, `Detections` are in detbench/data/batch.py (`Detections` defined in detections.py).
 
 Typical use (tools/train.py; `models` is the detector registry above this package)
 -----------------------------------------------------------------------------------

@@ -1,9 +1,9 @@
 """How a training run takes a stop: the first Ctrl-C or SIGTERM becomes a request, checked between steps.
 
 The loop finishes the step it is in, writes a checkpoint and returns (`TrainResult.interrupted`), so
-`--resume` continues exactly. A second Ctrl-C more than 2 s after the first aborts at once; one within
-2 s is the same keypress forwarded again (torchrun, and the study's driver, pass the terminal's SIGINT
-or a SIGTERM on to processes that got it already) and is absorbed.
+`--resume` continues exactly. After the first, a SIGTERM is absorbed (the study's driver passes a stop
+on to a job that got the terminal's Ctrl-C already), and so is a Ctrl-C within 2 s of the first (the
+same keypress, forwarded by torchrun); a Ctrl-C later than that aborts at once, without a checkpoint.
 """
 from __future__ import annotations
 
