@@ -29,7 +29,7 @@ from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
 from detbench.utils.cli import add_sim_preset_argument, check_out_dir, require, run_main
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     from detbench.benchmarks.eval import eval_bench_markdown, run_eval_bench
-    from detbench.utils.io import atomic_write_json, atomic_write_text
+    from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
     numba.set_num_threads(args.threads)
     result = run_eval_bench(args.frames, args.gt_per_frame, args.preds_per_frame, repeats=args.repeats,

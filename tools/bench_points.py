@@ -33,7 +33,7 @@ from detbench.benchmarks.points import (FPS_TARGET_MS, PointsBenchSettings, poin
                                         run_points_bench)
 from detbench.sim.scans import load_scans
 from detbench.utils.cli import check_out_dir, require, run_main, torch_device
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -33,7 +33,7 @@ from detbench.data import Height3Dataset
 from detbench.data.road import RoadConfig
 from detbench.train.run_config import load_run_config, preset_names
 from detbench.utils.cli import UserError, check_out_dir, require, run_main
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

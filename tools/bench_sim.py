@@ -28,7 +28,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 from detbench import runtime  # noqa: F401  (first detbench import: thread-runtime defaults before numba starts)
 from detbench.config import ConfigError
 from detbench.utils.cli import UserError, add_sim_preset_argument, check_out_dir, require, run_main
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -33,7 +33,7 @@ from detbench.benchmarks.sparse import SparseBenchSettings, run_sparse_bench, sp
 from detbench.ops.voxelize import voxel_grid_size
 from detbench.sim.scans import load_scans
 from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 # ----------------------------------------------------------------------------- main

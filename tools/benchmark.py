@@ -41,7 +41,7 @@ from detbench.data.road import RoadConfig
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
 from detbench.utils.cli import EXIT_USER_ERROR, UserError, check_out_dir, doc_parser, require, run_main, torch_device
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -44,7 +44,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 from detbench.studies.calibration_check import CalibrationOptions, check_calibration
 from detbench.utils.cli import UserError, add_sim_preset_argument
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

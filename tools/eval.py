@@ -28,6 +28,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.config import shipped_default
+from detbench.eval.prediction_files import write_predictions
 from detbench.eval.report import summary_lines
 from detbench.eval.run import (
     CheckpointRun,
@@ -37,7 +38,6 @@ from detbench.eval.run import (
     load_split,
     read_saved_predictions,
     report_title,
-    write_predictions,
     write_report,
 )
 from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device

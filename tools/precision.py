@@ -34,7 +34,7 @@ from detbench.config import shipped_default
 from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,
                                       checkpoint_precision_report, precision_frames, precision_summary_lines)
 from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

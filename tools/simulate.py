@@ -24,7 +24,8 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 from detbench.config import ConfigError, shipped_default
 from detbench.utils.cli import UserError, add_sim_preset_argument, run_main
-from detbench.utils.io import DiskFullError, recover_staged
+from detbench.utils.atomic import DiskFullError
+from detbench.utils.staged_folders import recover_staged
 
 
 def build_parser() -> argparse.ArgumentParser:

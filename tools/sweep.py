@@ -36,7 +36,7 @@ from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
 from detbench.utils.cli import UserError, add_sim_preset_argument, check_out_dir, require, run_main
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -37,7 +37,8 @@ from detbench.train.run import (check_training_frames, claim_run_folder, collect
                                 make_eval_fn, option_overrides, training_data_info, write_summary)
 from detbench.train.run_config import load_run_config, preset_names
 from detbench.utils.cli import UserError, as_user_error, doc_parser, run_main
-from detbench.utils.io import DiskFullError, FolderNotReplaceable
+from detbench.utils.atomic import DiskFullError
+from detbench.utils.folder_ownership import FolderNotReplaceable
 
 
 def build_parser() -> argparse.ArgumentParser:

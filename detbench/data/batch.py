@@ -15,8 +15,8 @@ Shapes and units (ego ground frame, metres, radians; docs/architecture.md, Conve
   bool marks the real boxes (Mmax = the largest box count of the batch, possibly 0).
   Padding rather than a list keeps target assignment vectorised; `boxes_of(i)` gives the
   (Mi, 7) boxes of one frame.
-- `Detections` per frame: `boxes` (K, 7) float32, `scores` (K,) float32 in [0, 1],
-  `labels` (K,) int64 class indices (the model documents its class list).
+- `Detections` per frame (detbench/data/detections.py): `boxes` (K, 7) float32, `scores` (K,)
+  float32 in [0, 1], `labels` (K,) int64 class indices (the model documents its class list).
 """
 from __future__ import annotations
 
@@ -27,6 +27,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
+from detbench.data.detections import Detections
+
 __all__ = ["Sample", "Batch", "Detections", "collate"]
 
 
@@ -36,30 +38,6 @@ class Sample(NamedTuple):
     points: np.ndarray  # (N, 4) float32 x, y, z, intensity
     gt_boxes: np.ndarray  # (M, 7) float32 x, y, z, dx, dy, dz, heading
     frame_id: str
-
-
-class Detections(NamedTuple):
-    """A detector's output for one frame (returned by `model.predict`, one per frame)."""
-
-    boxes: torch.Tensor  # (K, 7) float32 x, y, z, dx, dy, dz, heading
-    scores: torch.Tensor  # (K,) float32 confidence in [0, 1]
-    labels: torch.Tensor  # (K,) int64 class index
-
-    @staticmethod
-    def empty(device: torch.device | str = "cpu") -> Detections:
-        """No detections: (0, 7), (0,), (0,) tensors on `device`."""
-        return Detections(torch.zeros((0, 7), dtype=torch.float32, device=device),
-                          torch.zeros((0,), dtype=torch.float32, device=device),
-                          torch.zeros((0,), dtype=torch.int64, device=device))
-
-    def to(self, device: torch.device | str) -> Detections:
-        """The same detections on `device`."""
-        return Detections(self.boxes.to(device), self.scores.to(device), self.labels.to(device))
-
-    def numpy(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(boxes (K, 7) float32, scores (K,) float32, labels (K,) int64) as numpy arrays."""
-        return (self.boxes.detach().cpu().float().numpy(), self.scores.detach().cpu().float().numpy(),
-                self.labels.detach().cpu().long().numpy())
 
 
 @dataclass

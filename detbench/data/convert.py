@@ -54,9 +54,9 @@ from detbench.data.openpcdet import (
 )
 from detbench.data.readers import format_labels, read_imageset, read_labels, read_points
 from detbench.data.transforms import boxes_sensor_to_ground, sensor_to_ground
-from detbench.utils.io import (
-    atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder, write_owner,
-)
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
+from detbench.utils.folder_ownership import check_replaceable, write_owner
+from detbench.utils.staged_folders import recover_staged, staged_folder
 
 POINTS_FRAME_CHOICES = ("auto", "sensor", "ground")
 LABELS_FRAME_CHOICES = ("points", "sensor", "ground")
@@ -443,7 +443,7 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
     warning = split_scene_warning(choice, rule)
 
     # the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
-    # or is killed leaves `out` as it was (see detbench.utils.io.staged_folder)
+    # or is killed leaves `out` as it was (see detbench.utils.staged_folders.staged_folder)
     with staged_folder(out) as staged:
         write_owner(staged, DATASET_FOLDER)
         copied = copy_frames(staged, choice.ids, srcs, frames, cmap, label_tolerance, link, progress)

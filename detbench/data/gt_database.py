@@ -44,7 +44,7 @@ from detbench.config import ConfigError, shipped_defaults, validate
 from detbench.data.frame import Frame
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, detected_point_index
 from detbench.ops import boxes_iou_bev, points_in_boxes
-from detbench.utils.io import atomic_save, atomic_write_json, read_json
+from detbench.utils.atomic import atomic_save, atomic_write_json, read_json
 from detbench.utils.untrusted import excerpt
 
 __all__ = [

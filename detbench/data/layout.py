@@ -25,7 +25,8 @@ from pathlib import Path
 from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
 from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
-from detbench.utils.io import FolderKind, read_json
+from detbench.utils.atomic import read_json
+from detbench.utils.folder_ownership import FolderKind
 from detbench.utils.untrusted import clip, excerpt, outside_folder
 
 FORMAT_NAME = "detbench-height3"
@@ -396,7 +397,7 @@ DATASET_ENTRIES = (INFO_FILE, POINTS_DIR, LABELS_DIR, META_DIR, IMAGESETS_DIR, "
                    "simulate_run.md", "convert_report.json", "convert_report.md")
 
 
-# a dataset folder as a writer replaces it (`detbench.utils.io.check_replaceable`): whole, with the user's
+# a dataset folder as a writer replaces it (`detbench.utils.folder_ownership.check_replaceable`): whole, with the user's
 # own files refused, and an unfinished one (no dataset.json) replaceable too when its owner file says it is
 # a dataset (an OpenPCDet folder has the same points/, labels/ and ImageSets/)
 DATASET_FOLDER = FolderKind(name="a dataset", marker=INFO_FILE, entries=DATASET_ENTRIES, foreign="part of a dataset",

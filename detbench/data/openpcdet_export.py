@@ -22,9 +22,9 @@ from detbench.data.openpcdet import (
 )
 from detbench.data.readers import format_labels
 from detbench.data.transforms import boxes_ground_to_sensor, ground_to_sensor
-from detbench.utils.io import (
-    FolderKind, atomic_save, atomic_write_json, atomic_write_text, check_replaceable, recover_staged, staged_folder,
-)
+from detbench.utils.atomic import atomic_save, atomic_write_json, atomic_write_text
+from detbench.utils.folder_ownership import check_replaceable, FolderKind
+from detbench.utils.staged_folders import recover_staged, staged_folder
 
 EXPORT_MANIFEST = "detbench_export.json"
 EXPORT_MARKDOWN = "detbench_export.md"
@@ -34,8 +34,8 @@ EXPORT_SCRIPT = "create_infos.sh"
 _OPENPCDET_GENERATED = ("custom_infos_train.pkl", "custom_infos_val.pkl", "custom_dbinfos_train.pkl", "gt_database")
 
 
-# an export folder as `export_openpcdet` replaces it (`detbench.utils.io.check_replaceable`): only an earlier
-# export, holding the export's files and what OpenPCDet's info generation adds to it
+# an export folder as `export_openpcdet` replaces it (`detbench.utils.folder_ownership.check_replaceable`): only an
+# earlier export, holding the export's files and what OpenPCDet's info generation adds to it
 EXPORT_FOLDER = FolderKind(
     name="an earlier export", marker=EXPORT_MANIFEST,
     entries=(POINTS_DIR, LABELS_DIR, IMAGESETS_DIR, EXPORT_MANIFEST, EXPORT_MARKDOWN, EXPORT_YAML, EXPORT_SCRIPT)

@@ -7,8 +7,8 @@ with DatasetWriter(root, heights=[0.5, 1.0, 1.8], source={"simulator": cfg, "see
 # leaving the block writes ImageSets/train.txt, test.txt (split by scene) and dataset.json
 ```
 
-Every file is written atomically (detbench.utils.io); the folder's owner file
-(`detbench.utils.io.OWNER_FILE`) is written first and dataset.json last, so a folder without
+Every file is written atomically (detbench.utils.atomic); the folder's owner file
+(`detbench.utils.folder_ownership.OWNER_FILE`) is written first and dataset.json last, so a folder without
 dataset.json is an unfinished dataset, readers say so, and `overwrite` may replace it: the
 owner file proves it a dataset (the names points/ and labels/ alone do not: OpenPCDet uses
 them too). A new or empty folder is written in place; an existing dataset (replaced only with
@@ -34,10 +34,9 @@ from detbench.data.layout import (
 )
 from detbench.data.readers import format_labels, meta_dict
 from detbench.data.regions import check_range_name, in_range
-from detbench.utils.io import (
-    atomic_save, atomic_write_json, atomic_write_text, check_replaceable, folder_owner, recover_staged,
-    staged_folder, write_owner,
-)
+from detbench.utils.atomic import atomic_save, atomic_write_json, atomic_write_text
+from detbench.utils.folder_ownership import check_replaceable, folder_owner, write_owner
+from detbench.utils.staged_folders import recover_staged, staged_folder
 
 
 def _save_npy(arr: np.ndarray):
@@ -66,7 +65,7 @@ class DatasetWriter:
         test_fraction: share of scenes in the test split, in [0, 1) (default: configs/default.yaml
             `data.test_fraction`); see `detbench.data.layout.split_scenes`.
         overwrite: replace a dataset already in `root` (or an unfinished one): the new one is
-            built beside it and swapped in whole by `close` (`detbench.utils.io.check_replaceable`
+            built beside it and swapped in whole by `close` (`detbench.utils.folder_ownership.check_replaceable`
             says which folders may be replaced).
         classes: allowed class names (default: car, suv, van, taxi, truck plus any new names
             seen, appended in order of appearance).

@@ -21,13 +21,15 @@ Every rule is written down, with examples, in docs/evaluation.md. In short, for 
 Speed: each frame's IoU matrix (kept predictions x all ground truth) is computed once and
 reused by the nine range/level pairs; the greedy matching of all frames and pairs runs in one
 numba kernel, parallel over frames.
+
+The input type, `EvalFrame`, is in detbench/eval/eval_frame.py; the prediction files on disk
+(`<frame_id>.txt`) in detbench/eval/prediction_files.py.
 """
 from __future__ import annotations
 
 import math
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any, NamedTuple
 
@@ -37,10 +39,11 @@ from numba import njit, prange
 from detbench.config import ConfigError, section_with_defaults, shipped_default, shipped_defaults
 from detbench.data.layout import SPLIT_CHOICES
 from detbench.data.regions import (
-    DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, detected_point_counts, importance_mask, in_range,
+    DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, importance_mask, in_range,
 )
+from detbench.data.detections import Detections
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
-from detbench.utils.untrusted import excerpt
+from detbench.eval.eval_frame import EvalFrame, as_eval_frames, eval_frame_from_frame
 
 IOU_KINDS: tuple[str, ...] = ("3d", "bev")
 # An IoU counts as reaching the threshold when IoU >= threshold - IOU_EPS. The exact IoU of
@@ -56,95 +59,6 @@ DEFAULT_EXTRAS: tuple[tuple[str, float], ...] = (("3d", 0.7), ("bev", 0.7), ("3d
 FP, TP, IGNORED = 0, 1, -1
 
 PAIRS: tuple[tuple[str, str], ...] = tuple((r, lv) for r in RANGE_NAMES for lv in LEVELS)
-
-
-# --------------------------------------------------------------------------------------------
-# Input type
-# --------------------------------------------------------------------------------------------
-
-def _as_boxes(value: Any, name: str, where: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.size == 0:
-        return np.zeros((0, 7), dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 7:
-        raise ValueError(f"{where}: {name} must have shape (N, 7) = x, y, z, dx, dy, dz, heading; "
-                         f"got shape {tuple(arr.shape)}")
-    if not np.isfinite(arr).all():
-        row = int(np.flatnonzero(~np.isfinite(arr).all(axis=1))[0])
-        raise ValueError(f"{where}: {name} row {row} is not finite ({arr[row].tolist()}); "
-                         f"remove or fix that box")
-    if (arr[:, 3:6] < 0).any():
-        row = int(np.flatnonzero((arr[:, 3:6] < 0).any(axis=1))[0])
-        raise ValueError(f"{where}: {name} row {row} has a negative size dx, dy, dz = "
-                         f"{arr[row, 3:6].tolist()}; sizes are lengths in metres, >= 0")
-    return np.ascontiguousarray(arr)
-
-
-def _as_vector(value: Any, name: str, where: str, n: int, dtype, integral: bool) -> np.ndarray:
-    raw = np.asarray(value)
-    if raw.size == 0 and n == 0:
-        return np.zeros(0, dtype=dtype)
-    if raw.ndim != 1 or raw.shape[0] != n:
-        raise ValueError(f"{where}: {name} must have shape ({n},) to match the boxes; got shape "
-                         f"{tuple(raw.shape)}")
-    if integral:
-        f = raw.astype(np.float64)
-        if not np.isfinite(f).all() or (f != np.round(f)).any():
-            raise ValueError(f"{where}: {name} must hold whole numbers; got {raw.tolist()[:8]}")
-        return f.astype(dtype)
-    arr = raw.astype(dtype)
-    if not np.isfinite(arr).all():
-        raise ValueError(f"{where}: {name} must be finite; got {arr.tolist()[:8]}")
-    return arr
-
-
-@dataclass
-class EvalFrame:
-    """Ground truth and predictions of one frame, as the evaluator needs them.
-
-    gt_boxes: (N, 7) x, y, z, dx, dy, dz, heading (metres, radians), ego ground frame.
-    gt_num_points: (N,) number of LiDAR points inside each box with its bottom raised 0.05 m
-        (`detbench.data.regions.detected_point_counts(points, boxes)`); a box with >= 1
-        point (DETECTED_MIN_POINTS) is LiDAR-detected.
-    gt_lane: (N,) lane relative to the ego (0 ego, +1 left, -1 right; any other value takes
-        no part in Top-k).
-    pred_boxes: (M, 7) predicted boxes, same layout as gt_boxes.
-    pred_scores: (M,) confidence scores (compared with the score threshold, e.g. 0.1).
-    frame_id: optional name used in error messages.
-    scene_id: optional scene the frame belongs to: the unit `evaluate(..., bootstrap=B)`
-        resamples (frames of one scene are 0.5 s apart and strongly correlated); a frame
-        without one is its own cluster.
-
-    Arrays are converted on construction (float64 boxes and scores, int64 counts and lanes);
-    empty inputs may be given as `[]` or arrays of shape (0,) / (0, 7).
-    """
-
-    gt_boxes: np.ndarray
-    gt_num_points: np.ndarray
-    gt_lane: np.ndarray
-    pred_boxes: np.ndarray
-    pred_scores: np.ndarray
-    frame_id: str | None = None
-    scene_id: str | None = None
-
-    def __post_init__(self) -> None:
-        where = f"EvalFrame {self.frame_id!r}" if self.frame_id is not None else "EvalFrame"
-        self.gt_boxes = _as_boxes(self.gt_boxes, "gt_boxes", where)
-        n = len(self.gt_boxes)
-        self.gt_num_points = _as_vector(self.gt_num_points, "gt_num_points", where, n, np.int64, True)
-        if (self.gt_num_points < 0).any():
-            raise ValueError(f"{where}: gt_num_points must be >= 0; got {self.gt_num_points.tolist()[:8]}")
-        self.gt_lane = _as_vector(self.gt_lane, "gt_lane", where, n, np.int64, True)
-        self.pred_boxes = _as_boxes(self.pred_boxes, "pred_boxes", where)
-        self.pred_scores = _as_vector(self.pred_scores, "pred_scores", where, len(self.pred_boxes),
-                                      np.float64, False)
-
-
-class Predictions(NamedTuple):
-    """Detections of one frame: boxes (M, 7) as in `EvalFrame.pred_boxes`, scores (M,)."""
-
-    boxes: np.ndarray
-    scores: np.ndarray
 
 
 # --------------------------------------------------------------------------------------------
@@ -469,23 +383,6 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
     return out
 
 
-def _as_eval_frames(frames: Iterable[EvalFrame]) -> list[EvalFrame]:
-    out = []
-    for i, f in enumerate(frames):
-        if isinstance(f, EvalFrame):
-            out.append(f)
-        elif isinstance(f, Mapping):
-            try:
-                out.append(EvalFrame(**f))
-            except TypeError as e:
-                raise TypeError(f"frame {i}: cannot build an EvalFrame from keys {sorted(f)} ({e}); "
-                                f"give gt_boxes, gt_num_points, gt_lane, pred_boxes, pred_scores") from None
-        else:
-            raise TypeError(f"frame {i}: expected an EvalFrame (or a dict of its fields), got "
-                            f"{type(f).__name__}")
-    return out
-
-
 def _parse_extras(extras, iou_kind: str, iou_threshold: float) -> list[tuple[str, float]]:
     if extras is False or extras is None:
         return []
@@ -557,7 +454,7 @@ def evaluate(
     t = {"prepare": 0.0, "iou": 0.0, "match": 0.0, "ap": 0.0}
 
     t0 = time.perf_counter()
-    frame_list = _as_eval_frames(frames)
+    frame_list = as_eval_frames(frames)
     prep = _prepare(frame_list, score_threshold)
     t["prepare"] += time.perf_counter() - t0
 
@@ -605,29 +502,12 @@ def evaluate(
 
 
 # --------------------------------------------------------------------------------------------
-# Datasets and prediction files
+# A dataset's frames and their predictions
 # --------------------------------------------------------------------------------------------
-
-def eval_frame_from_frame(frame, predictions: Predictions | tuple | None) -> EvalFrame:
-    """EvalFrame of a `detbench.data.Frame` (boxes, lanes, points) and its predictions.
-
-    The point counts follow the LiDAR-detected rule (`detbench.data.regions.detected_point_counts`:
-    points inside each box with its bottom raised 0.05 m). `predictions` is (boxes (M, 7),
-    scores (M,)) or None.
-    """
-    boxes = np.asarray(frame.boxes)
-    counts = detected_point_counts(np.asarray(frame.points), boxes)
-    if predictions is None:
-        pb, ps = np.zeros((0, 7)), np.zeros(0)
-    else:
-        pb, ps = predictions
-    return EvalFrame(boxes, np.asarray(counts), np.asarray(frame.lanes), pb, ps, frame_id=frame.frame_id,
-                     scene_id=getattr(frame, "scene_id", None))
-
 
 def evaluate_predictions(
     dataset,
-    predictions_by_frame_id: Mapping[str, Predictions | tuple],
+    predictions_by_frame_id: Mapping[str, Detections | tuple],
     iou_threshold: float | None = None,
     score_threshold: float | None = None,
     iou_kind: str = "3d",
@@ -639,8 +519,8 @@ def evaluate_predictions(
 
     dataset: a sequence of `detbench.data.Frame` (e.g. `Height3Dataset(root, height, split)`):
         `len(dataset)` and `dataset[i]`.
-    predictions_by_frame_id: frame_id -> (boxes (M, 7), scores (M,)); a frame without an entry
-        has no predictions. An id that is not a frame of `dataset` is an error.
+    predictions_by_frame_id: frame_id -> numpy `Detections` (or a (boxes (M, 7), scores (M,))
+        pair); a frame without an entry has no predictions. An id that is not a frame of `dataset` is an error.
     Other arguments as in `evaluate`. Returns the `evaluate` report.
     """
     n = len(dataset)
@@ -670,95 +550,7 @@ def evaluate_predictions(
                     iou_kind=iou_kind, extras=extras, progress=progress, bootstrap=bootstrap)
 
 
-PREDICTION_SUFFIX = ".txt"
-
-
-def parse_prediction_file(path: str | Path) -> Predictions:
-    """Read one prediction file: one box per line, `x y z dx dy dz heading score [class]`.
-
-    Units: metres and radians in the ego ground frame (docs/evaluation.md). Blank lines are
-    skipped; an optional ninth field (a class name) is accepted and not used. An empty file
-    is a frame with no predictions. A malformed line raises ValueError naming file and line.
-    Returns Predictions(boxes (M, 7) float64, scores (M,) float64).
-    """
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a UTF-8 text file; write one box per line as "
-                         f"'x y z dx dy dz heading score [class]'") from None
-    rows = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        fields = line.split()
-        if not fields:
-            continue
-        if len(fields) not in (8, 9):
-            raise ValueError(f"{path}:{lineno}: expected 8 numbers 'x y z dx dy dz heading score' and an "
-                             f"optional class name, got {len(fields)} field(s): {excerpt(line.strip())}")
-        try:
-            values = [float(v) for v in fields[:8]]
-        except ValueError:
-            raise ValueError(f"{path}:{lineno}: not a number among the first 8 fields "
-                             f"'x y z dx dy dz heading score': {excerpt(line.strip())}") from None
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError(f"{path}:{lineno}: non-finite value in {excerpt(line.strip())}; every field must "
-                             f"be a finite number")
-        if min(values[3:6]) < 0:
-            raise ValueError(f"{path}:{lineno}: negative box size dx, dy, dz = {values[3:6]} in "
-                             f"{excerpt(line.strip())}; sizes are lengths in metres, >= 0")
-        rows.append(values)
-    arr = np.array(rows, dtype=np.float64).reshape(-1, 8)
-    return Predictions(np.ascontiguousarray(arr[:, :7]), np.ascontiguousarray(arr[:, 7]))
-
-
-def read_prediction_dir(pred_dir: str | Path, frame_ids: Iterable[str],
-                        other_ids: Iterable[str] = ()) -> tuple[dict[str, Predictions], list[str]]:
-    """Read `<frame_id>.txt` files of a folder (one per frame; see `parse_prediction_file`).
-
-    frame_ids: ids of the frames being evaluated. other_ids: ids of the same dataset outside
-    the evaluated split; their files are skipped (returned in the second list) rather than
-    rejected. Any other file (unknown id, other extension) is an error naming the file; hidden
-    files (starting with '.') are ignored. Returns ({frame_id: Predictions}, skipped ids).
-    """
-    pred_dir = Path(pred_dir)
-    if not pred_dir.is_dir():
-        raise FileNotFoundError(f"{pred_dir}: prediction folder not found; give the folder holding "
-                                f"one <frame_id>{PREDICTION_SUFFIX} file per frame")
-    wanted = set(frame_ids)
-    others = set(other_ids) - wanted
-    out: dict[str, Predictions] = {}
-    skipped: list[str] = []
-    for path in sorted(pred_dir.iterdir()):
-        if path.name.startswith("."):
-            continue
-        if not path.is_file() or path.suffix != PREDICTION_SUFFIX:
-            raise ValueError(f"{path}: unexpected entry in the prediction folder; it must hold only "
-                             f"<frame_id>{PREDICTION_SUFFIX} files")
-        fid = path.stem
-        if fid in wanted:
-            out[fid] = parse_prediction_file(path)
-        elif fid in others:
-            skipped.append(fid)
-        else:
-            raise ValueError(f"{path}: unknown frame id {fid!r} (not a frame of the dataset); rename or "
-                             f"remove the file")
-    return out, skipped
-
-
-def format_prediction_lines(boxes: np.ndarray, scores: np.ndarray, class_name: str | None = None) -> str:
-    """Text of a prediction file for boxes (M, 7) and scores (M,), one box per line."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    scores = np.asarray(scores, dtype=np.float64).reshape(-1)
-    if len(boxes) != len(scores):
-        raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
-    tail = f" {class_name}" if class_name else ""
-    return "".join(" ".join(repr(float(v)) for v in (*b, s)) + tail + "\n" for b, s in zip(boxes, scores))
-
-
 __all__ = [
-    "EvalConfig", "EVAL_DEFAULTS", "EvalFrame", "Predictions", "evaluate", "evaluate_predictions",
-    "eval_frame_from_frame",
-    "ap_r40", "ap_r40_ranked", "extra_key", "parse_prediction_file", "read_prediction_dir",
-    "format_prediction_lines", "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS",
-    "PREDICTION_SUFFIX", "PAIRS", "TP", "FP", "IGNORED",
+    "EvalConfig", "EVAL_DEFAULTS", "evaluate", "evaluate_predictions", "ap_r40", "ap_r40_ranked", "extra_key",
+    "IOU_KINDS", "IOU_EPS", "AP_RECALL_LEVELS", "DEFAULT_EXTRAS", "PAIRS", "TP", "FP", "IGNORED",
 ]

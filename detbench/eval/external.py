@@ -48,7 +48,8 @@ import numpy as np
 from detbench.config import shipped_default
 from detbench.data.openpcdet import NON_VEHICLE_CLASSES
 from detbench.data.transforms import boxes_sensor_to_ground, ground_to_sensor, wrap_heading
-from detbench.eval.evaluate import PREDICTION_SUFFIX, Predictions
+from detbench.data.detections import Detections
+from detbench.eval.prediction_files import PREDICTION_SUFFIX
 from detbench.utils.untrusted import clip, excerpt, outside_folder, structure_problem
 
 PRED_FRAMES = ("ground", "sensor")
@@ -403,7 +404,7 @@ def read_prediction_texts(pred_dir: str | Path) -> tuple[dict[str, ExternalPredi
 class LoadedPredictions:
     """What `load_predictions` hands the evaluator: ground-frame predictions of the evaluated frames."""
 
-    predictions: dict[str, Predictions]
+    predictions: dict[str, Detections]  # numpy: boxes (M, 7) float64, scores (M,), labels 0
     skipped: list[str]  # frame ids of other splits of the dataset
     info: dict  # for the report: format, layouts, frame, sensors, classes kept/dropped
     notes: list[str] = field(default_factory=list)
@@ -452,7 +453,7 @@ def load_predictions(path: str | Path, dataset, other_ids: Iterable[str] = (), *
     keep_name = _class_filter(classes)
     class_counts: dict[str, dict[str, int]] = {}
     sensors: dict[tuple[float, float], int] = {}
-    out: dict[str, Predictions] = {}
+    out: dict[str, Detections] = {}
     for fid in sorted(set(raw) & wanted):
         p = raw[fid]
         mask = np.array([keep_name(str(n)) for n in p.names], dtype=bool).reshape(-1)
@@ -465,7 +466,7 @@ def load_predictions(path: str | Path, dataset, other_ids: Iterable[str] = (), *
             key = (float(s.height), float(s.pitch_deg))
             sensors[key] = sensors.get(key, 0) + 1
             boxes = boxes_sensor_to_ground(boxes, s.height, s.pitch_deg)
-        out[fid] = Predictions(np.ascontiguousarray(boxes, dtype=np.float64), np.ascontiguousarray(scores))
+        out[fid] = Detections.from_arrays(np.ascontiguousarray(boxes, dtype=np.float64), np.ascontiguousarray(scores))
     info.update({
         "frame": pred_frame,
         "classes_kept": sorted(classes) if classes is not None else f"all but {', '.join(NON_VEHICLE_CLASSES)}",

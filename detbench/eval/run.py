@@ -14,15 +14,15 @@ from pathlib import Path
 from detbench.data import Height3Dataset, split_ids
 from detbench.data.errors import DatasetError
 from detbench.data.layout import sim_calibration
-from detbench.eval.evaluate import evaluate_predictions, format_prediction_lines
+from detbench.eval.evaluate import evaluate_predictions
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
 from detbench.eval.report import (combine_reports, combined_csv, combined_markdown, data_labels, label_variants,
                                   plot_by_height, plot_by_level, plot_by_range, report_to_csv, report_to_markdown)
 from detbench.utils.cli import UserError, as_user_error
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["CheckpointRun", "EvalSettings", "combine_report_files", "evaluation_report", "load_split",
-           "read_saved_predictions", "report_title", "write_predictions", "write_report"]
+           "read_saved_predictions", "report_title", "write_report"]
 
 
 @dataclass
@@ -72,12 +72,6 @@ def read_saved_predictions(path: Path, dataset, other_ids, *, pred_frame: str = 
         return load_predictions(path, dataset, other_ids, pred_frame=pred_frame, classes=classes)
     except (FileNotFoundError, ValueError) as e:
         raise UserError(str(e)) from None
-
-
-def write_predictions(preds: dict, pred_dir: Path) -> None:
-    """One `<frame_id>.txt` per frame in the format tools/eval.py --pred reads."""
-    for fid, (boxes, scores) in preds.items():
-        atomic_write_text(Path(pred_dir) / f"{fid}.txt", format_prediction_lines(boxes, scores))
 
 
 def data_source(source) -> dict:

@@ -12,7 +12,7 @@ its folder, and one whose process was killed is removed by the next `default_dat
 `estimate_dataset_bytes` and `check_space` size a dataset before it is simulated, so a run the
 disk cannot hold stops at once instead of after hours. `write_simulation` (every simulated dataset,
 tools/simulate.py's included) builds beside its
-`root` and swaps the finished dataset in whole (`detbench.utils.io.staged_folder`), so a kill
+`root` and swaps the finished dataset in whole (`detbench.utils.staged_folders.staged_folder`), so a kill
 during `--overwrite` leaves the old dataset as it was.
 """
 from __future__ import annotations
@@ -33,7 +33,9 @@ from detbench.data.layout import DATASET_FOLDER, sim_calibration
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
-from detbench.utils.io import DiskFullError, check_replaceable, pid_alive, recover_staged, staged_folder
+from detbench.utils.atomic import DiskFullError
+from detbench.utils.folder_ownership import check_replaceable
+from detbench.utils.staged_folders import pid_alive, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
@@ -129,10 +131,10 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
 
     The dataset is built in a sibling folder `.tmp-new-<name>-<pid>` and swapped in whole when
-    complete (`detbench.utils.io.staged_folder`): an interrupted or failed run leaves `root` as it
+    complete (`detbench.utils.staged_folders.staged_folder`): an interrupted or failed run leaves `root` as it
     was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
     `root` must be new or empty, or hold only a dataset's files and `overwrite` be set
-    (`detbench.utils.io.check_replaceable`; FileExistsError otherwise, before anything is simulated).
+    (`detbench.utils.folder_ownership.check_replaceable`; FileExistsError otherwise, before anything is simulated).
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
     `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter);

@@ -11,7 +11,7 @@ import numpy as np
 from detbench.data.frame import height_key
 from detbench.data.layout import sim_calibration
 from detbench.sim.lidar import LidarConfig, lidar_preset
-from detbench.utils.io import atomic_write_json, atomic_write_text
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 __all__ = ["RunSummary", "run_lidars", "simulation_source"]
 

@@ -217,7 +217,7 @@ def load_detector_reports(paths: Sequence[str | Path]) -> tuple[dict, list[dict]
     ValueError naming the file for anything that is not such a report, or for a model and
     height given twice. Returns (figures, skipped [{"source", "reason"}])."""
     from detbench.eval.report import check_report
-    from detbench.utils.io import read_json
+    from detbench.utils.atomic import read_json
 
     figures: dict[str, dict[str, dict]] = {}
     skipped: list[dict] = []

@@ -25,8 +25,8 @@ from detbench.data.dataset import Height3Dataset, split_ids
 from detbench.data.frame import height_key
 from detbench.data.layout import INFO_FILE, imageset_path
 from detbench.train.checkpoint import config_diff
-from detbench.train.loop import RESUME_IGNORE_KEYS
-from detbench.utils.io import atomic_write_json, read_json
+from detbench.train.train_config import RESUME_IGNORE_KEYS
+from detbench.utils.atomic import atomic_write_json, read_json
 
 RECORDS_DIR = "stage_inputs"
 RECORD_FORMAT = "detbench-study-stage"

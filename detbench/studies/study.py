@@ -46,10 +46,9 @@ from detbench.train.run_layout import (
     STUDY_FOLDER, default_study_dir, eval_report_path, study_run_dir, training_seconds,
 )
 from detbench.utils.cli import UserError
-from detbench.utils.io import (
-    FolderNotReplaceable, atomic_write_json, atomic_write_text, check_replaceable, claim_folder, clear_folder,
-    read_json,
-)
+from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.folder_locks import claim_folder
+from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable, clear_folder
 
 # What each preset's detector figures can and cannot show (printed in the study's summary).
 PRESET_CAVEATS = {

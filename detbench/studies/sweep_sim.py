@@ -20,7 +20,7 @@ from detbench.data.frame import height_key
 from detbench.data.regions import RANGE_NAMES
 from detbench.studies.rankcorr import correlate_sweep, load_detector_reports
 from detbench.utils.cli import UserError
-from detbench.utils.io import read_json
+from detbench.utils.atomic import read_json
 
 DEFAULT_HEIGHTS = [round(0.3 + 0.1 * i, 1) for i in range(20)]  # 0.3 ... 2.2 m
 DEFAULT_LIDAR = "h3-1.0"

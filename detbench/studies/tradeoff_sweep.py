@@ -34,7 +34,7 @@ from detbench.studies.tradeoff import (
 from detbench.studies.tradeoff_points import KNOBS, Point, sweep_points
 from detbench.train.run_config import load_run_config
 from detbench.utils.cli import UserError
-from detbench.utils.io import atomic_write_json, atomic_write_text, read_json
+from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
 
 
 @dataclass

@@ -20,7 +20,7 @@ from detbench.data.regions import RANGE_NAMES
 from detbench.studies.registry import ModelRegistry, import_registry
 from detbench.studies.tradeoff_points import set_dotted
 from detbench.utils.cli import UserError, run_main
-from detbench.utils.io import atomic_write_json
+from detbench.utils.atomic import atomic_write_json
 
 
 class SubsampledFrames:

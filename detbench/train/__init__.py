@@ -3,7 +3,7 @@
 The detector contract (the loop, inference and the benchmark use nothing else) is the
 `Detector` protocol in detbench/train/detector.py: forward(batch), loss(outputs, batch),
 predict(outputs, batch), STAGES and prepare_config(model_cfg, train_boxes); the hand-offs
-`Sample`, `Batch`, `Detections` are in detbench/data/batch.py.
+`Sample`, `Batch`, `Detections` are in detbench/data/batch.py (`Detections` defined in detections.py).
 
 Typical use (tools/train.py; `models` is the detector registry above this package)
 -----------------------------------------------------------------------------------
@@ -38,9 +38,10 @@ from detbench.train.distributed import (
     DistInfo, barrier, cleanup, init_distributed, main_process_first, reduce_mean, wrap_model,
 )
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
-from detbench.train.loop import RESUME_SAFE_KEYS, TRAIN_DEFAULTS, TrainConfig, TrainResult, train
+from detbench.train.loop import TrainResult, train
 from detbench.train.optim import build_optimizer, build_scheduler
-from detbench.train.seed import capture_rng_state, restore_rng_state, sample_rng, seed_everything, worker_init_fn
+from detbench.train.rng import capture_rng_state, restore_rng_state, sample_rng, seed_everything, worker_init_fn
+from detbench.train.train_config import RESUME_SAFE_KEYS, TRAIN_DEFAULTS, TrainConfig
 
 __all__ = [
     "Batch", "Detections", "Sample", "collate", "AugmentConfig", "AUGMENT_DEFAULTS",

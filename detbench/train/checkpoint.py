@@ -12,7 +12,7 @@ data        dict             the training data: {"source": ROOT, "height": 1.8, 
 state       dict             TrainState: epoch (completed), step_in_epoch, global_step, seed
 model       state_dict       weights (DDP wrapper removed)
 optimizer / scheduler / scaler   state_dicts (absent in weight-only exports)
-rng         list[dict]       per rank: python / numpy / torch / cuda generator states (detbench.train.seed)
+rng         list[dict]       per rank: python / numpy / torch / cuda generator states (detbench.train.rng)
 ```
 
 File names in OUT/checkpoints/: `epoch_003.pt` after 3 complete epochs;
@@ -36,9 +36,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from detbench.train.seed import restore_rng_state
+from detbench.train.rng import restore_rng_state
 from detbench.config import MAX_CONFIG_VALUES, shipped_default
-from detbench.utils.io import atomic_save
+from detbench.utils.atomic import atomic_save
 from detbench.utils.untrusted import clip, excerpt, structure_problem
 
 __all__ = [

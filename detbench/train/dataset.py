@@ -9,20 +9,22 @@ Per item, in order:
    remove the road points (`detbench.data.road.crop_model_input`: pasted vehicles are in by then, so
    their copied road goes too).
 
-Items are addressed as `ts[(epoch, index)]` (the training loop's batch sampler sends the
-epoch with each index, so persistent DataLoader workers need no epoch state) or as
+Items are addressed as `ts[(epoch, index)]` (the training loop's batch sampler, `EpochBatches`,
+sends the epoch with each index, so persistent DataLoader workers need no epoch state) or as
 `ts[index]` for the epoch last given to `set_epoch`. Instances must be picklable (workers
 are spawned).
 """
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import replace
 from pathlib import Path
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, Sampler
+from torch.utils.data.distributed import DistributedSampler
 
 from detbench.data import Height3Dataset
 from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range
@@ -31,9 +33,9 @@ from detbench.data.frame import Frame, height_key
 from detbench.data.gt_database import GTDatabase, GTSampler, build_or_load_gt_database
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, lidar_detected
 from detbench.data.road import RoadConfig, crop_model_input
-from detbench.train.seed import sample_rng
+from detbench.train.rng import sample_rng
 
-__all__ = ["TrainingSet", "default_database_dir"]
+__all__ = ["EpochBatches", "TrainingSet", "default_database_dir"]
 
 
 def default_database_dir(root: str | os.PathLike, height: float) -> Path:
@@ -130,3 +132,32 @@ class TrainingSet(Dataset):
         points, gt, _ = crop_model_input(points, gt, self.point_cloud_range, self.road)
         return Sample(np.ascontiguousarray(points, dtype=np.float32), np.ascontiguousarray(gt, dtype=np.float32),
                       frame.frame_id)
+
+
+class EpochBatches(Sampler):
+    """Batches of (epoch, index) pairs in the sampler's order for `epoch`, skipping the first `skip` batches.
+
+    The epoch travels with each index, so persistent DataLoader workers augment for the
+    right epoch without being re-created; `skip` serves a mid-epoch resume.
+    """
+
+    def __init__(self, sampler: DistributedSampler, batch_size: int, drop_last: bool):
+        self.sampler, self.batch_size, self.drop_last = sampler, batch_size, drop_last
+        self.epoch = 0
+        self.skip = 0
+
+    def set_epoch(self, epoch: int, skip: int = 0) -> None:
+        self.epoch, self.skip = int(epoch), int(skip)
+        self.sampler.set_epoch(self.epoch)
+
+    def full_length(self) -> int:
+        n = len(self.sampler)
+        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
+
+    def __len__(self) -> int:
+        return max(0, self.full_length() - self.skip)
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        order = list(self.sampler)
+        for k in range(self.skip, self.full_length()):
+            yield [(self.epoch, i) for i in order[k * self.batch_size:(k + 1) * self.batch_size]]

@@ -28,7 +28,7 @@ from detbench.train.inference import checkpoint_predictions, frame_sample
 from detbench.train.logger import bev_figure
 from detbench.train.run_layout import demo_dir_name, run_dir_of_checkpoint
 from detbench.utils.cli import UserError
-from detbench.utils.io import atomic_save, atomic_write_json
+from detbench.utils.atomic import atomic_save, atomic_write_json
 
 BOX_UNITS = "x y z dx dy dz heading: metres and radians, ego ground frame (origin on the road below the LiDAR)"
 

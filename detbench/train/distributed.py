@@ -19,7 +19,7 @@ import torch.distributed as dist
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
-__all__ = ["DistInfo", "init_distributed", "wrap_model", "reduce_mean", "reduce_max_flag", "sync_buffers",
+__all__ = ["DistInfo", "init_distributed", "wrap_model", "reduce_mean", "any_rank", "sync_buffers",
            "barrier", "main_process_first", "cleanup"]
 
 
@@ -106,13 +106,13 @@ def reduce_mean(values: Mapping[str, float], info: DistInfo) -> dict[str, float]
     return {k: float(v) for k, v in zip(keys, t.tolist())}
 
 
-def reduce_max_flag(flag: bool, info: DistInfo) -> bool:
-    """True on every rank when `flag` is True on any rank (e.g. 'stop requested')."""
+def any_rank(flags: list[bool], info: DistInfo) -> list[bool]:
+    """Each flag True on every rank when it is True on any rank (e.g. 'stop requested'), in one all-reduce."""
     if not info.distributed:
-        return bool(flag)
-    t = torch.tensor([1 if flag else 0], dtype=torch.int32, device=info.device)
+        return flags
+    t = torch.tensor([int(f) for f in flags], dtype=torch.int32, device=info.device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return bool(t.item())
+    return [bool(x) for x in t.tolist()]
 
 
 def sync_buffers(model: nn.Module, info: DistInfo) -> None:

@@ -17,6 +17,7 @@ from torch import nn
 from tqdm import tqdm
 
 from detbench.data.batch import Sample, collate
+from detbench.data.detections import Detections
 from detbench.data.errors import DatasetError
 from detbench.data.frame import Frame
 from detbench.data.road import RoadConfig, crop_model_input
@@ -54,8 +55,9 @@ def count_nonfinite(outputs: Any) -> int:
 def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range: Sequence[float],
                    device: torch.device | str = "cpu", batch_size: int = 4, progress: bool = True,
                    desc: str = "predict", road: RoadConfig | None = None
-                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """{frame_id: (boxes (K, 7) float32, scores (K,) float32)} for every frame, in eval mode.
+                   ) -> dict[str, Detections]:
+    """{frame_id: numpy Detections (boxes (K, 7) float32, scores (K,) float32, labels (K,) int64)} for every
+    frame, in eval mode.
 
     `frames` is any sequence of Frames (e.g. a Height3Dataset split); `road` is the model's road setting
     (`RoadConfig.of_run_config` of its run config: a model trained without road points sees none here).
@@ -64,7 +66,7 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
     """
     was_training = model.training
     model.eval()
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    out: dict[str, Detections] = {}
     n = len(frames)
     bar = tqdm(total=n, desc=desc, unit="frame", disable=not progress, leave=False, dynamic_ncols=True)
     bad: list[str] = []  # frames of batches whose outputs were not finite
@@ -78,8 +80,7 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
                 bad.extend(s.frame_id for s in samples)
             dets = model.predict(outputs, batch)
             for s, d in zip(samples, dets):
-                boxes, scores, _ = d.numpy()
-                out[s.frame_id] = (boxes, scores)
+                out[s.frame_id] = d.numpy()
             bar.update(len(samples))
     finally:
         bar.close()

@@ -18,7 +18,7 @@ from matplotlib.figure import Figure
 
 from detbench.config import shipped_default
 from detbench.ops import boxes_to_corners_bev
-from detbench.utils.io import atomic_write_json
+from detbench.utils.atomic import atomic_write_json
 
 __all__ = ["TrainLogger", "bev_figure", "format_epoch_summary"]
 

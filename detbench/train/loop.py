@@ -7,12 +7,15 @@ of steps whose loss or gradient is not finite (`max_nonfinite_steps` in a row st
 checkpoint at every epoch end (and on Ctrl-C), TensorBoard + history.json + a console line per
 epoch, an optional evaluation callback, and DistributedDataParallel when launched by torchrun.
 
-`train` reads top to bottom: `_setup` (seed, model on its device, loader, optimizer,
-schedule, `_resume`), then per epoch `_train_epoch` (each batch one `_step`: forward, loss,
-backward, the finiteness check, clip, optimizer and schedule; logging, the non-finite streak,
-mid-epoch checkpoints, the stop check) and
-`_end_epoch` (averaged losses, checkpoint, evaluation, logs). `_Run` carries the run's
-objects and its advancing `TrainState` between them.
+The file reads in the order a run goes: `train`; its set-up `_setup` (seed, model on its
+device, loader, optimizer, schedule, `_resume`); per epoch `_train_epoch` (each batch one
+`_step`: forward, loss, backward, the finiteness check, clip, optimizer and schedule; then
+logging, the non-finite streak, mid-epoch checkpoints, the stop check); and `_end_epoch`
+(averaged losses, checkpoint, evaluation, logs). `_Run` carries the run's objects and its
+advancing `TrainState` between them. What it is given lives beside it: the `train` config
+section (`TrainConfig`, detbench/train/train_config.py), the (epoch, index) batch sampler
+(`EpochBatches`, detbench/train/dataset.py), the Ctrl-C / SIGTERM handling
+(`StopRequest`, detbench/train/stop_request.py) and the seeds (detbench/train/rng.py).
 
 Outputs in `out_dir`: config.yaml (the run config, written once the run is accepted: a
 refused start or resume changes no file), checkpoints/epoch_EEE.pt (last `keep_checkpoints`
@@ -33,114 +36,38 @@ the unscaled gradient itself overflows.
 from __future__ import annotations
 
 import math
-import signal
-import threading
 import time
 import warnings
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 import torch
 from torch import nn
-from torch.utils.data import DataLoader, Sampler
+from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
 from tqdm import tqdm
 
-from detbench.config import ConfigError, dump, section_with_defaults, shipped_defaults
+from detbench.config import dump
 from detbench.data.batch import Batch, Sample, collate
 from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
-from detbench.train.distributed import DistInfo, barrier, reduce_mean, sync_buffers, wrap_model
+from detbench.train.dataset import EpochBatches
+from detbench.train.distributed import DistInfo, any_rank, barrier, reduce_mean, sync_buffers, wrap_model
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
-from detbench.train.seed import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
-from detbench.utils.io import atomic_write_text, read_json, remove_stale_temporaries
+from detbench.train.rng import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
+from detbench.train.stop_request import StopRequest
+from detbench.train.train_config import RESUME_IGNORE_KEYS, TrainConfig
+from detbench.utils.atomic import atomic_write_text, read_json, remove_stale_temporaries
 
-__all__ = ["TRAIN_DEFAULTS", "RESUME_SAFE_KEYS", "RESUME_IGNORE_KEYS", "NonFiniteTrainingError", "TrainConfig",
-           "TrainResult", "train"]
+__all__ = ["NonFiniteTrainingError", "TrainResult", "train"]
 
-TRAIN_DEFAULTS: dict[str, Any] = shipped_defaults("train")  # configs/default.yaml `train:`, each key documented there
-# train.* keys that may change between an interrupted run and its resume (they do not change results)
-RESUME_SAFE_KEYS = ("workers", "log_every", "tensorboard", "bev_image", "eval_every", "keep_checkpoints",
-                    "checkpoint_every_steps", "max_nonfinite_steps")
 NONFINITE_RECORDS_PER_EPOCH = 20  # skipped steps listed in an epoch's history.json record (all are counted)
 
 
 class NonFiniteTrainingError(FloatingPointError):
     """`max_nonfinite_steps` steps in a row had a NaN or inf loss or gradient; the run stopped."""
-# dotted config keys `train` lets differ on resume: those above, and the eval section (it measures, never trains)
-RESUME_IGNORE_KEYS = (*(f"train.{k}" for k in RESUME_SAFE_KEYS), "eval")
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Typed view of the `train` config section; each key's default and unit is in configs/default.yaml."""
-
-    epochs: int
-    batch_size: int  # frames per process per step
-    workers: int
-    seed: int
-    lr: float
-    weight_decay: float
-    betas: tuple[float, float]
-    pct_start: float
-    div_factor: float
-    final_div_factor: float
-    momentum_range: tuple[float, float]
-    grad_clip: float
-    amp: bool
-    keep_checkpoints: int
-    checkpoint_every_steps: int
-    eval_every: int
-    log_every: int
-    drop_last: bool
-    find_unused_parameters: bool
-    tensorboard: bool
-    bev_image: bool
-    max_nonfinite_steps: int  # skipped non-finite steps in a row that stop the run
-
-    @classmethod
-    def from_dict(cls, d: Mapping | None, where: str = "train") -> TrainConfig:
-        """Parse the `train` section (missing keys: TRAIN_DEFAULTS); ConfigError on unknown keys or bad values."""
-        v = section_with_defaults(d, TRAIN_DEFAULTS, where)
-        cfg = cls(**{f.name: _as_field_type(f.type, v[f.name], f"{where}.{f.name}") for f in fields(cls)})
-        for f in fields(cls):
-            value = getattr(cfg, f.name)
-            if f.type in ("float", "tuple[float, float]") and not all(map(math.isfinite, _as_tuple(value))):
-                raise ConfigError(f"{where}: {f.name} must be finite (no NaN or inf), got {value!r}")
-        checks = [("epochs", cfg.epochs >= 1, ">= 1"), ("batch_size", cfg.batch_size >= 1, ">= 1"),
-                  ("workers", cfg.workers >= 0, ">= 0"), ("seed", cfg.seed >= 0, ">= 0"),
-                  ("lr", cfg.lr > 0, "> 0"), ("weight_decay", cfg.weight_decay >= 0, ">= 0"),
-                  ("pct_start", 0 < cfg.pct_start < 1, "in (0, 1)"), ("grad_clip", cfg.grad_clip >= 0, ">= 0"),
-                  ("eval_every", cfg.eval_every >= 1, ">= 1"), ("log_every", cfg.log_every >= 1, ">= 1"),
-                  ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0"),
-                  ("max_nonfinite_steps", cfg.max_nonfinite_steps >= 1, ">= 1"),
-                  ("div_factor", cfg.div_factor >= 1, ">= 1 (the schedule starts at lr / div_factor)"),
-                  ("final_div_factor", cfg.final_div_factor >= 1,
-                   ">= 1 (the schedule ends at lr / div_factor / final_div_factor)"),
-                  ("betas", all(0 <= b < 1 for b in cfg.betas), "two numbers in [0, 1)"),
-                  ("momentum_range", all(0 <= m < 1 for m in cfg.momentum_range)
-                   and cfg.momentum_range[0] <= cfg.momentum_range[1],
-                   "[low, high] with 0 <= low <= high < 1 (Adam's beta1, cycled opposite to the lr)")]
-
-        for key, ok, need in checks:
-            if not ok:
-                raise ConfigError(f"{where}: {key} must be {need}, got {getattr(cfg, key)!r}")
-        return cfg
-
-
-def _as_tuple(value: Any) -> tuple:
-    return tuple(value) if isinstance(value, tuple) else (value,)
-
-
-def _as_field_type(annotation: str, value: Any, key: str) -> Any:
-    """A YAML value (of its default's kind, `validate`d) as a TrainConfig field's type, named by its annotation."""
-    if annotation != "tuple[float, float]":
-        return {"int": int, "float": float, "bool": bool}[annotation](value)
-    if len(value) != 2:  # `validate` made it a list of numbers
-        raise ConfigError(f"{key} must be a list of two numbers, e.g. [0.9, 0.99], got {value!r}")
-    return float(value[0]), float(value[1])
 
 
 @dataclass
@@ -153,101 +80,6 @@ class TrainResult:
     last_checkpoint: Path | None  # newest checkpoint written or resumed from (None on ranks > 0)
     interrupted: bool  # stopped by Ctrl-C / SIGTERM; resume with resume=True
     history: list[dict] = field(default_factory=list)  # one record per completed epoch (rank 0)
-
-
-class _EpochBatches(Sampler):
-    """Batches of (epoch, index) pairs in the sampler's order for `epoch`, skipping the first `skip` batches.
-
-    The epoch travels with each index, so persistent DataLoader workers augment for the
-    right epoch without being re-created; `skip` serves a mid-epoch resume.
-    """
-
-    def __init__(self, sampler: DistributedSampler, batch_size: int, drop_last: bool):
-        self.sampler, self.batch_size, self.drop_last = sampler, batch_size, drop_last
-        self.epoch = 0
-        self.skip = 0
-
-    def set_epoch(self, epoch: int, skip: int = 0) -> None:
-        self.epoch, self.skip = int(epoch), int(skip)
-        self.sampler.set_epoch(self.epoch)
-
-    def full_length(self) -> int:
-        n = len(self.sampler)
-        return n // self.batch_size if self.drop_last else math.ceil(n / self.batch_size)
-
-    def __len__(self) -> int:
-        return max(0, self.full_length() - self.skip)
-
-    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
-        order = list(self.sampler)
-        for k in range(self.skip, self.full_length()):
-            yield [(self.epoch, i) for i in order[k * self.batch_size:(k + 1) * self.batch_size]]
-
-
-class _StopRequest:
-    """Turns the first Ctrl-C / SIGTERM into a flag checked between steps; a second Ctrl-C aborts at once."""
-
-    def __init__(self, announce: bool):
-        self.requested = False
-        self.announce = announce
-        self._first = 0.0
-        self._old: dict[int, Any] = {}
-
-    def _handler(self, signum, frame):
-        now = time.monotonic()
-        if self.requested:
-            # a second Ctrl-C aborts; one within 2 s of the first is the same keypress forwarded
-            # again (torchrun passes the terminal's SIGINT on to its workers, which got it already)
-            if signum == signal.SIGINT and now - self._first > 2.0:
-                raise KeyboardInterrupt
-            return
-        self.requested, self._first = True, now
-        if self.announce:
-            tqdm.write(f"\n{signal.Signals(signum).name} received: finishing this step and saving a checkpoint "
-                       f"(press Ctrl-C again to abort without saving)")
-
-    def __enter__(self) -> _StopRequest:
-        if threading.current_thread() is threading.main_thread():
-            for s in (signal.SIGINT, signal.SIGTERM):
-                self._old[s] = signal.signal(s, self._handler)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        for s, old in self._old.items():
-            signal.signal(s, old)
-
-    def start_iter(self, loader: DataLoader) -> Iterator:
-        """`iter(loader)` with SIGINT ignored while worker processes start, so they inherit the
-        ignored disposition and a Ctrl-C (sent to the whole process group) reaches only this process."""
-        if signal.SIGINT not in self._old:
-            return iter(loader)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        try:
-            return iter(loader)
-        finally:
-            signal.signal(signal.SIGINT, self._handler)
-
-
-def _gather_rng(info: DistInfo) -> list[dict]:
-    """Every rank's generator states (rank order); a single entry without distribution."""
-    state = capture_rng_state()
-    if not info.distributed:
-        return [state]
-    import torch.distributed as dist
-
-    out: list = [None] * info.world_size
-    dist.all_gather_object(out, state)
-    return out
-
-
-def _any_rank(flags: list[bool], info: DistInfo) -> list[bool]:
-    if not info.distributed:
-        return flags
-    import torch.distributed as dist
-
-    t = torch.tensor([int(f) for f in flags], dtype=torch.int32, device=info.device)
-    dist.all_reduce(t, op=dist.ReduceOp.MAX)
-    return [bool(x) for x in t.tolist()]
 
 
 def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *, model_name: str,
@@ -286,7 +118,7 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
     run = _setup(model, train_set, cfg, Path(out_dir), info, model_name=model_name, run_config=run_config,
                  data_info=data_info, resume=resume, resume_ignore_keys=resume_ignore_keys, preview=preview)
     interrupted = False
-    with _StopRequest(announce=info.is_main) as stop:
+    with StopRequest(announce=info.is_main) as stop:
         try:
             for epoch in range(run.state.epoch, cfg.epochs):
                 epoch_run = _train_epoch(run, epoch, stop, progress)
@@ -294,7 +126,7 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
                     interrupted = True
                     break
                 _end_epoch(run, epoch, epoch_run, eval_fn)
-                if _any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
+                if any_rank([stop.requested], info)[0] and epoch + 1 < cfg.epochs:
                     interrupted = True
                     break
         except NonFiniteTrainingError:
@@ -321,7 +153,7 @@ class _Run:
     core: nn.Module  # the model on its device
     ddp_model: nn.Module  # `core`, wrapped by DistributedDataParallel when distributed
     train_set: Any
-    batches: _EpochBatches
+    batches: EpochBatches
     loader: DataLoader
     loader_gen: torch.Generator
     steps_per_epoch: int
@@ -348,6 +180,18 @@ class _Run:
         return path
 
 
+def _gather_rng(info: DistInfo) -> list[dict]:
+    """Every rank's generator states (rank order); a single entry without distribution."""
+    state = capture_rng_state()
+    if not info.distributed:
+        return [state]
+    import torch.distributed as dist
+
+    out: list = [None] * info.world_size
+    dist.all_gather_object(out, state)
+    return out
+
+
 def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: DistInfo, *, model_name: str,
            run_config: Mapping, data_info: Mapping, resume: bool, resume_ignore_keys: Iterable[str],
            preview: Sample | None) -> _Run:
@@ -361,7 +205,7 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     core = model.to(device)
     sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
                                  seed=cfg.seed, drop_last=False)
-    batches = _EpochBatches(sampler, cfg.batch_size, cfg.drop_last)
+    batches = EpochBatches(sampler, cfg.batch_size, cfg.drop_last)
     steps_per_epoch = batches.full_length()
     if steps_per_epoch == 0:
         raise ValueError(f"the training set has {len(train_set)} frames, too few for one batch of {cfg.batch_size} "
@@ -444,35 +288,49 @@ class _StepResult:
     stop_requested: bool  # Ctrl-C / SIGTERM on any rank
 
 
-def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
-    """Mixed precision runs on CUDA only (CPU float16 kernels are slow and bfloat16 training is not tested)."""
-    return cfg.amp and device.type == "cuda"
+def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _EpochRun:
+    """The steps of `epoch` (from the resumed step on), with logging, mid-epoch checkpoints and the stop check."""
+    cfg, info = run.cfg, run.info
+    run.batches.set_epoch(epoch, skip=run.state.step_in_epoch if epoch == run.state.epoch else 0)
+    run.loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
+    run.core.train()
+    ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter())
+    bar = tqdm(stop.start_iter(run.loader), total=len(run.batches), desc=f"epoch {epoch + 1}/{cfg.epochs}",
+               unit="batch", disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
+    try:
+        for batch in bar:
+            batch: Batch = batch.to(info.device, non_blocking=True)
+            res = _step(run, batch, stop)
+            ep.lr = res.lr
+
+            run.state = TrainState(epoch, run.state.step_in_epoch + 1, run.state.global_step + 1, cfg.seed)
+            ep.n_frames += batch.batch_size
+            if res.skipped is not None:
+                _nonfinite_step(run, ep, epoch, batch, res)
+            else:
+                run.nonfinite_streak = 0
+                ep.n_steps += 1
+                values = {"loss": res.loss, **{k: float(v) for k, v in res.parts.items()}}
+                for k, v in values.items():
+                    ep.sums[k] = ep.sums.get(k, 0.0) + v
+                if info.is_main and run.state.global_step % cfg.log_every == 0:
+                    run.logger.scalars({**values, "lr": ep.lr}, run.state.global_step, prefix="train/")
+            bar.set_postfix(loss=f"{res.loss:.4f}", lr=f"{ep.lr:.2e}", refresh=False)
+
+            at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
+            stop_now = res.stop_requested
+            if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
+                                                  and run.state.global_step % cfg.checkpoint_every_steps == 0)):
+                run.last_ckpt = run.save(run.state) or run.last_ckpt
+                if stop_now:
+                    ep.interrupted = True
+                    break
+    finally:
+        bar.close()
+    return ep
 
 
-def _float_buffers(model: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """(buffer, copy) of every buffer, taken before a forward pass that may have to be undone."""
-    return [(b, b.detach().clone()) for b in model.buffers()]
-
-
-def _grads(model: nn.Module) -> list[torch.Tensor]:
-    return [p.grad for p in model.parameters() if p.grad is not None]
-
-
-def _grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
-    """Global L2 norm of the gradients (a tensor, NaN or inf when a gradient is not finite)."""
-    if not grads:
-        return torch.zeros(())
-    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.detach(), 2.0).float() for g in grads]))
-
-
-def _clip_(grads: list[torch.Tensor], norm: torch.Tensor, max_norm: float) -> None:
-    """Scale the gradients so their global norm `norm` is at most `max_norm` (torch's clip_grad_norm_ rule)."""
-    coef = torch.clamp(max_norm / (norm + 1e-6), max=1.0)
-    for g in grads:
-        g.detach().mul_(coef.to(g.device, g.dtype))
-
-
-def _step(run: _Run, batch: Batch, stop: _StopRequest) -> _StepResult:
+def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     """One optimisation step on `batch` (already on the device), or none when its loss or gradient is not finite.
 
     Mixed precision: the forward pass runs under float16 autocast while the parameters and the
@@ -498,7 +356,7 @@ def _step(run: _Run, batch: Batch, stop: _StopRequest) -> _StepResult:
         cause = "gradient"  # (an overflow of the scaled gradients is the scaler's: it skips and lowers the scale)
     else:
         cause = None
-    stop_requested, bad = _any_rank([stop.requested, cause is not None], run.info)
+    stop_requested, bad = any_rank([stop.requested, cause is not None], run.info)
     lr = run.optimizer.param_groups[0]["lr"]
     if bad:
         cause = cause or "loss or gradient on another process"
@@ -548,46 +406,32 @@ def _nonfinite_step(run: _Run, ep: _EpochRun, epoch: int, batch: Batch, res: _St
             f"skipped steps in a row are tolerated")
 
 
-def _train_epoch(run: _Run, epoch: int, stop: _StopRequest, progress: bool) -> _EpochRun:
-    """The steps of `epoch` (from the resumed step on), with logging, mid-epoch checkpoints and the stop check."""
-    cfg, info = run.cfg, run.info
-    run.batches.set_epoch(epoch, skip=run.state.step_in_epoch if epoch == run.state.epoch else 0)
-    run.loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
-    run.core.train()
-    ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter())
-    bar = tqdm(stop.start_iter(run.loader), total=len(run.batches), desc=f"epoch {epoch + 1}/{cfg.epochs}",
-               unit="batch", disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
-    try:
-        for batch in bar:
-            batch: Batch = batch.to(info.device, non_blocking=True)
-            res = _step(run, batch, stop)
-            ep.lr = res.lr
+def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
+    """Mixed precision runs on CUDA only (CPU float16 kernels are slow and bfloat16 training is not tested)."""
+    return cfg.amp and device.type == "cuda"
 
-            run.state = TrainState(epoch, run.state.step_in_epoch + 1, run.state.global_step + 1, cfg.seed)
-            ep.n_frames += batch.batch_size
-            if res.skipped is not None:
-                _nonfinite_step(run, ep, epoch, batch, res)
-            else:
-                run.nonfinite_streak = 0
-                ep.n_steps += 1
-                values = {"loss": res.loss, **{k: float(v) for k, v in res.parts.items()}}
-                for k, v in values.items():
-                    ep.sums[k] = ep.sums.get(k, 0.0) + v
-                if info.is_main and run.state.global_step % cfg.log_every == 0:
-                    run.logger.scalars({**values, "lr": ep.lr}, run.state.global_step, prefix="train/")
-            bar.set_postfix(loss=f"{res.loss:.4f}", lr=f"{ep.lr:.2e}", refresh=False)
 
-            at_epoch_end = run.state.step_in_epoch == run.steps_per_epoch
-            stop_now = res.stop_requested
-            if not at_epoch_end and (stop_now or (cfg.checkpoint_every_steps
-                                                  and run.state.global_step % cfg.checkpoint_every_steps == 0)):
-                run.last_ckpt = run.save(run.state) or run.last_ckpt
-                if stop_now:
-                    ep.interrupted = True
-                    break
-    finally:
-        bar.close()
-    return ep
+def _float_buffers(model: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """(buffer, copy) of every buffer, taken before a forward pass that may have to be undone."""
+    return [(b, b.detach().clone()) for b in model.buffers()]
+
+
+def _grads(model: nn.Module) -> list[torch.Tensor]:
+    return [p.grad for p in model.parameters() if p.grad is not None]
+
+
+def _grad_norm(grads: list[torch.Tensor]) -> torch.Tensor:
+    """Global L2 norm of the gradients (a tensor, NaN or inf when a gradient is not finite)."""
+    if not grads:
+        return torch.zeros(())
+    return torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g.detach(), 2.0).float() for g in grads]))
+
+
+def _clip_(grads: list[torch.Tensor], norm: torch.Tensor, max_norm: float) -> None:
+    """Scale the gradients so their global norm `norm` is at most `max_norm` (torch's clip_grad_norm_ rule)."""
+    coef = torch.clamp(max_norm / (norm + 1e-6), max=1.0)
+    for g in grads:
+        g.detach().mul_(coef.to(g.device, g.dtype))
 
 
 # ---- epoch end: checkpoint, evaluation, logs ---------------------------------------------------

@@ -42,10 +42,11 @@ from tqdm import tqdm
 from detbench.config import shipped_default
 from detbench.data import Height3Dataset
 from detbench.data.batch import collate
+from detbench.data.detections import Detections
 from detbench.data.errors import DatasetError
 from detbench.data.regions import RANGE_NAMES, detected_point_counts
 from detbench.data.road import RoadConfig
-from detbench.eval.evaluate import EvalFrame, evaluate
+from detbench.eval import EvalFrame, evaluate
 from detbench.ops import boxes_iou_bev, boxes_to_corners_3d, normalize_heading
 from detbench.train.inference import count_nonfinite, frame_sample
 
@@ -84,7 +85,7 @@ class PrecisionRun:
     """One pass of a model over the frames at one precision."""
 
     precision: str
-    predictions: dict[str, tuple[np.ndarray, np.ndarray]]  # frame_id -> (boxes (K, 7) float64, scores (K,))
+    predictions: dict[str, Detections]  # frame_id -> numpy: boxes (K, 7) float64, scores (K,), labels (K,)
     nonfinite_values: int = 0  # NaN / inf values in the raw outputs
     nonfinite_frames: list[str] = field(default_factory=list)  # frames of batches whose outputs held any
     nonfinite_detections: int = 0  # detections dropped for a non-finite box or score
@@ -119,11 +120,12 @@ def run_at_precision(model: nn.Module, frames: Sequence, point_cloud_range: Sequ
                 run.nonfinite_values += bad
                 run.nonfinite_frames.extend(s.frame_id for s in samples)
             for s, d in zip(samples, dets):
-                boxes = d.boxes.detach().float().cpu().numpy().astype(np.float64).reshape(-1, 7)
-                scores = d.scores.detach().float().cpu().numpy().astype(np.float64).reshape(-1)
+                host = d.numpy()
+                boxes = host.boxes.astype(np.float64).reshape(-1, 7)
+                scores = host.scores.astype(np.float64).reshape(-1)
                 ok = np.isfinite(boxes).all(axis=1) & np.isfinite(scores)
                 run.nonfinite_detections += int((~ok).sum())
-                run.predictions[s.frame_id] = (boxes[ok], scores[ok])
+                run.predictions[s.frame_id] = Detections(boxes[ok], scores[ok], host.labels.reshape(-1)[ok])
             bar.update(len(samples))
     finally:
         if device.type == "cuda":
@@ -138,8 +140,11 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return np.asarray(normalize_heading(np.asarray(a, dtype=np.float64)), dtype=np.float64)
 
 
-def box_differences(reference: dict[str, tuple[np.ndarray, np.ndarray]],
-                    other: dict[str, tuple[np.ndarray, np.ndarray]],
+_NONE = (np.zeros((0, 7)), np.zeros(0))  # the detections of a frame without any
+
+
+def box_differences(reference: dict[str, Detections | tuple[np.ndarray, np.ndarray]],
+                    other: dict[str, Detections | tuple[np.ndarray, np.ndarray]],
                     score_threshold: float | None = None, match_iou: float = 0.5) -> dict:
     """How far `other`'s detections lie from `reference`'s, frame by frame (see the module doc for the matching).
 
@@ -158,8 +163,8 @@ def box_differences(reference: dict[str, tuple[np.ndarray, np.ndarray]],
     unmatched_ref = unmatched_other = flips = 0
     worst, worst_frame = -1.0, None
     for fid in sorted(set(reference) | set(other)):
-        rb, rs = reference.get(fid, (np.zeros((0, 7)), np.zeros(0)))
-        ob, os_ = other.get(fid, (np.zeros((0, 7)), np.zeros(0)))
+        rb, rs = reference.get(fid, _NONE)[:2]
+        ob, os_ = other.get(fid, _NONE)[:2]
         rk, ok = rs >= score_threshold, os_ >= score_threshold
         rb, rs, ob, os_ = rb[rk], rs[rk], ob[ok], os_[ok]
         if len(rb) == 0 or len(ob) == 0:
@@ -207,8 +212,8 @@ def box_differences(reference: dict[str, tuple[np.ndarray, np.ndarray]],
 
 
 def _accuracy(eval_base: list[tuple], run: PrecisionRun, iou_threshold: float, score_threshold: float) -> dict:
-    frames = [EvalFrame(boxes, counts, lanes, *run.predictions.get(fid, (np.zeros((0, 7)), np.zeros(0))),
-                        frame_id=fid) for fid, boxes, counts, lanes in eval_base]
+    frames = [EvalFrame(boxes, counts, lanes, *run.predictions.get(fid, _NONE)[:2], frame_id=fid)
+              for fid, boxes, counts, lanes in eval_base]
     rep = evaluate(frames, iou_threshold=iou_threshold, score_threshold=score_threshold)
     res = rep["results"]
     return {"ap_r40": {r: res[r]["all"]["ap_r40"] for r in RANGE_NAMES},
@@ -263,7 +268,7 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
         acc = _accuracy(eval_base, run, iou_threshold, score_threshold)
         entry = {"autocast_dtype": None if PRECISIONS[p] is None else str(PRECISIONS[p]).replace("torch.", ""),
                  "seconds_per_frame": run.seconds / max(len(frames), 1),
-                 "detections": int(sum(int((s >= score_threshold).sum()) for _, s in run.predictions.values())),
+                 "detections": int(sum(int((d.scores >= score_threshold).sum()) for d in run.predictions.values())),
                  "nonfinite_values": run.nonfinite_values, "nonfinite_frames": len(run.nonfinite_frames),
                  "nonfinite_frame_ids": run.nonfinite_frames[:10], "nonfinite_detections": run.nonfinite_detections,
                  **acc}

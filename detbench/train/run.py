@@ -20,7 +20,8 @@ from detbench.train.dataset import TrainingSet
 from detbench.train import inference
 from detbench.train.loop import TrainResult
 from detbench.train.run_layout import RUN_FOLDER
-from detbench.utils.io import atomic_write_json, atomic_write_text, claim_folder
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
+from detbench.utils.folder_locks import claim_folder
 
 __all__ = ["check_training_frames", "claim_run_folder", "collect_train_boxes", "eval_frames", "make_eval_fn",
            "option_overrides", "training_data_info", "write_summary"]
@@ -40,7 +41,7 @@ def option_overrides(overrides, *, epochs: int | None = None, batch_size: int | 
 
 @contextmanager
 def claim_run_folder(out: Path) -> Iterator[None]:
-    """Hold the run folder `out` for the block (`detbench.utils.io.claim_folder`): it must be new, empty or a
+    """Hold the run folder `out` for the block (`detbench.utils.folder_locks.claim_folder`): it must be new, empty or a
     training run's (`RUN_FOLDER`), else `FolderNotReplaceable` names it; it is locked, so a second run on it is
     refused (`FolderInUse`, naming the holder's pid and host), and a lock left by a killed run is taken over
     with a note. Under torchrun only rank 0 holds it (the others write nothing there)."""

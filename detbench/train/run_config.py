@@ -26,7 +26,7 @@ from detbench.config import (
 from detbench.data.augment import AugmentConfig
 from detbench.data.road import RoadConfig
 from detbench.eval.evaluate import EvalConfig
-from detbench.train.loop import TrainConfig
+from detbench.train.train_config import TrainConfig
 
 PRESETS = ("smoke", "cpu", "paper")
 

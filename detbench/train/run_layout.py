@@ -9,7 +9,7 @@ next to them: `<run>/eval_hH_<split>[_<stage>]/` (tools/eval.py; H is the height
 `<run>/precision_hH_<split>/` (tools/precision.py) and `<run>/demo_hH_<split>/` (tools/demo.py).
 Heights are written by `detbench.data.frame.height_key` (1.8, 1.0, 0.25).
 
-`RUN_FOLDER` and `STUDY_FOLDER` say what such folders hold, for `detbench.utils.io.claim_folder`
+`RUN_FOLDER` and `STUDY_FOLDER` say what such folders hold, for `detbench.utils.folder_locks.claim_folder`
 (a run or a study writes only into a folder that is new, empty or its own, and locks it while it
 runs) and `check_replaceable` (`tools/study.py --fresh` deletes only a study).
 """
@@ -20,7 +20,8 @@ from pathlib import Path
 
 from detbench.data.frame import height_key
 from detbench.train.checkpoint import CheckpointError, CheckpointManager
-from detbench.utils.io import FolderKind, read_json
+from detbench.utils.atomic import read_json
+from detbench.utils.folder_ownership import FolderKind
 
 RUNS_DIR = Path("runs")  # default parent of runs and studies, relative to the working directory
 

@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
-from detbench.utils.io import DiskFullError
+from detbench.utils.atomic import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",

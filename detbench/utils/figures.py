@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from detbench.utils.io import atomic_save
+from detbench.utils.atomic import atomic_save
 
 LEGEND_SMALL = 10  # up to this many series keep the palette and the legend as drawn for a few heights
 

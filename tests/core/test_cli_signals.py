@@ -14,7 +14,7 @@ TOOL = """
 import sys, time
 from pathlib import Path
 from detbench.utils.cli import run_main
-from detbench.utils.io import atomic_path
+from detbench.utils.atomic import atomic_path
 out = Path(sys.argv[1])
 
 def main(_argv):

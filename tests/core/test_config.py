@@ -7,7 +7,7 @@ import pytest
 
 from detbench import config as C
 from detbench.data.frame import Frame, Sensor, height_key
-from detbench.utils import io
+from detbench.utils import atomic
 from tests.helpers import ROOT
 
 
@@ -52,7 +52,7 @@ def test_base_cycle_and_bad_yaml(tmp_path):
 
 def test_atomic_write_keeps_old_file_on_failure(tmp_path):
     target = tmp_path / "report.json"
-    io.atomic_write_json(target, {"a": 1, "nan": float("nan"), "arr": np.arange(3)})
+    atomic.atomic_write_json(target, {"a": 1, "nan": float("nan"), "arr": np.arange(3)})
     assert json.loads(target.read_text()) == {"a": 1, "nan": None, "arr": [0, 1, 2]}
 
     def failing_writer(p):
@@ -60,17 +60,17 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path):
         raise RuntimeError("disk full")
 
     with pytest.raises(RuntimeError):
-        io.atomic_save(target, failing_writer)
+        atomic.atomic_save(target, failing_writer)
     assert json.loads(target.read_text())["a"] == 1
     assert [f for f in os.listdir(tmp_path) if f.startswith(".tmp")] == []
 
 
 def test_read_json_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.json"):
-        io.read_json(tmp_path / "nope.json")
+        atomic.read_json(tmp_path / "nope.json")
     write(tmp_path / "broken.json", "{\"a\": ")
     with pytest.raises(ValueError, match="broken.json: not valid JSON"):
-        io.read_json(tmp_path / "broken.json")
+        atomic.read_json(tmp_path / "broken.json")
 
 
 def test_height_key():
@@ -111,7 +111,7 @@ def test_sensor_roundtrip():
 
 
 def test_atomic_write_uses_normal_file_mode(tmp_path):
-    target = io.atomic_write_text(tmp_path / "r.md", "x")
+    target = atomic.atomic_write_text(tmp_path / "r.md", "x")
     mask = os.umask(0)
     os.umask(mask)
     assert (target.stat().st_mode & 0o777) == (0o666 & ~mask)
@@ -126,7 +126,7 @@ def test_typed_configs_read_their_defaults_from_default_yaml():
     from detbench.data.augment import AUGMENT_DEFAULTS, AugmentConfig
     from detbench.data.gt_database import GT_SAMPLING_DEFAULTS, GTSamplingConfig
     from detbench.sim.dataset import DATA_DEFAULTS
-    from detbench.train.loop import TRAIN_DEFAULTS, TrainConfig
+    from detbench.train.train_config import TRAIN_DEFAULTS, TrainConfig
 
     shipped = C.load_config(C.CONFIG_DIR / "default.yaml")
     aug_yaml = shipped["augment"]

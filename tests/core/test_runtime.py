@@ -97,7 +97,7 @@ def test_apply_defaults_on_a_mapping_keeps_set_values():
 
 
 def test_dataloader_workers_use_one_thread_each():
-    p = python("from detbench.train.seed import worker_init_fn; worker_init_fn(0); import numba, torch; "
+    p = python("from detbench.train.rng import worker_init_fn; worker_init_fn(0); import numba, torch; "
                "print(torch.get_num_threads(), numba.get_num_threads())", NUMBA_NUM_THREADS="2")
     assert p.returncode == 0, p.stderr
     assert p.stdout.split() == ["1", "1"]

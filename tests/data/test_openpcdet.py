@@ -22,7 +22,7 @@ from detbench.data.readers import format_labels
 from detbench.data.regions import detected_point_counts
 from detbench.data.transforms import ground_to_sensor
 from detbench.data.validate import validate_dataset
-from detbench.utils.io import read_json
+from detbench.utils.atomic import read_json
 from detbench.utils.cli import run_main
 import tools.analyze
 import tools.eval
@@ -427,7 +427,7 @@ def test_round_trip_through_openpcdet_on_simulated_data(tmp_path):
 def _tree_text(root: Path, names: dict[str, str]) -> str:
     """Every file under `root`, sorted: text files whole, arrays as shape, dtype and a digest of their values;
     the paths in `names` (path -> placeholder) replaced, so the text does not depend on the test's folders. The
-    folder's owner file (detbench.utils.io's, the same for every folder it writes) is left out."""
+    folder's owner file (detbench.utils.folder_ownership's, the same for every folder it writes) is left out."""
     import hashlib
 
     out = []

@@ -189,7 +189,7 @@ def test_empty_frames_and_shapes():
 
 
 def test_report_layout_and_json():
-    from detbench.utils.io import to_json
+    from detbench.utils.atomic import to_json
 
     rep = evaluate([frame([car(10)], [3], [0], [car(10)], [0.9])], extras=True)
     assert set(rep) == {"iou_threshold", "iou_kind", "score_threshold", "num_frames", "results", "extras"}

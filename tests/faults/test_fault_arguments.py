@@ -27,8 +27,9 @@ def _one_line(code: int, err: str, named: str) -> None:
     (["--bootstrap", "-1"], "--bootstrap -1: must be an integer >= 0"),
 ])
 def test_eval_refuses_arguments_that_zero_the_result(argv, named, fault_data, tool, tmp_path):
-    """--batch-size -3 evaluated no frame and reported AP 0 over 10 frames; --score-threshold 5 dropped every
-    prediction; --batch-size 0 was a traceback."""
+    """An argument that would evaluate no frame, drop every prediction or match nothing (a batch size below 1, a
+    score threshold above 1, an IoU threshold of 0, a negative bootstrap) is refused in one line naming it, and
+    no report is written."""
     out = tmp_path / "e"
     code, err = tool("eval", "--data", fault_data, "--height", "1.8", "--pred", tmp_path, "--out", out,
                      "--no-progress", *argv)
@@ -43,8 +44,8 @@ def test_eval_refuses_arguments_that_zero_the_result(argv, named, fault_data, to
     (["--model", "pillarnet"], "--model pillarnet: --ckpt {ckpt} is a second checkpoint"),
 ])
 def test_eval_of_a_checkpoint_checks_device_out_and_model_first(argv, named, trained_run, tool, tmp_path):
-    """A bad device or an --out that is a file is named before the prediction pass; --model pillarnet on a SECOND
-    checkpoint is refused instead of labelling the report pillarnet (which --combine then trusts)."""
+    """A bad device, an --out that is a file, or a --model other than the checkpoint's is refused in one line
+    before the prediction pass, so no report carries a model name that --combine would trust wrongly."""
     ckpt = trained_run / "checkpoints" / "epoch_002.pt"
     file = tmp_path / "a_file"
     file.write_text("not a folder")
@@ -58,6 +59,7 @@ def test_eval_of_a_checkpoint_checks_device_out_and_model_first(argv, named, tra
 
 
 def test_precision_refuses_a_score_threshold_above_one(trained_run, tool, tmp_path):
+    """A score threshold outside [0, 1] is refused in one line before the checkpoint runs, and nothing is written."""
     code, err = tool("precision", "--ckpt", trained_run / "checkpoints" / "epoch_002.pt", "--score-threshold", "7",
                      "--out", tmp_path / "p", "--no-progress")
     _one_line(code, err, "--score-threshold 7: must be a score in [0, 1]")
@@ -76,8 +78,9 @@ def test_precision_refuses_a_score_threshold_above_one(trained_run, tool, tmp_pa
     ("simulate", ["--frames", "2", "--heights", "0.0004"], "--heights 0.0004: mounting height 0.0004 m is below 1 mm"),
 ])
 def test_study_tools_end_a_bad_argument_with_one_line(name, argv, named, fault_data, tool, tmp_path):
-    """Tracebacks (ValueError, FileExistsError, IndexError) or a result of nothing: refused first, in one line;
-    simulate --heights 0.0004 wrote the height key 0.0 that every reader refuses."""
+    """Each study tool refuses an argument that cannot give a result (a lane width, height or voxel of 0, a
+    negative count, an unknown device, an --out that is a file, a height below 1 mm that no reader accepts) in
+    one line naming it, and writes or changes nothing."""
     file = tmp_path / "a_file"
     file.write_text("not a folder")
     out = tmp_path / "out"
@@ -108,8 +111,9 @@ def test_study_tools_end_a_bad_argument_with_one_line(name, argv, named, fault_d
     ("model.voxel_size=[0.00005, 0.00005, 0.15]", "GiB, above the 16 GiB a tensor may take"),
 ])
 def test_config_values_out_of_range_are_refused_before_training(override, named, fault_data, tool, tmp_path):
-    """Each trained to nonsense with exit 0 (momentum_range [5, -5]: loss 481,402; NaN anchors; no box kept) or
-    ended in a traceback (final_div_factor 1e-300, rotations [], a stride of 0, a grid of terabytes)."""
+    """A config value outside its range (e.g. momenta, betas, schedule factors, a NaN learning rate, empty anchor
+    rotations, a stride of 0, NaN or negative anchor sizes, a grid larger than a tensor may be) is refused in
+    one line naming the key, before any checkpoint is written."""
     out = tmp_path / "run"
     code, err = tool("train", *train_argv(fault_data, out, "--set", override))
     assert code == 2 and named in err and "Traceback" not in err, err[-3000:]
@@ -117,7 +121,8 @@ def test_config_values_out_of_range_are_refused_before_training(override, named,
 
 
 def test_exponents_inside_a_list_override_are_numbers():
-    """`--set key=[0, 1e30]`: YAML 1.1 reads 1e30 as a string, so a list of numbers was refused."""
+    """`--set key=[0, 1e30]`: a number written with an exponent is a number inside a list or a mapping too,
+    although YAML 1.1 alone reads 1e30 as a string."""
     from detbench.config import apply_overrides, parse_override, shipped_defaults
 
     assert parse_override("a=[0, 1e30]") == (["a"], [0, 1e30])
@@ -136,8 +141,8 @@ def _resave(ckpt: dict, path, digest: bool) -> None:
 
 
 def test_checkpoint_with_an_edited_config_is_refused(trained_run, tool, tmp_path):
-    """A voxel size or range edited in a checkpoint's stored config loaded without a word and evaluated the weights
-    on another grid."""
+    """A checkpoint whose stored config was edited after it was written (its voxel size, its range) is refused
+    naming the file: its weights are never evaluated on another grid than the one they learned."""
     for key, value in (("voxel_size", [0.1, 0.1, 0.15]), ("point_cloud_range", [0.0, -16.0, -0.6, 76.8, 16.0, 4.2])):
         ckpt = load_checkpoint_dict(trained_run / "checkpoints" / "epoch_002.pt")
         assert ckpt["config"]["model"][key] != value
@@ -150,7 +155,8 @@ def test_checkpoint_with_an_edited_config_is_refused(trained_run, tool, tmp_path
 
 
 def test_checkpoint_asking_for_terabytes_is_refused_before_allocating(trained_run, tool, tmp_path):
-    """A checkpoint whose config (consistently stored) asks for a 1.4 TB grid ended in an allocation traceback."""
+    """A checkpoint whose config (consistently stored) asks for a grid larger than a tensor may be is refused in
+    one line naming the file, before anything is allocated."""
     ckpt = load_checkpoint_dict(trained_run / "checkpoints" / "epoch_002.pt")
     ckpt["config"]["model"]["voxel_size"] = [0.00005, 0.00005, 0.15]
     big = tmp_path / "big" / "epoch_002.pt"
@@ -161,7 +167,8 @@ def test_checkpoint_asking_for_terabytes_is_refused_before_allocating(trained_ru
 
 
 def test_a_missing_or_nan_height_is_named_not_suggested_for_simulation(trained_run, fault_data, tool, tmp_path):
-    """A NaN height gave the hint 'simulate nan m with tools/simulate.py --heights nan'."""
+    """A NaN height is named as no mounting height, never suggested for simulation; a checkpoint that records
+    no training height asks for --height."""
     from detbench.data import DatasetError, read_info
 
     with pytest.raises(DatasetError, match=r"height nan is not a mounting height") as e:
@@ -182,7 +189,9 @@ def test_a_missing_or_nan_height_is_named_not_suggested_for_simulation(trained_r
 ])
 def test_analyze_and_eval_warn_when_every_points_file_or_box_is_empty(emptied, named, eval_named, data_copy, tool,
                                                                       tmp_path):
-    """Every points file (or every label file) empty reported 'LDR 0.00' (and recall 0) with no word."""
+    """When every points file (or every label file) is empty, analyze and eval finish with a warning per height
+    that no point lies in any box (no vehicle lies in any range): an LDR or recall of 0 is never reported
+    without a word."""
     for f in (data_copy / emptied).rglob("*"):
         if f.is_file() and emptied == "points":
             np.save(f, np.load(f)[:0])

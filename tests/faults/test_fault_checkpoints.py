@@ -71,6 +71,8 @@ def test_damaged_checkpoint_is_refused(kind, named, trained_run, tool, tmp_path)
 
 
 def test_malicious_checkpoint_is_refused_unrun(tool, tmp_path):
+    """A checkpoint holding a pickled object that would run a command is refused naming the file, and the
+    command never runs."""
     marker = tmp_path / "pwned"
 
     class Payload:

@@ -30,6 +30,8 @@ def test_bad_config_value_is_refused_naming_the_key(override, named, tool, fault
 
 
 def test_config_file_values_and_encoding_are_checked(tool, fault_data, tmp_path):
+    """A --config file is held to the same checks as --set (a switch is true or false) and must be UTF-8 text;
+    either problem is refused naming the file or key before the run folder exists."""
     cfg = tmp_path / "my.yaml"
     cfg.write_text("_base_: second.yaml\ntrain: {drop_last: 'no'}\n")
     code, err = tool("train", *train_argv(fault_data, tmp_path / "run", "--config", cfg))

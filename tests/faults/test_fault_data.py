@@ -52,6 +52,7 @@ def test_validate_lists_every_problem_with_file_and_line(data_copy, capsys):
 
 
 def test_malformed_label_stops_analyze_with_file_and_line(data_copy, tool, tmp_path):
+    """A label line with too few columns stops analyze naming the file, the line and --skip-bad."""
     label = data_copy / "labels" / "0002_001.txt"
     label.write_text(label.read_text() + "1 2 3 4 5 6\n")
     code, err = tool("analyze", "--data", data_copy, "--out", tmp_path / "a", "--no-figures", "--no-progress")
@@ -60,6 +61,7 @@ def test_malformed_label_stops_analyze_with_file_and_line(data_copy, tool, tmp_p
 
 
 def test_missing_points_file_is_named(data_copy, tool, tmp_path):
+    """A points file that ImageSets lists but the disk lacks is named, with the list that asks for it."""
     gone = data_copy / "points" / "1.8" / "0001_003.npy"
     gone.unlink()
     code, err = tool("eval", "--data", data_copy, "--height", "1.8", "--split", "all", "--pred", tmp_path,
@@ -116,9 +118,10 @@ def test_big_seeds_give_their_own_data_and_are_recorded(seed, tmp_path):
 
 @pytest.mark.parametrize("damage", ["empty", "nan", "label"])
 def test_bad_training_frame_stops_training_before_it_starts(damage, data_copy, capsys, tmp_path, monkeypatch):
-    """Without ground-truth sampling (whose database reads every training frame), a bad training frame was
-    found only when the data loader reached it mid-epoch. Here the anchor-size sampling reads only the first
-    training frame, as it reads at most 400 of a larger dataset, so only the pre-check can find the last one."""
+    """A bad training frame (empty points, NaN points, a malformed label) stops training before its first step,
+    named, with no checkpoint written, even where nothing else reads it first: without ground-truth sampling
+    (whose database reads every training frame) the anchor-size sampling reads only the first training frame,
+    as it reads at most 400 of a larger dataset, so the damaged last frame is found by the pre-check alone."""
     from tests.faults.faultkit import train_argv
     from detbench.train.run import collect_train_boxes
     from detbench.utils.cli import run_main

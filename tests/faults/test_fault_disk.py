@@ -92,7 +92,7 @@ IN_FULL_FS = textwrap.dedent('''
     out["simulate"]["left"] = files(sim_fs)
     out["train"] = tool("tools/train.py", *train_args)
     out["train"]["left"] = files(run_fs)
-    from detbench.utils.io import DiskFullError, atomic_write_json
+    from detbench.utils.atomic import DiskFullError, atomic_write_json
     report = os.path.join(report_fs, "report.json")
     atomic_write_json(report, {"old": 1})
     try:

@@ -60,6 +60,8 @@ def test_small_result_pkl_cannot_make_the_reader_allocate(payload, tmp_path):
 
 
 def test_eval_refuses_a_result_pkl_asking_for_80_gb(fault_data, tool, tmp_path):
+    """tools/eval.py refuses a result.pkl that asks for an 80 GB array in one line naming the file, unallocated,
+    and writes no report."""
     path = tmp_path / "result.pkl"
     path.write_bytes(HUGE_NDARRAY)
     code, err = tool("eval", "--data", fault_data, "--height", "1.8", "--pred", path, "--out", tmp_path / "e",
@@ -107,6 +109,8 @@ def test_links_out_of_the_named_folder_are_refused_and_lines_are_not_echoed(data
 
 
 def test_npy_header_claiming_1e11_rows_is_refused_unallocated(data_copy, tool, tmp_path):
+    """A points file whose .npy header claims more data than the file holds is refused by validate and analyze
+    naming the file and both sizes, without allocating what the header asks for; the dataset is unchanged."""
     pts = data_copy / "points" / "1.8" / "0002_000.npy"
     header = {"descr": "<f4", "fortran_order": False, "shape": (10**11, 4)}
     with open(pts, "wb") as fh:
@@ -130,6 +134,8 @@ def _alias_bomb(levels: int = 7, width: int = 10) -> str:
 
 
 def test_yaml_alias_bomb_is_refused_in_set_in_files_and_in_a_checkpoint(tool, fault_data, tmp_path):
+    """YAML that expands beyond 100,000 values is refused, unexpanded, wherever it comes in: a --set value, a
+    config file, the config stored in a checkpoint; the tool refuses it before anything is written."""
     import torch
 
     from detbench.config import ConfigError, load_config, parse_override
@@ -158,6 +164,8 @@ def test_yaml_alias_bomb_is_refused_in_set_in_files_and_in_a_checkpoint(tool, fa
 
 
 def test_deeply_nested_json_and_pickles_are_refused_in_one_line(fault_data, data_copy, tool, tmp_path):
+    """A dataset.json or a result.pkl nested deeper than 64 levels is refused in one line naming the file; the
+    dataset is unchanged."""
     info = data_copy / "dataset.json"
     info.write_text('{"format": ' + "[" * 100_000 + "]" * 100_000 + "}")
     before = snapshot(data_copy)
@@ -211,6 +219,8 @@ def test_a_name_that_is_not_utf8_is_printed_escaped(fault_data, tmp_path):
 
 
 def test_study_refuses_a_data_folder_without_dataset_json_before_touching_out(tool, tmp_path):
+    """A --data folder without dataset.json is refused naming the file before the study's --out is touched:
+    --fresh deletes nothing and a new --out is not created."""
     data = tmp_path / "data"
     (data / "points").mkdir(parents=True)
     out = tmp_path / "study"

@@ -4,6 +4,7 @@ from tests.faults.faultkit import train_argv
 
 
 def test_missing_init_checkpoint_is_refused(tool, fault_data, tmp_path):
+    """An --init-from checkpoint that does not exist is refused naming the file, and no run folder is made."""
     out = tmp_path / "run"
     code, err = tool("train", *train_argv(fault_data, out, "--init-from", tmp_path / "nope.pt"))
     assert code == 2 and f"{tmp_path / 'nope.pt'}: checkpoint not found" in err, err
@@ -11,6 +12,8 @@ def test_missing_init_checkpoint_is_refused(tool, fault_data, tmp_path):
 
 
 def test_init_checkpoint_of_an_unrelated_model_is_refused(tool, fault_data, trained_run, tmp_path):
+    """An --init-from checkpoint of which no weight fits the model (a SECOND checkpoint for PointRCNN) is refused
+    naming the file and the model, and no run folder is made."""
     ckpt = trained_run / "checkpoints" / "epoch_002.pt"
     out = tmp_path / "run"
     code, err = tool("train", *train_argv(fault_data, out, "--model", "pointrcnn", "--init-from", ckpt))

@@ -10,6 +10,8 @@ WRAPPED_1E30 = 3.1322610492283266  # 1e30 rad wrapped into [-pi, pi) (exact, 80-
 
 @pytest.mark.parametrize("as_type", [float, lambda v: np.array([v]), lambda v: torch.tensor([v], dtype=torch.float64)])
 def test_huge_heading_wraps_exactly(as_type):
+    """A heading of +-1e30 rad wraps into [-pi, pi) exactly, given as a float, a numpy array or a torch
+    tensor."""
     from detbench.ops import normalize_heading
 
     for x, want in ((1e30, WRAPPED_1E30), (-1e30, -WRAPPED_1E30)):
@@ -18,6 +20,7 @@ def test_huge_heading_wraps_exactly(as_type):
 
 
 def test_label_headings_wrap_exactly():
+    """A label's heading of 1e30 rad is read wrapped into [-pi, pi), exactly."""
     from detbench.data.readers import parse_labels
 
     boxes, _ = parse_labels("10 0 0.8 4 2 1.6 1e30 car\n")
@@ -25,6 +28,8 @@ def test_label_headings_wrap_exactly():
 
 
 def test_nan_box_iou_is_an_error_on_every_cpu_path():
+    """On the CPU a NaN box given to the IoU is a ValueError naming the argument and the row, for numpy and
+    torch inputs, with or without gradients, never an IoU of 0."""
     from detbench.ops import boxes_iou3d, boxes_iou_bev_aligned
 
     boxes = np.array([[0, 0, 0.8, 4, 2, 1.6, 0], [np.nan, 0, 0.8, 4, 2, 1.6, 0]])
@@ -45,6 +50,8 @@ def test_device_path_gives_nan_never_zero():
 
 
 def test_impossible_height_is_a_user_error(tool, tmp_path):
+    """A mounting height of 0 is refused in one line naming --heights, without a traceback and with nothing
+    written."""
     code, err = tool("analyze", "--simulate", 2, "--heights", 0, "--out", tmp_path, "--no-figures", "--no-progress")
     assert code == 2 and "--heights 0: a mounting height is a positive number of metres" in err
     assert "Traceback" not in err and not list(tmp_path.iterdir())

@@ -68,7 +68,7 @@ def test_fresh_empties_a_study_folder_and_nothing_else(tmp_path):
     """What --fresh removes: a folder proven to be a study (owner file, or a finished study's study.json) holding
     only a study's entries, its runs proven to be runs; the folder itself and its owner file stay."""
     from detbench.train.run_layout import STUDY_FOLDER
-    from detbench.utils.io import FolderNotReplaceable, clear_folder
+    from detbench.utils.folder_ownership import FolderNotReplaceable, clear_folder
 
     study = tmp_path / "study"
     (study / "second_h1.8" / "checkpoints").mkdir(parents=True)
@@ -159,7 +159,7 @@ def test_two_studies_on_one_out(data_copy, tool, tmp_path):
     """A study whose folder another study holds is refused naming the holder, --fresh included, before
     anything is deleted."""
     from detbench.train.run_layout import STUDY_FOLDER
-    from detbench.utils.io import claim_folder
+    from detbench.utils.folder_locks import claim_folder
 
     out = tmp_path / "study"
     with claim_folder(out, STUDY_FOLDER, "a study"):

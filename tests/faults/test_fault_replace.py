@@ -18,6 +18,8 @@ def _siblings(folder):
 
 
 def test_kill_during_simulate_overwrite_keeps_the_old_dataset(data_copy, tmp_path):
+    """kill -9 while `simulate --overwrite` builds the new dataset leaves the old one whole (same files, sizes,
+    times and digests); the next run removes the half-built folder and replaces the old dataset entirely."""
     before = snapshot(data_copy)
     assert "dataset.json" in before and "points/1.8/0000_000.npy" in before
     cmd = [sys.executable, "tools/simulate.py", "--out", str(data_copy), "--frames", "400", "--frames-per-scene",
@@ -46,6 +48,8 @@ def test_kill_during_simulate_overwrite_keeps_the_old_dataset(data_copy, tmp_pat
 
 
 def test_refused_simulate_changes_nothing(data_copy, tool):
+    """simulate into an existing dataset is refused without --overwrite, and with it when the folder holds a
+    file of the user's; both refusals change nothing and leave nothing beside the folder."""
     (data_copy / "notes.txt").write_text("the user's own file")
     before = snapshot(data_copy)
     code, err = tool("simulate", "--out", data_copy, "--frames", "2", "--heights", "1.8", "--no-progress")
@@ -60,7 +64,7 @@ def test_a_swap_interrupted_between_its_renames_is_repaired(tmp_path, monkeypatc
     """Where the system has no atomic exchange, a swap is two renames; a kill between them leaves the old
     folder aside and none at `dest`: the next run puts the old one back. After the swap, a leftover old
     folder is removed."""
-    import detbench.utils.io as io
+    import detbench.utils.staged_folders as staged_folders
 
     dead = 999999999  # no process has this id
     dest = tmp_path / "data"
@@ -69,18 +73,18 @@ def test_a_swap_interrupted_between_its_renames_is_repaired(tmp_path, monkeypatc
     (old / "dataset.json").write_text("{}")
     new = tmp_path / f".tmp-new-data-{dead}"
     new.mkdir()
-    notes = io.recover_staged(dest)
+    notes = staged_folders.recover_staged(dest)
     assert (dest / "dataset.json").read_text() == "{}" and not old.exists() and not new.exists()
     assert len(notes) == 2 and "put back" in notes[0]
     old.mkdir()
-    io.recover_staged(dest)
+    staged_folders.recover_staged(dest)
     assert not old.exists() and (dest / "dataset.json").is_file()
 
-    monkeypatch.setattr(io, "_exchange", lambda a, b: False)  # the two-rename path
-    with io.staged_folder(dest) as staged:
+    monkeypatch.setattr(staged_folders, "_exchange", lambda a, b: False)  # the two-rename path
+    with staged_folders.staged_folder(dest) as staged:
         (staged / "dataset.json").write_text('{"new": 1}')
     assert (dest / "dataset.json").read_text() == '{"new": 1}' and _siblings(dest) == []
-    with pytest.raises(RuntimeError), io.staged_folder(dest) as staged:
+    with pytest.raises(RuntimeError), staged_folders.staged_folder(dest) as staged:
         (staged / "dataset.json").write_text('{"newer": 1}')
         raise RuntimeError("failed half-way")
     assert (dest / "dataset.json").read_text() == '{"new": 1}' and _siblings(dest) == []

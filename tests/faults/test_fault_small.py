@@ -11,8 +11,8 @@ from tests.faults.faultkit import run_python
 
 
 def test_simulation_larger_than_the_disk_is_refused_at_once(tmp_path):
-    """10^8 frames need hundreds of TB: one line naming --out's filesystem, the estimate, the free space and
-    the fix, in about a second, and nothing created (before, the run started simulating)."""
+    """A simulation larger than the disk (10^8 frames need hundreds of TB) is refused before it starts: one line
+    naming --out's filesystem, the estimate, the free space and the fix, and nothing created."""
     out = tmp_path / "new" / "sim"
     proc = run_python(["tools/simulate.py", "--out", str(out), "--frames", "100000000", "--no-progress"],
                       timeout=60)
@@ -40,8 +40,10 @@ def test_dataset_size_estimate_matches_a_small_simulated_dataset(tmp_path):
 
 
 def test_default_dataset_larger_than_the_disk_is_refused(tmp_path, monkeypatch):
+    """A default dataset larger than the cache's disk is refused before simulating, naming the filesystem, its
+    free space, DETBENCH_CACHE and data.frames, and leaves no temporary folder."""
     import detbench.sim.dataset as simds
-    from detbench.utils.io import DiskFullError
+    from detbench.utils.atomic import DiskFullError
 
     frames = shutil.disk_usage(tmp_path).free // 500_000 + 1  # three heights write about 1.7 MB per frame
 
@@ -102,6 +104,8 @@ def _figures(monkeypatch, tmp_path, n):
 
 @pytest.mark.slow  # about a minute on 2 CPU cores: it draws and saves the ability figures at 50 heights
 def test_fifty_heights_get_fifty_colours_and_a_legend_inside_the_figure(monkeypatch, tmp_path):
+    """The ability figures of 50 heights draw each height in its own colour, with a legend (in several columns
+    where needed) that lies inside the saved figure."""
     from matplotlib.colors import to_hex
 
     saved = _figures(monkeypatch, tmp_path, 50)
@@ -120,6 +124,8 @@ def test_fifty_heights_get_fifty_colours_and_a_legend_inside_the_figure(monkeypa
 
 
 def test_three_heights_keep_their_colours_and_legend(monkeypatch, tmp_path):
+    """The ability figures of the paper's three heights keep matplotlib's first three colours, their figure
+    sizes and a four-column legend."""
     from matplotlib.colors import to_hex
 
     saved = _figures(monkeypatch, tmp_path, 3)

@@ -9,6 +9,9 @@ import pytest
 
 
 def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
+    """The study refuses a bad argument (an unknown model, a height of 0, an unknown config key, a missing
+    --data, --jobs 0, --address without Ray, a negative seed) in one line naming it, before its folder is
+    touched: --fresh deletes nothing and no new folder is made."""
     out = tmp_path / "study"
     out.mkdir()
     (out / "keep.txt").write_text("an earlier study's file")
@@ -31,6 +34,7 @@ def test_study_refuses_bad_arguments_before_touching_its_folder(tool, tmp_path):
 
 
 def test_the_ray_executor_without_ray_names_the_install_command(tool, tmp_path, monkeypatch):
+    """--executor ray without Ray installed is refused naming the install command, and no study folder is made."""
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     code, err = tool("study", "--executor", "ray", "--out", tmp_path / "s")
     assert code == 2 and "pip install .[cluster]" in err and not (tmp_path / "s").exists()
@@ -38,6 +42,8 @@ def test_the_ray_executor_without_ray_names_the_install_command(tool, tmp_path, 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
 def test_a_failed_study_job_keeps_the_users_error_apart_from_a_bug(status, expected, tmp_path):
+    """A failed job's exit status reaches the study's: 2 (the user's error) stays 2, any other is 1 (a bug),
+    whose message names the job and says to run the same command again."""
     from detbench.studies.jobs import Job, LocalExecutor, run_graph
     from detbench.utils.cli import run_main
 
@@ -55,6 +61,8 @@ def test_a_failed_study_job_keeps_the_users_error_apart_from_a_bug(status, expec
 
 
 def test_benchmark_refuses_an_unknown_model_and_a_missing_study(tool, tmp_path):
+    """The benchmark refuses an unknown model (suggesting the near name) and a --study folder that does not
+    exist (saying what it must be)."""
     code, err = tool("benchmark", "--models", "secnd")
     assert code == 2 and "--models: unknown model 'secnd'; did you mean 'second'?" in err
     code, err = tool("benchmark", "--models", "second", "--study", tmp_path / "nope")
@@ -73,8 +81,8 @@ def test_benchmark_refuses_an_unknown_model_and_a_missing_study(tool, tmp_path):
     ("bench_points", ["--rois", "-1"], "--rois -1: must be an integer >= 0"),
 ])
 def test_bench_tools_end_a_bad_argument_with_one_line(name, argv, named, tool, tmp_path):
-    """The benchmarks stopped with argparse's usage text (bench_points, bench_sparse), exit status 1 and no
-    'error:' (bench_sim) or a traceback (a file as --out, an unknown device)."""
+    """Each benchmark tool refuses a bad argument as every other tool does: one 'error:' line naming it, exit
+    status 2, no usage text or traceback, and nothing written (a file given as --out stays as it was)."""
     file = tmp_path / "a_file"
     file.write_text("not a folder")
     out = tmp_path / "out"
@@ -94,8 +102,9 @@ def test_bench_tools_end_a_bad_argument_with_one_line(name, argv, named, tool, t
     (["--src", "1.8={missing}"], "{missing}: expected an OpenPCDet custom folder"),
 ])
 def test_convert_ends_a_bad_argument_with_one_line(argv, named, fault_data, tool, tmp_path, capsys):
-    """`python -m detbench.data.convert` (= tools/import_openpcdet.py): --frames-per-scene 0 was a
-    ZeroDivisionError, a negative one or a negative lane width were accepted, a bad pitch did not name --pitch."""
+    """`python -m detbench.data.convert` (= tools/import_openpcdet.py) refuses a bad argument (a frames-per-scene
+    or lane width that is not positive, a pitch that is not a number, a source that is not an OpenPCDet
+    folder) in one line naming the flag."""
     from detbench.data.convert import main
     from detbench.utils.cli import run_main
 

@@ -193,7 +193,7 @@ def test_precomputed_counts_and_input_checks():
 
 
 def test_empty_frames_and_json_nan():
-    from detbench.utils.io import to_json
+    from detbench.utils.atomic import to_json
 
     st = AbilityStudy()
     st.add(frame(np.zeros((0, 7)), [[1, 2, 3]]))

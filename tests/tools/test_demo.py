@@ -27,7 +27,7 @@ def test_demo_draws_what_eval_evaluates(smoke_run, smoke_data, tmp_path, capsys)
     truth is the frame's boxes and whose predictions are tools/eval.py's for that frame at or above the threshold;
     the same frame by id gives the same JSON; the run folder stays a run folder."""
     from detbench.train.run_layout import RUN_FOLDER
-    from detbench.utils.io import check_claimable
+    from detbench.utils.folder_ownership import check_claimable
 
     run = Path(shutil.copytree(smoke_run, tmp_path / "run"))
     last = Height3Dataset(smoke_data, 1.8, "test").frame_ids[-1]

@@ -1,4 +1,4 @@
-"""tools/eval.py and the prediction-file readers: parsing, file errors, end to end on a tiny dataset."""
+"""tools/eval.py: its arguments and errors, --combine, and end to end on a tiny dataset."""
 import json
 import subprocess
 import sys
@@ -7,68 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from detbench.eval import evaluate_predictions, parse_prediction_file, read_prediction_dir
-from detbench.eval.evaluate import format_prediction_lines
+from detbench.eval import evaluate_predictions
 from detbench.utils.cli import run_main
 import tools.bench_eval
 import tools.eval
 from tests.helpers import ROOT
 
-
-
-# ------------------------------------------------------------------ prediction files
-
-def test_parse_prediction_file(tmp_path):
-    p = tmp_path / "a.txt"
-    p.write_text("1 2 0.8 4 2 1.6 0.1 0.9 car\n\n  -3.5 0 1 4.5 1.9 1.5 -3.1 0.25\n")
-    boxes, scores = parse_prediction_file(p)
-    np.testing.assert_allclose(boxes, [[1, 2, 0.8, 4, 2, 1.6, 0.1], [-3.5, 0, 1, 4.5, 1.9, 1.5, -3.1]])
-    np.testing.assert_allclose(scores, [0.9, 0.25])
-    (tmp_path / "empty.txt").write_text("")
-    boxes, scores = parse_prediction_file(tmp_path / "empty.txt")
-    assert boxes.shape == (0, 7) and scores.shape == (0,)
-
-
-def test_format_and_parse_round_trip(tmp_path):
-    rng = np.random.default_rng(0)
-    boxes, scores = rng.normal(size=(5, 7)), rng.random(5)
-    boxes[:, 3:6] = np.abs(boxes[:, 3:6])
-    (tmp_path / "x.txt").write_text(format_prediction_lines(boxes, scores, "car"))
-    b, s = parse_prediction_file(tmp_path / "x.txt")
-    np.testing.assert_array_equal(b, boxes)
-    np.testing.assert_array_equal(s, scores)
-
-
-@pytest.mark.parametrize("line, message", [
-    ("1 2 3 4 5 6 7", "expected 8 numbers"),
-    ("1 2 3 4 5 6 7 0.5 car extra", "expected 8 numbers"),
-    ("1 2 3 4 5 6 x 0.5", "not a number"),
-    ("1 2 3 4 5 6 7 nan", "non-finite"),
-    ("1 2 3 -4 5 6 7 0.5", "negative box size"),
-])
-def test_malformed_line_names_file_and_line(tmp_path, line, message):
-    p = tmp_path / "0001.txt"
-    p.write_text("1 2 0.8 4 2 1.6 0 0.9\n" + line + "\n")
-    with pytest.raises(ValueError, match=message) as e:
-        parse_prediction_file(p)
-    assert f"{p}:2:" in str(e.value)
-
-
-def test_read_prediction_dir(tmp_path):
-    d = tmp_path / "pred"
-    d.mkdir()
-    (d / "f1.txt").write_text("1 2 0.8 4 2 1.6 0 0.9\n")
-    (d / "f9.txt").write_text("1 2 0.8 4 2 1.6 0 0.9\n")
-    (d / ".hidden").write_text("ignored")
-    preds, skipped = read_prediction_dir(d, ["f1", "f2"], other_ids=["f9"])
-    assert list(preds) == ["f1"] and skipped == ["f9"]
-    with pytest.raises(ValueError, match=r"f9\.txt: unknown frame id 'f9'"):
-        read_prediction_dir(d, ["f1", "f2"])
-    (d / "notes.md").write_text("x")
-    with pytest.raises(ValueError, match=r"notes\.md: unexpected entry"):
-        read_prediction_dir(d, ["f1", "f2"], other_ids=["f9"])
-    with pytest.raises(FileNotFoundError, match="prediction folder not found"):
-        read_prediction_dir(tmp_path / "nope", ["f1"])
 
 
 # ------------------------------------------------------------------ CLI without data
@@ -110,7 +54,7 @@ def test_argument_errors(tmp_path, capsys):
 
 def test_combine_cli(tmp_path, capsys):
     from detbench.eval import EvalFrame, evaluate
-    from detbench.utils.io import atomic_write_json
+    from detbench.utils.atomic import atomic_write_json
 
     car = [10, 0, 0.8, 4, 2, 1.6, 0]
     paths = []

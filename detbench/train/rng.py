@@ -1,4 +1,4 @@
-"""Seeds and random-number-generator state: repeatable runs and exact resumes on CPU.
+"""The random-number generators of a training run: seeds and saved state, for repeatable runs and exact resumes on CPU.
 
 Randomness in training comes from three places, each pinned down here:
 

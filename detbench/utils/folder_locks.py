@@ -1,0 +1,150 @@
+"""One process at a time in a folder it writes into for a while (a training run, a study).
+
+`acquire_folder_lock(dest, what)` takes the kernel's lock (`flock`) on `dest/LOCK_FILE`, so it ends
+with its process however that ends (a kill -9 included); the file names the holder (pid, host,
+since when), a second process is refused with `FolderInUse` naming it, and a file left by a killed
+holder is taken over with a note. `claim_folder` is what a run or a study holds its folder by:
+the ownership check (detbench.utils.folder_ownership.check_claimable), the lock, and the owner
+file, released when its block ends.
+"""
+from __future__ import annotations
+
+import errno
+import json
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from collections.abc import Callable, Iterator
+
+from detbench.utils.atomic import NEW_FILE_MODE
+from detbench.utils.folder_ownership import (
+    LOCK_FILE, OWNER_FILE, FolderInUse, FolderKind, check_claimable, folder_entries, folder_owner, write_owner,
+)
+
+__all__ = ["FolderLock", "acquire_folder_lock", "claim_folder"]
+
+
+def _holder_words(holder: dict | None) -> str:
+    if not holder:
+        return "another process (it did not say which)"
+    what = f"{holder.get('what')} " if holder.get("what") else ""
+    since = f", since {holder['since']}" if holder.get("since") else ""
+    return f"{what}pid {holder.get('pid', '?')} on host {holder.get('host', '?')}{since}"
+
+
+def _read_holder(fd: int) -> dict | None:
+    try:
+        os.lseek(fd, 0, os.SEEK_SET)
+        text = os.read(fd, 4096).decode("utf-8", "replace")
+        holder = json.loads(text) if text.strip() else None
+    except (OSError, ValueError):
+        return None
+    return holder if isinstance(holder, dict) else None
+
+
+class FolderLock:
+    """The lock of one folder, held by this process (`acquire_folder_lock`). `recovered` is what the lock file said
+    of an earlier holder that ended without releasing it (killed), or None."""
+
+    def __init__(self, path: Path, fd: int, recovered: dict | None):
+        self.path, self.fd, self.recovered = path, fd, recovered
+
+    def note(self) -> str | None:
+        """One line about a lock taken over from a killed holder, or None."""
+        if self.recovered is None:
+            return None
+        return (f"{self.path}: taken over from {_holder_words(self.recovered)}, which ended without releasing it "
+                f"(killed?)")
+
+    def release(self) -> None:
+        if self.fd < 0:
+            return
+        try:
+            self.path.unlink(missing_ok=True)  # while still held: no other process has it open and locked
+        finally:
+            os.close(self.fd)  # closing the file releases the lock
+            self.fd = -1
+
+
+def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out") -> FolderLock:
+    """Lock the folder `dest` (which exists) for this process: `FolderInUse` naming the holder's pid and host
+    when another process holds it. The lock is the kernel's (`flock`) on `dest/LOCK_FILE`, so it ends with
+    its process however that ends (a kill -9 included); the file names the holder, and a file left by a
+    killed holder is taken over (`FolderLock.recovered`). `what` names this holder for the others' refusal."""
+    import socket
+    import time
+
+    path = Path(dest) / LOCK_FILE
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX: no lock
+        return FolderLock(path, -1, None)
+    for _ in range(100):
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, NEW_FILE_MODE)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as e:
+            holder = _read_holder(fd)
+            os.close(fd)
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            raise FolderInUse(f"{dest}: in use by {_holder_words(holder)} (its lock is {path}); wait for it to end, "
+                              f"or choose another {out}") from None
+        try:
+            same = os.fstat(fd).st_ino == os.stat(path).st_ino
+        except FileNotFoundError:  # released and removed by its holder between our open and our lock
+            same = False
+        if same:
+            break
+        os.close(fd)
+    else:  # pragma: no cover - another process creates and removes the lock a hundred times in a row
+        raise FolderInUse(f"{dest}: its lock {path} keeps changing hands; try again, or choose another {out}")
+    recovered = _read_holder(fd)
+    holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname(),
+              "since": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+    os.ftruncate(fd, 0)
+    os.lseek(fd, 0, os.SEEK_SET)
+    os.write(fd, json.dumps(holder).encode("utf-8"))
+    os.fsync(fd)
+    return FolderLock(path, fd, recovered)
+
+
+@contextmanager
+def claim_folder(dest: str | os.PathLike, kind: FolderKind, what: str, *, out: str = "--out",
+                 notes: Callable[[str], None] | None = None) -> Iterator[FolderLock]:
+    """Hold `dest` as a folder of `kind` for the block: refused (`FolderNotReplaceable`) when it is not new,
+    empty or of `kind` (`check_claimable`), or (`FolderInUse`) while another process holds it; otherwise it
+    is created, locked (`acquire_folder_lock`; a lock left by a killed holder is taken over and reported
+    through `notes`) and marked as `kind`'s (OWNER_FILE). Released when the block ends, however it ends; a
+    folder the block left with nothing in it is removed again (with the parents the claim created), so a
+    refused start leaves no trace."""
+    dest = Path(dest)
+    check_claimable(dest, kind, out=out)
+    created = [p for p in (dest, *dest.parents) if not p.exists()]
+    dest.mkdir(parents=True, exist_ok=True)
+    try:
+        lock = acquire_folder_lock(dest, what, out=out)
+    except BaseException:
+        _remove_created(dest, created)
+        raise
+    try:
+        if lock.note() is not None and notes is not None:
+            notes(lock.note())
+        check_claimable(dest, kind, out=out)  # again, now that no other process writes in it
+        if folder_owner(dest) is None:
+            write_owner(dest, kind)
+        yield lock
+    finally:
+        if folder_entries(dest) in ([], [OWNER_FILE]):
+            (dest / OWNER_FILE).unlink(missing_ok=True)
+        lock.release()
+        _remove_created(dest, created)
+
+
+def _remove_created(dest: Path, created: list[Path]) -> None:
+    """Remove the folders in `created` (`dest` and parents made for it) that are empty, innermost first."""
+    for p in created:
+        try:
+            p.rmdir()
+        except OSError:
+            break
