@@ -91,7 +91,7 @@ def demo_frame(model: nn.Module, ck: dict, dataset: Height3Dataset, frame: str, 
     pc_range = [float(v) for v in ck["config"]["model"]["point_cloud_range"]]
     preds = checkpoint_predictions(model, ck, [f], device=device, batch_size=1, progress=False, stage=stage,
                                    source=checkpoint)
-    boxes, scores = preds[fid]
+    boxes, scores = preds[fid].boxes, preds[fid].scores
     sample = frame_sample(f, pc_range, RoadConfig.of_run_config(ck["config"]))
     return DemoFrame(frame_id=fid, height=float(dataset.height_key), split=dataset.split, model=ck["model_name"],
                      checkpoint=str(checkpoint), stage=stage, points=sample.points,

@@ -44,7 +44,8 @@ def test_demo_draws_what_eval_evaluates(smoke_run, smoke_data, tmp_path, capsys)
     np.testing.assert_allclose(rec["ground_truth"], frame.boxes, atol=1e-4)
     assert run_main(tools.eval.main, ["--ckpt", str(run), "--out", str(tmp_path / "eval"), "--no-progress",
                                       "--bootstrap", "0"]) == 0
-    boxes, scores = parse_prediction_file(tmp_path / "eval" / "pred" / f"{last}.txt")
+    parsed = parse_prediction_file(tmp_path / "eval" / "pred" / f"{last}.txt")
+    boxes, scores = parsed.boxes, parsed.scores
     keep = scores >= 0.05
     assert len(rec["predictions"]) == int(keep.sum())
     assert rec["predictions_below_threshold"] == int((~keep).sum())
