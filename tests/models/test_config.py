@@ -32,10 +32,11 @@ def smoke(name: str) -> dict:
 @pytest.mark.parametrize("name", NAMES)
 def test_every_model_and_preset_config_reads_completely(name, preset):
     """Each model's YAML at each preset reads into its typed config, every key taken (an unread key is an
-    error)."""
+    error), and the evaluator keeps at least the model's score threshold."""
     cfg = load_run_config(name, preset)
     typed = models.check_model_config(cfg["model"])
     assert isinstance(typed, models.REGISTRY[name].CONFIG)
+    assert cfg["eval"]["score_threshold"] >= cfg["model"]["post"]["score_threshold"]
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -219,6 +220,18 @@ def test_a_checkpoint_with_a_stored_config_of_an_earlier_version_loads(name, tmp
         got = loaded.predict(loaded(batch), batch)
     assert all(torch.equal(a.boxes, b.boxes) and torch.equal(a.scores, b.scores) for a, b in zip(want, got))
     assert sum(d.scores.numel() for d in got) > 0
+
+
+# ---------------------------------------------------------------- the evaluator's threshold floor
+def test_the_evaluator_threshold_may_not_undercut_the_models():
+    with pytest.raises(ConfigError, match=r"^eval\.score_threshold 0\.05 is below model\.post\.score_threshold 0\.1, "
+                                          r"under which the model keeps no box; set model\.post\.score_threshold "
+                                          r"to 0\.05 as well, or use eval\.score_threshold 0\.1 or above$"):
+        load_run_config("second", "smoke", overrides=["eval.score_threshold=0.05"])
+    cfg = load_run_config("second", "smoke", overrides=["eval.score_threshold=0.05", "model.post.score_threshold=0.05"])
+    assert cfg["eval"]["score_threshold"] == 0.05
+    higher = load_run_config("pillarnet", "smoke", overrides=["eval.score_threshold=0.3"])
+    assert higher["eval"]["score_threshold"] == 0.3
 
 
 def test_train_boxes_size_the_anchors():
