@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import yaml
 
 import models
 from detbench.config import ConfigError, load_config
@@ -232,6 +233,17 @@ def test_the_evaluator_threshold_may_not_undercut_the_models():
     assert cfg["eval"]["score_threshold"] == 0.05
     higher = load_run_config("pillarnet", "smoke", overrides=["eval.score_threshold=0.3"])
     assert higher["eval"]["score_threshold"] == 0.3
+
+
+def test_yaml_comments_carry_no_measured_figures():
+    """Model YAMLs say what a setting does and point to the results docs for what it measured."""
+    for name in [*NAMES, "presets/cpu"]:
+        text = (ROOT / "configs" / f"{name}.yaml").read_text()
+        comments = "\n".join(line.split("#", 1)[1] for line in text.splitlines() if "#" in line)
+        found = re.findall(r"AP@R40[^.;\n]*\d\.\d\d|\d+(?:\.\d+)? ?ms\b|\d+(?:\.\d+)?x faster|\d+(?:-\d+)? min\b"
+                           r"|\d+(?:\.\d+)? ?s per epoch", comments)
+        assert not found, f"configs/{name}.yaml: measured figures in comments: {found}"
+    assert yaml.safe_load((ROOT / "configs" / "presets" / "cpu.yaml").read_text())  # still a valid file
 
 
 def test_train_boxes_size_the_anchors():
