@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou3d, nms_bev, normalize_heading
 
-from .config import Section, StageConfig
+from .config import Section, StageConfig, is_list_of, is_number
 from .losses import corner_loss, weighted_smooth_l1
 from .postprocess import PostConfig
 
@@ -42,7 +42,6 @@ LOG_SIZE_CLAMP = 3.0  # |log(size / roi size)| at most e^3 when decoding residua
 # A padding RoI (frames with fewer proposals than slots): a car-sized box far from anything,
 # so its geometry stays finite; it is masked out of every loss and prediction.
 PAD_ROI = (1000.0, 0.0, 1.0, 4.0, 1.8, 1.5, 0.0)
-
 
 
 # --------------------------------------------------------------------------------------
@@ -102,10 +101,9 @@ class TargetConfig(StageConfig):
                 hard_bg_ratio=s.fraction("hard_bg_ratio", "a share"),
                 cls_score_type=s.choice("cls_score_type", CLS_SCORE_TYPES),
                 gt_jitter_copies=s.count("gt_jitter_copies", 0),
-                gt_jitter=s.numbers("gt_jitter", 7, need="7 standard deviations >= 0: x y z (m), log sizes, "
-                                                         "heading (rad)"))
-        if min(c.gt_jitter) < 0:
-            raise s.error("gt_jitter", "7 standard deviations >= 0: x y z (m), log sizes, heading (rad)")
+                gt_jitter=tuple(float(v) for v in s.check(
+                    "gt_jitter", lambda v: is_list_of(v, lambda x: is_number(x) and x >= 0) and len(v) == 7,
+                    "7 standard deviations >= 0: x y z (m), log sizes, heading (rad)")))
         s.order("cls_bg_thresh", "cls_fg_thresh")
         s.order("cls_bg_thresh_lo", "cls_bg_thresh")
         return c
