@@ -13,11 +13,12 @@ so a SECOND checkpoint initialises them) with a second stage:
   predict: refined boxes scored by the confidence branch (or, with
      `set_output_stage("proposals")`, the first stage's own detections, for comparison)
 
-Configuration: configs/ct3d.yaml (SECOND's keys plus `roi_head:`). Both stages train
-jointly from the first step, as the published configuration.
+Configuration: configs/ct3d.yaml (SECOND's keys plus `roi_head:`), read by `CT3DConfig`.
+Both stages train jointly from the first step, as the published configuration.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -27,16 +28,26 @@ import torch.nn as nn
 from detbench.data.batch import Batch, Detections
 from detbench.ops import ResidualBoxCoder
 
-from .second import SECOND, SECONDStages
-from .stages import AnchorHeadOutput
-from .stages.ct3d_head import CT3DRoIHead
+from .second import SECOND, SECONDConfig, SECONDStages
+from .stages import AnchorHeadOutput, Section, StageConfig
+from .stages.ct3d_head import CT3DHeadConfig, CT3DRoIHead
 from .stages.two_stage import (
-    TARGET_KEYS, OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, proposal_budgets,
-    refine_loss, require_keys, rois_for_refinement,
+    OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, refine_loss, rois_for_refinement,
 )
 
-ROI_HEAD_KEYS = ("num_points", "radius_scale", "hidden_dim", "heads", "enc_layers", "dim_feedforward", "dropout",
-                 "mlp_hidden", "max_pool_skip", "fc", "proposals", "targets", "loss_weights")
+POINT_FEATURES = 1  # a Batch's point columns after x, y, z: the intensity
+
+
+@dataclass(frozen=True)
+class CT3DConfig(StageConfig):
+    """CT3D's `model:` section (configs/ct3d.yaml): SECOND's keys for the first stage, plus `roi_head`."""
+
+    rpn: SECONDConfig
+    roi_head: CT3DHeadConfig
+
+    @classmethod
+    def read(cls, s: Section) -> CT3DConfig:
+        return cls(rpn=SECONDConfig.read(s), roi_head=s.section("roi_head", CT3DHeadConfig))
 
 
 class TwoStageOutput(NamedTuple):
@@ -46,23 +57,17 @@ class TwoStageOutput(NamedTuple):
 
 
 class CT3D(OutputStageSwitch, nn.Module):
+    CONFIG = CT3DConfig  # reads and checks the `model:` section
     STAGES = {**SECOND.STAGES, "roi_head": ["roi_head", "refine"]}
 
     def __init__(self, cfg: dict):
         super().__init__()
-        self.cfg = cfg
-        self.rpn = SECONDStages(cfg)  # the first stage; its modules are this model's children
+        self.cfg = CT3DConfig.from_config(cfg, source="configs/ct3d.yaml")
+        self.rpn = SECONDStages(self.cfg.rpn)  # the first stage; its modules are this model's children
         self.rpn.attach(self)
-        rh = require_keys(cfg.get("roi_head"), ROI_HEAD_KEYS, "ct3d model.roi_head")
-        self.rh = rh
-        self.proposal_cfg = proposal_budgets(rh["proposals"], "ct3d model.roi_head.proposals")
-        self.target_cfg = require_keys(rh["targets"], TARGET_KEYS, "ct3d model.roi_head.targets")
-        self.loss_weights = require_keys(rh["loss_weights"], ("rpn", "rcnn_cls", "rcnn_reg", "rcnn_corner"),
-                                         "ct3d model.roi_head.loss_weights")
-        self.roi_head = CT3DRoIHead(rh["num_points"], rh["radius_scale"], rh["hidden_dim"], rh["heads"],
-                                    rh["enc_layers"], rh["dim_feedforward"], rh["dropout"], point_features=1,
-                                    mlp_hidden=rh["mlp_hidden"], max_pool_skip=rh["max_pool_skip"])
-        self.refine = RefineHead(self.roi_head.out_channels, list(rh["fc"]), rh["dropout"])
+        rh = self.cfg.roi_head
+        self.roi_head = CT3DRoIHead(rh, POINT_FEATURES)
+        self.refine = RefineHead(self.roi_head.out_channels, rh.fc, rh.dropout)
         self.coder = ResidualBoxCoder()
 
     @staticmethod
@@ -73,18 +78,19 @@ class CT3D(OutputStageSwitch, nn.Module):
     def forward(self, batch: Batch) -> TwoStageOutput:
         rpn = self.rpn(batch)
         boxes, scores = self.rpn.head.decode(rpn)
-        r = rois_for_refinement(boxes, scores, None, batch.gt_boxes, batch.gt_mask, self.proposal_cfg,
-                                self.target_cfg, self.training)
+        rh = self.cfg.roi_head
+        gt = (batch.gt_boxes, batch.gt_mask) if self.training else None  # evaluation never reads ground truth
+        r = rois_for_refinement(boxes, scores, None, rh.proposals, rh.targets, gt)
         cls, reg = self.refine(self.roi_head(batch.points, r.rois))
         return TwoStageOutput(rpn, r.proposals, RefineOutput(cls, reg, r.rois, r.mask, r.targets))
 
     def loss(self, out: TwoStageOutput, batch: Batch) -> tuple[torch.Tensor, dict]:
-        w = self.loss_weights
+        w = self.cfg.roi_head.loss_weights
         rpn_total, rpn_parts = self.rpn.loss(out.rpn, batch)
-        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w)
-        return w["rpn"] * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
+        rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w.refine)
+        return w.rpn * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
 
     def predict(self, out: TwoStageOutput, batch: Batch) -> list[Detections]:
         if self.output_stage == "proposals":
             return self.rpn.predict(out.rpn)
-        return predict_refined(out.refine, self.coder, self.rpn.head.post)
+        return predict_refined(out.refine, self.coder, self.cfg.rpn.post)

@@ -8,13 +8,15 @@ The model is the composition of shared stages, read top to bottom:
   --SpatialSemanticNeck--> BEV (B, C, Y/8, X/8)
   --CenterHead--> heat map, offset, z, log size, sin/cos heading, IoU maps --> loss | Detections
 
-Configuration: configs/pillarnet.yaml (`model:` section). `voxel_size` is the pillar size
-(its z is the whole z range); the pillar grid must divide by 16 (the dense stage's stride).
+Configuration: configs/pillarnet.yaml (`model:` section), read by `PillarNetConfig`. `voxel_size`
+is the pillar size (its z is the whole z range); the pillar grid must divide by 16 (the dense
+stage's stride).
 A frame without a single point in the range gets no detections (there is nothing to see).
 """
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -23,9 +25,30 @@ import torch.nn as nn
 
 from detbench.data.batch import Batch, Detections
 
-from .stages import CenterHead, CenterHeadOutput, DynamicPillarEncoder, SpatialSemanticNeck, SparseResNet2d, VoxelGrid
+from .stages import (
+    CenterHead, CenterHeadConfig, CenterHeadOutput, CenterPostConfig, DynamicPillarEncoder, NeckConfig,
+    PillarEncoderConfig, Section, SpatialSemanticNeck, SparseResNet2d, StageConfig, VoxelGrid,
+)
 
 CONFIG_FILE = "configs/pillarnet.yaml"
+
+
+@dataclass(frozen=True)
+class PillarNetConfig(StageConfig):
+    """PillarNet's `model:` section (configs/pillarnet.yaml)."""
+
+    grid: VoxelGrid  # point_cloud_range and voxel_size (the pillar size; z = the whole z range)
+    encoder: PillarEncoderConfig
+    neck: NeckConfig
+    head: CenterHeadConfig
+    post: CenterPostConfig
+
+    @classmethod
+    def read(cls, s: Section) -> PillarNetConfig:
+        s.skip("name")  # the registry's key, configs/<name>.yaml
+        return cls(grid=VoxelGrid.read(s), encoder=s.section("encoder", PillarEncoderConfig),
+                   neck=s.section("neck", NeckConfig), head=s.section("head", CenterHeadConfig),
+                   post=s.section("post", CenterPostConfig))
 
 
 class PillarNetOutput(NamedTuple):
@@ -42,27 +65,21 @@ class PillarNet(nn.Module):
     Stages: `vfe` (pillar encoder), `backbone` (sparse ResNet), `neck`, `head`.
     """
 
+    CONFIG = PillarNetConfig  # reads and checks the `model:` section
     # top-level children per stage, for tools/benchmark.py's latency split
     STAGES = {"voxelize": ["vfe"], "backbone": ["backbone"], "neck": ["neck"], "head": ["head"]}
 
     def __init__(self, cfg: dict):
         super().__init__()
-        self.cfg = cfg
-        enc, neck, head, post = (_section(cfg, k) for k in ("encoder", "neck", "head", "post"))
-        self.grid = VoxelGrid(tuple(_key(cfg, "point_cloud_range", "model")), tuple(_key(cfg, "voxel_size", "model")))
+        self.cfg = c = PillarNetConfig.from_config(cfg, source=CONFIG_FILE)
+        self.grid = c.grid
         self.grid.check_divisible(SparseResNet2d.stride16, f"PillarNet ({CONFIG_FILE}: model.voxel_size / "
                                                            f"point_cloud_range)")
-        self.vfe = DynamicPillarEncoder(self.grid, _key(enc, "pillar_channels", "model.encoder"))
-        self.backbone = SparseResNet2d(self.vfe.out_channels, self.vfe.spatial_shape,
-                                       _key(enc, "channels", "model.encoder"), _key(enc, "blocks", "model.encoder"))
-        self.neck = SpatialSemanticNeck(self.backbone.channels8, self.backbone.channels16,
-                                        **{k: _key(neck, k, "model.neck") for k in
-                                           ("semantic_channels", "semantic_blocks", "up_channels", "out_channels",
-                                            "fuse_blocks")})
-        head_keys = ("shared_channels", "head_channels", "head_convs", "iou_branch", "min_radius", "min_overlap",
-                     "od_iou_distance", "code_weights", "loss_weights")
-        self.head = CenterHead(self.neck.out_channels, self.grid, SparseResNet2d.stride8,
-                               **{k: _key(head, k, "model.head") for k in head_keys}, post=dict(post))
+        self.vfe = DynamicPillarEncoder(self.grid, c.encoder.pillar_channels)
+        self.backbone = SparseResNet2d(self.vfe.out_channels, self.vfe.spatial_shape, c.encoder.channels,
+                                       c.encoder.blocks)
+        self.neck = SpatialSemanticNeck(self.backbone.channels8, self.backbone.channels16, c.neck)
+        self.head = CenterHead(self.neck.out_channels, self.grid, SparseResNet2d.stride8, c.head, c.post)
 
     @staticmethod
     def prepare_config(model_cfg: dict, train_boxes: np.ndarray) -> dict:
@@ -86,17 +103,3 @@ class PillarNet(nn.Module):
         """One `Detections` per frame (boxes (K, 7), scores (K,) in [0, 1], labels 0); none for a frame
         without points in the range."""
         return self.head.predict(out.head, valid=out.pillars_per_frame > 0)
-
-
-def _section(cfg: dict, name: str) -> dict:
-    value = cfg.get(name)
-    if not isinstance(value, dict):
-        raise ValueError(f"PillarNet: the config needs a `model.{name}` mapping (see {CONFIG_FILE}), "
-                         f"got {type(value).__name__}")
-    return value
-
-
-def _key(section: dict, key: str, where: str):
-    if key not in section:
-        raise ValueError(f"PillarNet: `{where}.{key}` is missing from the config (see {CONFIG_FILE} for its default)")
-    return section[key]

@@ -9,13 +9,14 @@ The model is the composition of shared stages, read top to bottom:
 `SECONDStages` holds that chain; `SECOND` is the detector made of it alone, and CT3D uses
 it as its first stage.
 
-Configuration: configs/second.yaml (`model:` section). Anchor sizes come from the data
-(`anchor_sizes: auto` is resolved by tools/train.py from the training split before the
-model is built, and the resolved sizes are stored in the checkpoint's config).
+Configuration: configs/second.yaml (`model:` section), read by `SECONDConfig`. Anchor sizes
+come from the data (`anchor_sizes: auto` is resolved by tools/train.py from the training split
+before the model is built, and the resolved sizes are stored in the checkpoint's config).
 """
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -23,7 +24,28 @@ import torch.nn as nn
 
 from detbench.data.batch import Batch, Detections
 
-from .stages import AnchorHead, AnchorHeadOutput, BEVBackbone, HeightCompression, MeanVFE, SparseBackbone8x, VoxelGrid
+from .stages import (
+    AnchorHead, AnchorHeadConfig, AnchorHeadOutput, BEVBackbone, BEVBackboneConfig, HeightCompression, MeanVFE,
+    PostConfig, Section, SparseBackbone8x, SparseBackboneConfig, StageConfig, VoxelGrid,
+)
+
+
+@dataclass(frozen=True)
+class SECONDConfig(StageConfig):
+    """SECOND's `model:` section (configs/second.yaml); CT3D's first stage reads the same keys."""
+
+    grid: VoxelGrid  # point_cloud_range and voxel_size
+    backbone3d: SparseBackboneConfig
+    backbone2d: BEVBackboneConfig
+    head: AnchorHeadConfig
+    post: PostConfig
+
+    @classmethod
+    def read(cls, s: Section) -> SECONDConfig:
+        s.skip("name")  # the registry's key, configs/<name>.yaml
+        return cls(grid=VoxelGrid.read(s), backbone3d=s.section("backbone3d", SparseBackboneConfig),
+                   backbone2d=s.section("backbone2d", BEVBackboneConfig), head=s.section("head", AnchorHeadConfig),
+                   post=s.section("post", PostConfig))
 
 
 class SECONDStages:
@@ -36,25 +58,17 @@ class SECONDStages:
 
     MODULES = ("vfe", "backbone3d", "to_bev", "backbone2d", "head")  # in build order
 
-    def __init__(self, cfg: dict):
-        self.grid = VoxelGrid(tuple(cfg["point_cloud_range"]), tuple(cfg["voxel_size"]))
-        b3, b2, head = cfg["backbone3d"], cfg["backbone2d"], cfg["head"]
+    def __init__(self, cfg: SECONDConfig):
+        self.grid = cfg.grid
         self.vfe = MeanVFE(self.grid)
-        self.backbone3d = SparseBackbone8x(self.vfe.out_channels, self.grid.spatial_shape, b3["channels"],
-                                           b3["blocks"], b3["out_channels"])
+        self.backbone3d = SparseBackbone8x(self.vfe.out_channels, self.grid.spatial_shape, cfg.backbone3d)
         # the BEV backbone returns to its input resolution, so the head works at the 3D
         # backbone's stride; the grid must also divide by the 2D blocks' strides
         stride = self.backbone3d.bev_stride
-        self.grid.check_divisible(stride * _prod(b2["layer_strides"]), "SECOND")
+        self.grid.check_divisible(stride * _prod(cfg.backbone2d.layer_strides), "SECOND")
         self.to_bev = HeightCompression()
-        self.backbone2d = BEVBackbone(self.backbone3d.bev_channels, b2["layer_nums"], b2["layer_strides"],
-                                      b2["num_filters"], b2["upsample_strides"], b2["num_upsample_filters"])
-        sizes = head["anchor_sizes"]
-        if isinstance(sizes, str):
-            raise ValueError("SECOND: head.anchor_sizes is still 'auto'; resolve it from the training data "
-                             "(tools/train.py does) or give [[length, width, height], ...] in metres")
-        self.head = AnchorHead(self.backbone2d.out_channels, self.grid, stride, sizes,
-                               head["rotations"], head["pos_iou"], head["neg_iou"], post=cfg["post"])
+        self.backbone2d = BEVBackbone(self.backbone3d.bev_channels, cfg.backbone2d)
+        self.head = AnchorHead(self.backbone2d.out_channels, self.grid, stride, cfg.head, cfg.post)
 
     def attach(self, owner: nn.Module) -> None:
         """Register the stage modules as top-level children of `owner`, named as in `MODULES`."""
@@ -75,13 +89,14 @@ class SECONDStages:
 
 
 class SECOND(nn.Module):
+    CONFIG = SECONDConfig  # reads and checks the `model:` section
     # top-level children per stage, for tools/benchmark.py's latency split
     STAGES = {"voxelize": ["vfe"], "backbone3d": ["backbone3d"], "bev": ["to_bev", "backbone2d"], "head": ["head"]}
 
     def __init__(self, cfg: dict):
         super().__init__()
-        self.cfg = cfg
-        self.net = SECONDStages(cfg)
+        self.cfg = SECONDConfig.from_config(cfg, source="configs/second.yaml")
+        self.net = SECONDStages(self.cfg)
         self.net.attach(self)
 
     @staticmethod
@@ -93,13 +108,13 @@ class SECOND(nn.Module):
         """
         cfg = copy.deepcopy(model_cfg)
         head = cfg["head"]
-        if head.get("anchor_sizes", "auto") != "auto":
+        if head["anchor_sizes"] != "auto":
             return cfg
         sizes = np.asarray(train_boxes, dtype=np.float64).reshape(-1, 7)[:, 3:6]
         if len(sizes) == 0:
             raise ValueError("SECOND: head.anchor_sizes is 'auto' but the training split has no LiDAR-detected "
                              "vehicles to size them from; give head.anchor_sizes explicitly")
-        k = int(head.get("num_anchor_sizes", 1))
+        k = int(head["num_anchor_sizes"])
         if k <= 1 or len(sizes) < k:
             centres = sizes.mean(axis=0, keepdims=True)
         else:

@@ -125,7 +125,8 @@ TINY = {
     "backbone2d": {"layer_nums": [1, 1], "layer_strides": [1, 2], "num_filters": [8, 16],
                    "upsample_strides": [1, 2], "num_upsample_filters": [8, 8]},
     "head": {"anchor_sizes": [[4.5, 1.9, 1.6]], "num_anchor_sizes": 1, "rotations": [0.0, math.pi / 2],
-             "pos_iou": 0.6, "neg_iou": 0.45},
+             "pos_iou": 0.6, "neg_iou": 0.45, "num_dir_bins": 2, "dir_offset": math.pi / 4, "focal_alpha": 0.25,
+             "focal_gamma": 2.0, "loss_weights": {"cls": 1.0, "box": 2.0, "dir": 0.2}},
     "post": {"score_threshold": 0.1, "pre_nms_top_k": 100, "nms_threshold": 0.1, "post_nms_top_k": 20},
 }
 

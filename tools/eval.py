@@ -155,14 +155,20 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: i
 
 def checkpoint_defaults(args: argparse.Namespace) -> None:
     """Take a run folder's newest checkpoint for --ckpt RUN_DIR; fill --data and --height from the checkpoint when
-    not given; resolve --test-height and --out."""
+    not given; resolve --test-height and --out. UserError when --score-threshold is below the checkpoint's
+    model.post.score_threshold."""
+    from detbench.config import ConfigError, get
     from detbench.train.checkpoint import CheckpointError, load_checkpoint
+    from detbench.train.run_config import check_score_thresholds
     from detbench.train.run_layout import checkpoint_in
 
     try:
         given, args.ckpt = args.ckpt, checkpoint_in(args.ckpt)
         ck = load_checkpoint(args.ckpt)
-    except CheckpointError as e:
+        check_score_thresholds(args.score_threshold, get(ck["config"], "model.post.score_threshold"),
+                               eval_key="--score-threshold", where=f"--ckpt {args.ckpt}: ",
+                               lower_model="train it with --set model.post.score_threshold={value:g}")
+    except (CheckpointError, ConfigError) as e:
         raise UserError(str(e)) from None
     if args.ckpt != given:
         print(f"checkpoint: {args.ckpt} (the newest in {given})")

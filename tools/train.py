@@ -79,7 +79,7 @@ def run_config_from_args(args) -> dict:
     try:
         cfg = load_run_config(args.model, args.preset, args.config, overrides)
         models.get_model_class(cfg["model"]["name"])
-        models.check_model_config(cfg["model"])  # value ranges, before any data is read
+        models.check_model_config(cfg["model"], where=args.config)  # every key and its range, before any data is read
     except (ConfigError, ValueError) as e:
         raise UserError(str(e)) from None
     return cfg

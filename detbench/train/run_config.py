@@ -7,7 +7,8 @@ Resolution order (later wins):
   <model>.yaml `presets.<preset>`   the model's own changes for that preset (e.g. widths)
   command-line flags and --set key=value
 Every key a later layer sets must exist in the first two layers; an unknown key is an
-error naming the closest known one.
+error naming the closest known one. The evaluator's score threshold may not be below the
+model's own (`check_score_thresholds`): the model never returns the boxes in between.
 
 The run config's `model.name` is the detector's registered name, which its config file's
 name gives (configs/<name>.yaml; `detbench.config.model_name_of`). A model's YAML also
@@ -67,7 +68,23 @@ def load_run_config(model: str | None = None, preset: str | None = None, config:
     AugmentConfig.from_dict(cfg.get("augment"), where="augment")
     RoadConfig.from_dict(cfg.get("road"), where=f"{source} road")  # its own keys: a model's YAML may set them
     EvalConfig.from_dict(cfg.get("eval"), where="eval")  # before training, not after its first epoch
+    check_score_thresholds(get(cfg, "eval.score_threshold"), get(cfg, "model.post.score_threshold"))
     return cfg
+
+
+def check_score_thresholds(eval_threshold, model_threshold, eval_key: str = "eval.score_threshold", where: str = "",
+                           lower_model: str = "set model.post.score_threshold to {value:g} as well") -> None:
+    """ConfigError when the evaluator's score threshold lies below the model's `model.post.score_threshold`:
+    the model drops every box scoring below its own before the evaluator sees it, so the lower value would
+    change nothing. The message names both, `where` first, and the two fixes (`lower_model` formatted with
+    the evaluator's value). Values that are not scores in [0, 1] are left to their own checks."""
+    def score(v) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1
+
+    if score(eval_threshold) and score(model_threshold) and eval_threshold < model_threshold:
+        raise ConfigError(f"{where}{eval_key} {eval_threshold:g} is below model.post.score_threshold "
+                          f"{model_threshold:g}, under which the model keeps no box; "
+                          f"{lower_model.format(value=eval_threshold)}, or use {eval_key} {model_threshold:g} or above")
 
 
 def width_keys(model: str) -> tuple[str, ...]:

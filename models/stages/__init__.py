@@ -9,61 +9,73 @@ PointRCNN: point sampling and PointNet++ backbone (pointnet2) -> point head (poi
            (pointrcnn_head) -> refinement, loss and prediction (two_stage)
 CT3D:      SECOND's stages -> proposals and target sampling (two_stage) -> channel-wise
            transformer head (ct3d_head) -> refinement, loss and prediction (two_stage)
-Shared by all: the range checks of a model config (checks.check_model_config), the grid
+Shared by all: the reader of a model's config into typed stage configs (config.Section,
+config.StageConfig; each stage's frozen config dataclass lives beside the stage), the grid
 (grid.VoxelGrid, with the cap on a tensor's memory), losses as plain functions (losses), BatchNorm
-settings (norm). Every stage is exported here; helpers stay importable from their modules.
+settings (norm). Every stage and stage config is exported here; helpers stay importable from their modules.
 """
-from .anchor_head import AnchorGenerator, AnchorHead, AnchorHeadOutput, assign_targets
-from .backbone2d import BEVBackbone
-from .backbone3d import SparseBackbone8x
+from .anchor_head import (
+    MAX_ANCHOR_SIZES, AnchorGenerator, AnchorHead, AnchorHeadConfig, AnchorHeadOutput, AnchorLossWeights,
+    assign_targets,
+)
+from .backbone2d import BEVBackbone, BEVBackboneConfig
+from .backbone3d import SparseBackbone8x, SparseBackboneConfig
 from .bev import HeightCompression
-from .checks import MAX_ANCHOR_SIZES, ModelConfigError, check_model_config
-from .center_head import CenterHead, CenterHeadOutput, build_center_targets, decode_regression
+from .center_head import (
+    CenterHead, CenterHeadConfig, CenterHeadOutput, CenterLossWeights, CenterPostConfig, build_center_targets,
+    decode_regression,
+)
+from .config import ModelConfigError, Section, StageConfig
 from .ct3d_head import (
-    ChannelWiseAttention, ChannelWiseDecoderLayer, CT3DRoIHead, CylinderPoints, cylinder_radius,
-    encode_proposal_points, gather_cylinder_points,
+    ChannelWiseAttention, ChannelWiseDecoderLayer, CT3DHeadConfig, CT3DLossWeights, CT3DRoIHead, CylinderPoints,
+    cylinder_radius, encode_proposal_points, gather_cylinder_points,
 )
-from .grid import VoxelGrid, check_memory, max_tensor_bytes
+from .grid import VoxelGrid, check_memory, max_tensor_bytes, read_point_cloud_range
 from .norm import dense_bn, sparse_bn
-from .pillar_encoder import DynamicPillarEncoder
-from .pillarnet_neck import SpatialSemanticNeck
-from .point_head import PointHead, PointHeadOutput, PointTargets, point_targets
+from .pillar_encoder import DynamicPillarEncoder, PillarEncoderConfig
+from .pillarnet_neck import NeckConfig, SpatialSemanticNeck
+from .point_head import BinCodingConfig, PointHead, PointHeadConfig, PointHeadOutput, PointLossWeights, PointTargets, \
+    point_targets
 from .pointnet2 import (
-    FeaturePropagation, PointLevel, PointNet2MSG, SampledPoints, SetAbstraction, SharedMLP, sample_frame_points,
+    FeaturePropagation, PointLevel, PointNet2Config, PointNet2MSG, SampledPoints, SamplingConfig, SetAbstraction,
+    SharedMLP, sample_frame_points,
 )
-from .pointrcnn_head import PointRCNNRoIHead
-from .postprocess import select_detections
+from .pointrcnn_head import PointRCNNRoIHead, PointRCNNRoIHeadConfig, TestSplitConfig
+from .postprocess import PostConfig, select_detections
 from .sparse_resnet2d import EncoderFeatures, SparseResNet2d
 from .two_stage import (
-    LOG_SIZE_CLAMP, OUTPUT_STAGES, PAD_ROI, PROPOSAL_KEYS, TARGET_KEYS, OutputStageSwitch, Proposals, RefineHead,
-    RefineOutput, RoIs, RoiTargets, confidence_targets, decode_refined, encode_refine_targets, fold_heading,
-    predict_refined, proposal_budgets, refine_loss, require_keys, rois_for_refinement, rotate_z,
+    LOG_SIZE_CLAMP, OUTPUT_STAGES, PAD_ROI, OutputStageSwitch, ProposalBudget, ProposalConfig, Proposals,
+    RefineHead, RefineLossWeights, RefineOutput, RoIs, RoiTargets, TargetConfig, confidence_targets, decode_refined,
+    encode_refine_targets, fold_heading, predict_refined, refine_loss, rois_for_refinement, rotate_z,
     sample_proposal_targets, select_proposals,
 )
 from .vfe import MeanVFE
 
 __all__ = [
-    "AnchorGenerator", "AnchorHead", "AnchorHeadOutput", "assign_targets",
-    "BEVBackbone",
-    "SparseBackbone8x",
+    "MAX_ANCHOR_SIZES", "AnchorGenerator", "AnchorHead", "AnchorHeadConfig", "AnchorHeadOutput", "AnchorLossWeights",
+    "assign_targets",
+    "BEVBackbone", "BEVBackboneConfig",
+    "SparseBackbone8x", "SparseBackboneConfig",
     "HeightCompression",
-    "MAX_ANCHOR_SIZES", "ModelConfigError", "check_model_config",
-    "CenterHead", "CenterHeadOutput", "build_center_targets", "decode_regression",
-    "ChannelWiseAttention", "ChannelWiseDecoderLayer", "CT3DRoIHead", "CylinderPoints", "cylinder_radius",
-    "encode_proposal_points", "gather_cylinder_points",
-    "VoxelGrid", "check_memory", "max_tensor_bytes",
+    "CenterHead", "CenterHeadConfig", "CenterHeadOutput", "CenterLossWeights", "CenterPostConfig",
+    "build_center_targets", "decode_regression",
+    "ModelConfigError", "Section", "StageConfig",
+    "ChannelWiseAttention", "ChannelWiseDecoderLayer", "CT3DHeadConfig", "CT3DLossWeights", "CT3DRoIHead",
+    "CylinderPoints", "cylinder_radius", "encode_proposal_points", "gather_cylinder_points",
+    "VoxelGrid", "check_memory", "max_tensor_bytes", "read_point_cloud_range",
     "dense_bn", "sparse_bn",
-    "DynamicPillarEncoder",
-    "SpatialSemanticNeck",
-    "PointHead", "PointHeadOutput", "PointTargets", "point_targets",
-    "FeaturePropagation", "PointLevel", "PointNet2MSG", "SampledPoints", "SetAbstraction", "SharedMLP",
-    "sample_frame_points",
-    "PointRCNNRoIHead",
-    "select_detections",
+    "DynamicPillarEncoder", "PillarEncoderConfig",
+    "NeckConfig", "SpatialSemanticNeck",
+    "BinCodingConfig", "PointHead", "PointHeadConfig", "PointHeadOutput", "PointLossWeights", "PointTargets",
+    "point_targets",
+    "FeaturePropagation", "PointLevel", "PointNet2Config", "PointNet2MSG", "SampledPoints", "SamplingConfig",
+    "SetAbstraction", "SharedMLP", "sample_frame_points",
+    "PointRCNNRoIHead", "PointRCNNRoIHeadConfig", "TestSplitConfig",
+    "PostConfig", "select_detections",
     "EncoderFeatures", "SparseResNet2d",
-    "LOG_SIZE_CLAMP", "OUTPUT_STAGES", "PAD_ROI", "PROPOSAL_KEYS", "TARGET_KEYS", "OutputStageSwitch", "Proposals",
-    "RefineHead", "RefineOutput", "RoIs", "RoiTargets", "confidence_targets", "decode_refined", "encode_refine_targets",
-    "fold_heading", "predict_refined", "proposal_budgets", "refine_loss", "require_keys", "rois_for_refinement",
-    "rotate_z", "sample_proposal_targets", "select_proposals",
+    "LOG_SIZE_CLAMP", "OUTPUT_STAGES", "PAD_ROI", "OutputStageSwitch", "ProposalBudget", "ProposalConfig",
+    "Proposals", "RefineHead", "RefineLossWeights", "RefineOutput", "RoIs", "RoiTargets", "TargetConfig",
+    "confidence_targets", "decode_refined", "encode_refine_targets", "fold_heading", "predict_refined",
+    "refine_loss", "rois_for_refinement", "rotate_z", "sample_proposal_targets", "select_proposals",
     "MeanVFE",
 ]

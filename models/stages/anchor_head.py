@@ -1,19 +1,21 @@
 """Anchor-based dense head (SECOND): anchors, target assignment, losses and decoding.
 
 Pieces, each usable alone (torchvision-style):
-- `AnchorGenerator`: one anchor per BEV cell, per size and per rotation (default 0 and
-  pi/2), bottom on the road (z centre = bottom_z + h/2). Order (H, W, size, rotation),
+- `AnchorGenerator`: one anchor per BEV cell, per size and per rotation, bottom on the road
+  (z = 0 in the ego ground frame, so the z centre is h/2). Order (H, W, size, rotation),
   matching the head's (B, A*C, H, W) -> (B, H*W*A, C) reshaping.
-- `assign_targets`: BEV IoU between anchors and ground truth; positive >= 0.6, negative
-  < 0.45, in between ignored; each ground-truth box also keeps its best anchor(s).
+- `assign_targets`: BEV IoU between anchors and ground truth; positive >= pos_iou, negative
+  < neg_iou, in between ignored; each ground-truth box also keeps its best anchor(s).
 - `AnchorHead`: 1x1 convolutions for class, box residual and direction logits; `loss`
   (focal + smooth-L1 with the sine-difference heading + direction cross-entropy, plain
   functions from losses.py) and `predict` (decode, direction fix, NMS).
+- `AnchorHeadConfig`: the `model.head` section of configs/second.yaml (SECOND's and CT3D's head).
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -22,19 +24,68 @@ import torch.nn as nn
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou_bev, limit_period, normalize_heading
 
+from .config import Section, StageConfig, is_size3
 from .grid import VoxelGrid, check_memory
 from .losses import add_sin_difference, sigmoid_focal_loss, weighted_cross_entropy, weighted_smooth_l1
-from .postprocess import select_detections
+from .postprocess import PostConfig
+
+MAX_ANCHOR_SIZES = 16  # k-means clusters of the training boxes' sizes (num_anchor_sizes)
+
+
+@dataclass(frozen=True)
+class AnchorLossWeights(StageConfig):
+    """Multipliers of the anchor head's loss terms (`head.loss_weights`)."""
+
+    cls: float  # focal classification loss
+    box: float  # box residual smooth-L1
+    dir: float  # direction classification
+
+    @classmethod
+    def read(cls, s: Section) -> AnchorLossWeights:
+        return cls(cls=s.non_negative("cls"), box=s.non_negative("box"), dir=s.non_negative("dir"))
+
+
+@dataclass(frozen=True)
+class AnchorHeadConfig(StageConfig):
+    """SECOND's anchor head (`model.head`): anchors, target assignment, direction bins and loss settings."""
+
+    anchor_sizes: tuple[tuple[float, float, float], ...] | None  # m; None = auto (from the training boxes)
+    num_anchor_sizes: int  # with auto: k-means clusters of the training boxes' sizes
+    rotations: tuple[float, ...]  # anchor headings, radians
+    pos_iou: float  # BEV IoU from which an anchor is positive
+    neg_iou: float  # ... below which it is negative (in between: ignored)
+    num_dir_bins: int  # bins of the direction classifier over the full turn
+    dir_offset: float  # radians: where the first direction bin starts
+    focal_alpha: float  # focal loss: weight of the positives
+    focal_gamma: float  # focal loss: focusing exponent
+    loss_weights: AnchorLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> AnchorHeadConfig:
+        sizes = s.check("anchor_sizes", lambda v: v == "auto" or (isinstance(v, (list, tuple)) and len(v) > 0
+                                                                    and all(map(is_size3, v))),
+                        "auto or a non-empty list of [length, width, height] in positive metres")
+        c = cls(anchor_sizes=None if sizes == "auto" else tuple(tuple(float(x) for x in v) for v in sizes),
+                num_anchor_sizes=s.count("num_anchor_sizes", 1, MAX_ANCHOR_SIZES,
+                                         " (k-means clusters of the training boxes' sizes)"),
+                rotations=s.numbers("rotations", need="a non-empty list of anchor angles in radians, e.g. "
+                                                      "[0.0, 1.5707963]"),
+                pos_iou=s.fraction("pos_iou", "an IoU"), neg_iou=s.fraction("neg_iou", "an IoU"),
+                num_dir_bins=s.count("num_dir_bins"), dir_offset=s.number("dir_offset", "an angle in radians"),
+                focal_alpha=s.fraction("focal_alpha", "a weight"), focal_gamma=s.non_negative("focal_gamma"),
+                loss_weights=s.section("loss_weights", AnchorLossWeights))
+        s.order("neg_iou", "pos_iou")
+        return c
 
 
 class AnchorGenerator:
-    def __init__(self, sizes: Sequence[Sequence[float]], rotations: Sequence[float] = (0.0, math.pi / 2),
-                 bottom_z: float = 0.0):
+    """Anchors of `sizes` ([length, width, height] m) at each of `rotations` (radians) per BEV cell."""
+
+    def __init__(self, sizes: Sequence[Sequence[float]], rotations: Sequence[float]):
         self.sizes = [tuple(float(v) for v in s) for s in sizes]
         if not self.sizes or any(len(s) != 3 or min(s) <= 0 for s in self.sizes):
             raise ValueError(f"anchor sizes must be a list of positive [length, width, height] (m), got {sizes}")
         self.rotations = [float(r) for r in rotations]
-        self.bottom_z = float(bottom_z)
 
     @property
     def num_per_location(self) -> int:
@@ -57,7 +108,7 @@ class AnchorGenerator:
         out[..., 0] = xx[:, :, None, None]
         out[..., 1] = yy[:, :, None, None]
         out[..., 3:6] = sizes[None, None, :, None, :]
-        out[..., 2] = self.bottom_z + sizes[None, None, :, None, 2] / 2
+        out[..., 2] = sizes[None, None, :, None, 2] / 2  # bottom on the road, z = 0
         out[..., 6] = rots[None, None, None, :]
         return out.reshape(-1, 7)
 
@@ -68,8 +119,7 @@ class Targets(NamedTuple):
 
 
 @torch.no_grad()
-def assign_targets(anchors: torch.Tensor, gt_boxes: torch.Tensor, pos_iou: float = 0.6,
-                   neg_iou: float = 0.45) -> Targets:
+def assign_targets(anchors: torch.Tensor, gt_boxes: torch.Tensor, pos_iou: float, neg_iou: float) -> Targets:
     """Label anchors (A, 7) against one frame's ground truth (M, 7) by BEV IoU.
 
     Only anchors whose centre lies within reach of a box (sum of the two half-diagonals)
@@ -108,30 +158,28 @@ class AnchorHeadOutput(NamedTuple):
 
 
 class AnchorHead(nn.Module):
-    """Single-class anchor head on a BEV map at `stride` voxels per cell."""
+    """Single-class anchor head on a BEV map at `stride` voxels per cell, set up by `cfg` (its anchor
+    sizes resolved: SECOND.prepare_config) and selecting its detections by `post`."""
 
-    def __init__(self, in_channels: int, grid: VoxelGrid, stride: int, anchor_sizes: Sequence[Sequence[float]],
-                 rotations: Sequence[float] = (0.0, math.pi / 2), pos_iou: float = 0.6, neg_iou: float = 0.45,
-                 num_dir_bins: int = 2, dir_offset: float = math.pi / 4, loss_weights: dict | None = None,
-                 focal_alpha: float = 0.25, focal_gamma: float = 2.0, post: dict | None = None):
+    def __init__(self, in_channels: int, grid: VoxelGrid, stride: int, cfg: AnchorHeadConfig, post: PostConfig):
         super().__init__()
-        self.generator = AnchorGenerator(anchor_sizes, rotations)
+        if cfg.anchor_sizes is None:
+            raise ValueError("SECOND: head.anchor_sizes is still 'auto'; resolve it from the training data "
+                             "(tools/train.py does) or give [[length, width, height], ...] in metres")
+        self.cfg = cfg
+        self.generator = AnchorGenerator(cfg.anchor_sizes, cfg.rotations)
         self.grid, self.stride = grid, int(stride)
         self.register_buffer("anchors", self.generator(grid, self.stride), persistent=False)
         k = self.generator.num_per_location
         self.conv_cls = nn.Conv2d(in_channels, k, 1)
         self.conv_box = nn.Conv2d(in_channels, k * 7, 1)
-        self.conv_dir = nn.Conv2d(in_channels, k * num_dir_bins, 1)
+        self.conv_dir = nn.Conv2d(in_channels, k * cfg.num_dir_bins, 1)
         nn.init.constant_(self.conv_cls.bias, -math.log((1 - 0.01) / 0.01))
         nn.init.normal_(self.conv_box.weight, std=0.001)
         nn.init.zeros_(self.conv_box.bias)
         self.coder = ResidualBoxCoder()
-        self.pos_iou, self.neg_iou = float(pos_iou), float(neg_iou)
-        self.num_dir_bins, self.dir_offset = int(num_dir_bins), float(dir_offset)
-        self.loss_weights = {"cls": 1.0, "box": 2.0, "dir": 0.2, **(loss_weights or {})}
-        self.focal_alpha, self.focal_gamma = float(focal_alpha), float(focal_gamma)
-        self.post = {"score_threshold": 0.1, "pre_nms_top_k": 1000, "nms_threshold": 0.1, "post_nms_top_k": 100,
-                     **(post or {})}
+        self.num_dir_bins, self.dir_offset = cfg.num_dir_bins, cfg.dir_offset
+        self.post = post
 
     def forward(self, bev: torch.Tensor) -> AnchorHeadOutput:
         b = bev.shape[0]
@@ -153,7 +201,7 @@ class AnchorHead(nn.Module):
         b = out.cls_logits.shape[0]
         labels, matched = [], []
         for i in range(b):
-            t = assign_targets(self.anchors, gt_boxes[i][gt_mask[i]], self.pos_iou, self.neg_iou)
+            t = assign_targets(self.anchors, gt_boxes[i][gt_mask[i]], self.cfg.pos_iou, self.cfg.neg_iou)
             labels.append(t.labels)
             matched.append(t.boxes)
         labels = torch.stack(labels)  # (B, A)
@@ -163,7 +211,7 @@ class AnchorHead(nn.Module):
         cls_w = (labels >= 0).float() / num_pos
         reg_w = pos.float() / num_pos
         logits = out.cls_logits.float()
-        loss_cls = sigmoid_focal_loss(logits, pos.float(), cls_w, self.focal_alpha, self.focal_gamma) / b
+        loss_cls = sigmoid_focal_loss(logits, pos.float(), cls_w, self.cfg.focal_alpha, self.cfg.focal_gamma) / b
         anchors = self.anchors[None].expand(b, -1, -1)
         target_deltas = self.coder.encode(matched, anchors)
         target_deltas = torch.where(pos[..., None], target_deltas, torch.zeros_like(target_deltas))
@@ -171,8 +219,8 @@ class AnchorHead(nn.Module):
         loss_box = weighted_smooth_l1(pred, tgt, reg_w) / b
         dir_t = self._dir_targets(matched[..., 6])
         loss_dir = weighted_cross_entropy(out.dir_logits.float(), dir_t, reg_w) / b
-        w = self.loss_weights
-        total = w["cls"] * loss_cls + w["box"] * loss_box + w["dir"] * loss_dir
+        w = self.cfg.loss_weights
+        total = w.cls * loss_cls + w.box * loss_box + w.dir * loss_dir
         parts = {"loss_cls": float(loss_cls.detach()), "loss_box": float(loss_box.detach()),
                  "loss_dir": float(loss_dir.detach()), "num_pos": float(pos.sum()) / b}
         return total, parts
@@ -191,4 +239,4 @@ class AnchorHead(nn.Module):
     @torch.no_grad()
     def predict(self, out: AnchorHeadOutput) -> list[Detections]:
         boxes, scores = self.decode(out)
-        return [select_detections(boxes[i], scores[i], **self.post) for i in range(boxes.shape[0])]
+        return [self.post.select(boxes[i], scores[i]) for i in range(boxes.shape[0])]

@@ -8,12 +8,30 @@ and `sum(num_upsample_filters)` channels. Every convolution is followed by Batch
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 
+from .config import Section, StageConfig
 from .norm import dense_bn
+
+
+@dataclass(frozen=True)
+class BEVBackboneConfig(StageConfig):
+    """`model.backbone2d`: one entry per block, from the finest resolution to the coarsest."""
+
+    layer_nums: tuple[int, ...]  # 3x3 convolutions per block after its first (strided) one
+    layer_strides: tuple[int, ...]  # stride of each block's first convolution
+    num_filters: tuple[int, ...]  # channels of each block
+    upsample_strides: tuple[int, ...]  # up-sampling back to the input resolution (the cumulative stride)
+    num_upsample_filters: tuple[int, ...]  # channels of each block's up-sampled output
+
+    @classmethod
+    def read(cls, s: Section) -> BEVBackboneConfig:
+        return cls(layer_nums=s.counts("layer_nums", low=0), layer_strides=s.counts("layer_strides"),
+                   num_filters=s.counts("num_filters"), upsample_strides=s.counts("upsample_strides"),
+                   num_upsample_filters=s.counts("num_upsample_filters"))
 
 
 def _cbr(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
@@ -22,10 +40,10 @@ def _cbr(cin: int, cout: int, stride: int = 1) -> list[nn.Module]:
 
 
 class BEVBackbone(nn.Module):
-    def __init__(self, in_channels: int, layer_nums: Sequence[int] = (5, 5), layer_strides: Sequence[int] = (1, 2),
-                 num_filters: Sequence[int] = (128, 256), upsample_strides: Sequence[int] = (1, 2),
-                 num_upsample_filters: Sequence[int] = (256, 256)):
+    def __init__(self, in_channels: int, cfg: BEVBackboneConfig):
         super().__init__()
+        layer_nums, layer_strides, num_filters = cfg.layer_nums, cfg.layer_strides, cfg.num_filters
+        upsample_strides, num_upsample_filters = cfg.upsample_strides, cfg.num_upsample_filters
         n = len(layer_nums)
         if not (len(layer_strides) == len(num_filters) == len(upsample_strides) == len(num_upsample_filters) == n):
             raise ValueError("BEVBackbone: layer_nums, layer_strides, num_filters, upsample_strides and "

@@ -17,12 +17,28 @@ ReLU, as in the reference implementation. Submanifold layers of one stage share 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch.nn as nn
 
 from detbench.sparse import SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d, conv_output_shape
 
+from .config import Section, StageConfig
 from .norm import sparse_bn
+
+
+@dataclass(frozen=True)
+class SparseBackboneConfig(StageConfig):
+    """`model.backbone3d`: SECOND's sparse backbone, four stages."""
+
+    channels: tuple[int, int, int, int]  # widths of the stages at strides 1, 2, 4, 8
+    blocks: tuple[int, int, int, int]  # convolutions per stage (the first of stages 2-4 is the strided one)
+    out_channels: int  # width of the z-squeezing output convolution
+
+    @classmethod
+    def read(cls, s: Section) -> SparseBackboneConfig:
+        return cls(channels=s.counts("channels", length=4), blocks=s.counts("blocks", length=4),
+                   out_channels=s.count("out_channels"))
 
 
 def _conv_bn_relu(conv: nn.Module, channels: int) -> SparseSequential:
@@ -32,9 +48,9 @@ def _conv_bn_relu(conv: nn.Module, channels: int) -> SparseSequential:
 class SparseBackbone8x(nn.Module):
     """SECOND-style sparse backbone. `spatial_shape` is the input grid (Z, Y, X)."""
 
-    def __init__(self, in_channels: int, spatial_shape: Sequence[int], channels: Sequence[int] = (16, 32, 64, 64),
-                 blocks: Sequence[int] = (1, 3, 3, 3), out_channels: int = 128):
+    def __init__(self, in_channels: int, spatial_shape: Sequence[int], cfg: SparseBackboneConfig):
         super().__init__()
+        channels, blocks, out_channels = cfg.channels, cfg.blocks, cfg.out_channels
         if len(channels) != 4 or len(blocks) != 4 or min(blocks) < 1:
             raise ValueError(f"SparseBackbone8x needs 4 channel widths and 4 block counts >= 1, "
                              f"got channels={list(channels)} blocks={list(blocks)}")

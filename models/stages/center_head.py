@@ -20,13 +20,14 @@ Pieces, each usable alone:
   `od_iou_loss` (orientation-decoupled IoU regression loss).
 - `CenterHead`: the convolutions, `loss` and `predict` (local maxima by 3x3 max-pool or
   rotated NMS, IoU-rectified scores score^(1-a) * iou^a, score threshold, top-k).
+- `CenterHeadConfig` and `CenterPostConfig`: PillarNet's `model.head` and `model.post` sections.
 
 One class (Vehicle, label 0): the Batch carries no class labels.
 """
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -36,10 +37,11 @@ import torch.nn.functional as F
 from detbench.data.batch import Detections
 from detbench.ops import boxes_iou3d_aligned
 
+from .config import Section, StageConfig
 from .grid import VoxelGrid
 from .losses import centernet_focal_loss, od_iou_loss
 from .norm import dense_bn
-from .postprocess import select_detections
+from .postprocess import PostConfig, select_detections
 
 REG_CHANNELS = 8  # offset x, offset y, z, log dx, log dy, log dz, sin h, cos h
 LOG_SIZE_RANGE = (-8.0, 6.0)  # clamp of log(size) when decoding: 3e-4 m .. 403 m
@@ -48,7 +50,7 @@ LOG_SIZE_RANGE = (-8.0, 6.0)  # clamp of log(size) when decoding: 3e-4 m .. 403 
 # --------------------------------------------------------------------------------------
 # targets
 # --------------------------------------------------------------------------------------
-def gaussian_radius(length: torch.Tensor, width: torch.Tensor, min_overlap: float = 0.1) -> torch.Tensor:
+def gaussian_radius(length: torch.Tensor, width: torch.Tensor, min_overlap: float) -> torch.Tensor:
     """CenterNet's Gaussian radius (cells) for boxes of `length` x `width` cells (same shape, float).
 
     The smallest of three radii r at which a box of the same size, moved by r in both
@@ -110,7 +112,7 @@ class CenterTargets(NamedTuple):
 
 
 def build_center_targets(gt_boxes: torch.Tensor, gt_mask: torch.Tensor, grid: VoxelGrid, stride: int,
-                         min_radius: int = 2, min_overlap: float = 0.1) -> CenterTargets:
+                         min_radius: int, min_overlap: float) -> CenterTargets:
     """Encode padded ground truth (B, M, 7) with mask (B, M) for the map at `stride` pillars per cell.
 
     A box's centre cell is floor((x - x0) / cell_x), floor((y - y0) / cell_y); boxes whose
@@ -205,9 +207,60 @@ def _branch(cin: int, mid: int, cout: int, num_convs: int, final_bias: float | N
     return nn.Sequential(*layers)
 
 
-DEFAULT_LOSS_WEIGHTS = {"hm": 1.0, "reg": 0.25, "iou": 1.0, "od_iou": 1.0}
-DEFAULT_POST = {"method": "nms", "score_threshold": 0.1, "pre_top_k": 1000, "nms_threshold": 0.1, "post_top_k": 100,
-                "iou_rectifier": 0.68}
+@dataclass(frozen=True)
+class CenterLossWeights(StageConfig):
+    """Multipliers of the center head's loss terms (`head.loss_weights`)."""
+
+    hm: float  # heat-map focal loss
+    reg: float  # code-weighted L1 of the regression maps
+    iou: float  # IoU branch (counted with iou_branch only)
+    od_iou: float  # orientation-decoupled IoU loss
+
+    @classmethod
+    def read(cls, s: Section) -> CenterLossWeights:
+        return cls(hm=s.non_negative("hm"), reg=s.non_negative("reg"), iou=s.non_negative("iou"),
+                   od_iou=s.non_negative("od_iou"))
+
+
+@dataclass(frozen=True)
+class CenterHeadConfig(StageConfig):
+    """PillarNet's center head (`model.head`)."""
+
+    shared_channels: int  # width of the shared 3x3 conv in front of the branches
+    head_channels: int  # width of each branch's 3x3 convs
+    head_convs: int  # 3x3 convs per branch, the last one is the output
+    iou_branch: bool  # the IoU-aware branch (its loss, and score rectification at inference)
+    min_radius: int  # heat-map Gaussian radius floor, cells
+    min_overlap: float  # CenterNet radius rule: IoU kept by a shifted box, in (0, 1)
+    od_iou_distance: bool  # add the DIoU centre-distance term to the OD-IoU loss
+    code_weights: tuple[float, ...]  # 8 weights of the L1 regression terms (REG_CHANNELS order)
+    loss_weights: CenterLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> CenterHeadConfig:
+        return cls(shared_channels=s.count("shared_channels"), head_channels=s.count("head_channels"),
+                   head_convs=s.count("head_convs"), iou_branch=s.flag("iou_branch"),
+                   min_radius=s.count("min_radius", 0),
+                   min_overlap=float(s.check("min_overlap", lambda v: isinstance(v, (int, float)) and 0 < v < 1,
+                                             "an IoU in (0, 1)")),
+                   od_iou_distance=s.flag("od_iou_distance"),
+                   code_weights=s.numbers("code_weights", REG_CHANNELS, need=f"{REG_CHANNELS} numbers (offset x, "
+                                          f"offset y, z, log dx, log dy, log dz, sin, cos)"),
+                   loss_weights=s.section("loss_weights", CenterLossWeights))
+
+
+@dataclass(frozen=True)
+class CenterPostConfig(StageConfig):
+    """PillarNet's `model.post`: the common selection (`PostConfig`) plus how peaks are found and rescored."""
+
+    method: str  # nms: rotated BEV NMS over all cells; maxpool: 3x3 local maxima, no NMS
+    select: PostConfig  # score_threshold (on the heat, before rectification), top-k budgets, NMS IoU
+    iou_rectifier: float  # a of score = heat^(1 - a) * iou^a, in [0, 1] (0: off)
+
+    @classmethod
+    def read(cls, s: Section) -> CenterPostConfig:
+        return cls(method=s.choice("method", ("maxpool", "nms")), select=PostConfig.read(s),
+                   iou_rectifier=s.fraction("iou_rectifier", "an exponent"))
 
 
 class CenterHead(nn.Module):
@@ -217,27 +270,16 @@ class CenterHead(nn.Module):
         in_channels: width of the BEV map.
         grid: the pillar grid (H = Y / stride, W = X / stride).
         stride: pillars per map cell.
-        shared_channels: width of the shared 3x3 conv in front of the branches.
-        head_channels, head_convs: width and number (>= 1, the last is the output conv) of 3x3 convs per branch.
-        iou_branch: add the IoU-aware branch (its loss, and score rectification at inference).
-        min_radius, min_overlap: heat-map Gaussian radius rule (cells; IoU).
-        od_iou_distance: add the DIoU centre-distance term to the OD-IoU loss.
-        code_weights: 8 weights of the L1 regression terms (REG_CHANNELS order).
-        loss_weights: {"hm", "reg", "iou", "od_iou"} multipliers of the loss terms.
-        post: decoding settings: method "maxpool" (3x3 local maxima of the heat map, no NMS)
-            or "nms" (all cells, rotated BEV NMS at nms_threshold); score_threshold (on the
-            heat), pre_top_k, post_top_k, iou_rectifier a in [0, 1]
+        cfg: the head's convolutions, target and loss settings (`CenterHeadConfig`).
+        post: decoding settings (`CenterPostConfig`): method "maxpool" (3x3 local maxima of the
+            heat map, no NMS) or "nms" (all cells, rotated BEV NMS at nms_threshold); score_threshold
+            (on the heat), pre_nms_top_k, post_nms_top_k, iou_rectifier a in [0, 1]
             (score = heat^(1-a) * iou^a; 0 turns rectification off).
     """
 
-    def __init__(self, in_channels: int, grid: VoxelGrid, stride: int, shared_channels: int = 64,
-                 head_channels: int = 64, head_convs: int = 2, iou_branch: bool = True, min_radius: int = 2,
-                 min_overlap: float = 0.1, od_iou_distance: bool = True, code_weights: Sequence[float] | None = None,
-                 loss_weights: dict | None = None, post: dict | None = None):
+    def __init__(self, in_channels: int, grid: VoxelGrid, stride: int, cfg: CenterHeadConfig, post: CenterPostConfig):
         super().__init__()
-        if head_convs < 1 or shared_channels < 1 or head_channels < 1:
-            raise ValueError(f"CenterHead: head_convs, shared_channels and head_channels must be >= 1, got "
-                             f"{head_convs}, {shared_channels}, {head_channels} (model.head in the config)")
+        shared_channels, head_channels, head_convs = cfg.shared_channels, cfg.head_channels, cfg.head_convs
         grid.check_divisible(int(stride), "CenterHead")
         self.grid, self.stride = grid, int(stride)
         nx, ny, _ = grid.grid_size
@@ -252,29 +294,11 @@ class CenterHead(nn.Module):
             "log_size": _branch(shared_channels, head_channels, 3, head_convs),
             "rot": _branch(shared_channels, head_channels, 2, head_convs),
         })
-        if iou_branch:
+        if cfg.iou_branch:
             self.branches["iou"] = _branch(shared_channels, head_channels, 1, head_convs)
-        self.iou_branch = bool(iou_branch)
-        self.min_radius, self.min_overlap = int(min_radius), float(min_overlap)
-        self.od_iou_distance = bool(od_iou_distance)
-        cw = [1.0] * REG_CHANNELS if code_weights is None else [float(v) for v in code_weights]
-        if len(cw) != REG_CHANNELS:
-            raise ValueError(f"CenterHead: code_weights needs {REG_CHANNELS} numbers (offset x, offset y, z, log dx, "
-                             f"log dy, log dz, sin, cos), got {cw}")
-        self.register_buffer("code_weights", torch.tensor(cw, dtype=torch.float32), persistent=False)
-        unknown = set(loss_weights or {}) - set(DEFAULT_LOSS_WEIGHTS)
-        if unknown:
-            raise ValueError(f"CenterHead: unknown loss_weights {sorted(unknown)}; "
-                             f"known: {sorted(DEFAULT_LOSS_WEIGHTS)}")
-        self.loss_weights = {**DEFAULT_LOSS_WEIGHTS, **(loss_weights or {})}
-        unknown = set(post or {}) - set(DEFAULT_POST)
-        if unknown:
-            raise ValueError(f"CenterHead: unknown post settings {sorted(unknown)}; known: {sorted(DEFAULT_POST)}")
-        self.post = {**DEFAULT_POST, **(post or {})}
-        if self.post["method"] not in ("maxpool", "nms"):
-            raise ValueError(f"CenterHead: post.method must be 'maxpool' or 'nms', got {self.post['method']!r}")
-        if not 0.0 <= float(self.post["iou_rectifier"]) <= 1.0:
-            raise ValueError(f"CenterHead: post.iou_rectifier must lie in [0, 1], got {self.post['iou_rectifier']}")
+        self.cfg, self.post = cfg, post
+        self.iou_branch = cfg.iou_branch
+        self.register_buffer("code_weights", torch.tensor(cfg.code_weights, dtype=torch.float32), persistent=False)
 
     def forward(self, bev: torch.Tensor) -> CenterHeadOutput:
         """BEV map (B, in_channels, H, W) -> CenterHeadOutput of raw maps."""
@@ -287,7 +311,8 @@ class CenterHead(nn.Module):
 
     def targets(self, gt_boxes: torch.Tensor, gt_mask: torch.Tensor) -> CenterTargets:
         """Encode padded ground truth (B, M, 7), mask (B, M) for this head's map."""
-        return build_center_targets(gt_boxes, gt_mask, self.grid, self.stride, self.min_radius, self.min_overlap)
+        return build_center_targets(gt_boxes, gt_mask, self.grid, self.stride, self.cfg.min_radius,
+                                    self.cfg.min_overlap)
 
     def loss(self, out: CenterHeadOutput, gt_boxes: torch.Tensor, gt_mask: torch.Tensor) -> tuple[torch.Tensor, dict]:
         """Total loss and its parts for padded ground truth (B, M, 7) with mask (B, M).
@@ -310,9 +335,9 @@ class CenterHead(nn.Module):
         dec = decode_regression(torch.cat([reg[..., :6], reg[..., 6:].detach()], dim=-1), t.index, self.grid,
                                 self.stride)
         pred_boxes, gt = dec[t.mask], t.boxes[t.mask]
-        od_loss = od_iou_loss(pred_boxes, gt, self.od_iou_distance).sum() / n
-        w = self.loss_weights
-        total = w["hm"] * hm_loss + w["reg"] * reg_loss + w["od_iou"] * od_loss
+        od_loss = od_iou_loss(pred_boxes, gt, self.cfg.od_iou_distance).sum() / n
+        w = self.cfg.loss_weights
+        total = w.hm * hm_loss + w.reg * reg_loss + w.od_iou * od_loss
         parts = {"loss_hm": float(hm_loss.detach()), "loss_reg": float(reg_loss.detach()),
                  "loss_od_iou": float(od_loss.detach())}
         if self.iou_branch:
@@ -321,7 +346,7 @@ class CenterHead(nn.Module):
                 iou_t = boxes_iou3d_aligned(pred_boxes.detach(), gt).to(iou_pred.dtype) if gt.shape[0] else \
                     iou_pred.new_zeros(0)
             iou_loss = (iou_pred - (2 * iou_t - 1)).abs().sum() / n
-            total = total + w["iou"] * iou_loss
+            total = total + w.iou * iou_loss
             parts["loss_iou"] = float(iou_loss.detach())
             parts["mean_iou"] = float(iou_t.mean()) if iou_t.numel() else 0.0
         parts["num_pos"] = float(t.mask.sum()) / max(1, t.mask.shape[0])
@@ -331,7 +356,7 @@ class CenterHead(nn.Module):
     def rectify(self, heat: torch.Tensor, iou_raw: torch.Tensor | None) -> torch.Tensor:
         """Scores heat^(1-a) * iou^a in [0, 1] from heat (any shape) and the IoU branch's raw
         values (same shape, 2 * IoU - 1); plain heat without the IoU branch or with a = 0."""
-        a = float(self.post["iou_rectifier"])
+        a = self.post.iou_rectifier
         if iou_raw is None or a == 0.0:
             return heat
         iou = ((iou_raw.float() + 1) / 2).clamp(0, 1)
@@ -341,33 +366,33 @@ class CenterHead(nn.Module):
     def predict(self, out: CenterHeadOutput, valid: torch.Tensor | None = None) -> list[Detections]:
         """Detections per frame. `valid` (B,) bool: frames marked False (e.g. with no points) get none.
 
-        Candidates are the `pre_top_k` cells of highest heat (only 3x3 local maxima with
+        Candidates are the `pre_nms_top_k` cells of highest heat (only 3x3 local maxima with
         method maxpool) whose heat is >= score_threshold; their scores are IoU-rectified, then
-        rotated NMS (method nms) and the `post_top_k` best. The threshold is applied to the
+        rotated NMS (method nms) and the `post_nms_top_k` best. The threshold is applied to the
         heat, not to the rectified score: with a = 0.68 a cell of heat 0.001 and a predicted
         IoU of 1 would otherwise score 0.11.
         """
-        p = self.post
+        p = self.post.select
         b = out.heatmap.shape[0]
         heat = torch.sigmoid(out.heatmap.float())
-        if p["method"] == "maxpool":
+        if self.post.method == "maxpool":
             peak = F.max_pool2d(heat, 3, stride=1, padding=1) == heat
             heat = torch.where(peak, heat, torch.zeros_like(heat))
             nms_threshold = 1.0  # a BEV IoU never exceeds 1: select_detections then only sorts and caps
         else:
-            nms_threshold = float(p["nms_threshold"])
+            nms_threshold = p.nms_threshold
         heat = heat.flatten(1)
-        k = min(int(p["pre_top_k"]), heat.shape[1])
+        k = min(p.pre_nms_top_k, heat.shape[1])
         top, index = heat.topk(k, dim=1)  # (B, K)
         iou_raw = _gather(out.iou, index)[..., 0] if self.iou_branch else None
         score = self.rectify(top, iou_raw)
         boxes = decode_regression(_gather(out.regression().float(), index), index, self.grid, self.stride)
-        keep = top >= float(p["score_threshold"])
+        keep = top >= p.score_threshold
         dets = []
         for i in range(b):
             if valid is not None and not bool(valid[i]):
                 dets.append(Detections.empty(out.heatmap.device))
                 continue
             dets.append(select_detections(boxes[i][keep[i]], score[i][keep[i]], 0.0, k, nms_threshold,
-                                          int(p["post_top_k"])))
+                                          p.post_nms_top_k))
         return dets

@@ -18,6 +18,7 @@ atan(y / x), which changes with the proposal's heading and folds opposite direct
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -25,7 +26,51 @@ import torch.nn as nn
 
 from detbench.ops import cylinder_query
 
-from .two_stage import rotate_z
+from .config import Section, StageConfig
+from .two_stage import ProposalConfig, RefineLossWeights, TargetConfig, rotate_z
+
+
+@dataclass(frozen=True)
+class CT3DLossWeights(StageConfig):
+    """CT3D's `roi_head.loss_weights`: the first stage's total and the refinement's terms."""
+
+    rpn: float  # SECOND's anchor loss (its own terms weighted by head.loss_weights)
+    refine: RefineLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> CT3DLossWeights:
+        return cls(rpn=s.non_negative("rpn"), refine=RefineLossWeights.read(s))
+
+
+@dataclass(frozen=True)
+class CT3DHeadConfig(StageConfig):
+    """CT3D's `model.roi_head`: the transformer over each proposal's points and the shared second stage."""
+
+    num_points: int  # points sampled in each proposal's cylinder
+    radius_scale: float  # cylinder radius = radius_scale x half the proposal's BEV diagonal
+    hidden_dim: int  # transformer width
+    heads: int  # attention heads (divide hidden_dim)
+    enc_layers: int  # self-attention encoder layers (0: none)
+    dim_feedforward: int  # feed-forward width of each layer
+    dropout: float  # dropout probability in the transformer and the refinement's branches
+    mlp_hidden: int  # the point MLP: 28 -> mlp_hidden -> mlp_hidden -> hidden_dim
+    max_pool_skip: bool  # also pass the encoded points' max-pool to the refinement
+    fc: tuple[int, ...]  # hidden widths of the confidence and box branches
+    proposals: ProposalConfig
+    targets: TargetConfig
+    loss_weights: CT3DLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> CT3DHeadConfig:
+        c = cls(num_points=s.count("num_points"), radius_scale=s.positive("radius_scale", "a positive scale"),
+                hidden_dim=s.count("hidden_dim"), heads=s.count("heads"), enc_layers=s.count("enc_layers", 0),
+                dim_feedforward=s.count("dim_feedforward"), dropout=s.fraction("dropout", "a probability"),
+                mlp_hidden=s.count("mlp_hidden"), max_pool_skip=s.flag("max_pool_skip"),
+                fc=s.counts("fc", empty=True), proposals=s.section("proposals", ProposalConfig),
+                targets=s.section("targets", TargetConfig), loss_weights=s.section("loss_weights", CT3DLossWeights))
+        if c.hidden_dim % c.heads:
+            raise s.error("heads", f"a divisor of hidden_dim ({c.hidden_dim})")
+        return c
 
 # the 8 corners of a unit box (front/rear x left/right x bottom/top) and its centre
 _KEYPOINTS = torch.tensor([[sx, sy, sz] for sx in (0.5, -0.5) for sy in (0.5, -0.5) for sz in (-0.5, 0.5)]
@@ -44,7 +89,7 @@ def cylinder_radius(rois: torch.Tensor, radius_scale: float) -> torch.Tensor:
     return radius_scale * 0.5 * torch.sqrt(rois[..., 3] ** 2 + rois[..., 4] ** 2)
 
 
-def gather_cylinder_points(points: torch.Tensor, rois: torch.Tensor, num_points: int, radius_scale: float = 1.2,
+def gather_cylinder_points(points: torch.Tensor, rois: torch.Tensor, num_points: int, radius_scale: float,
                            random: bool = False, generator: torch.Generator | None = None) -> CylinderPoints:
     """The points around each proposal, a fixed count per proposal.
 
@@ -165,13 +210,14 @@ class ChannelWiseDecoderLayer(nn.Module):
 
 
 class CT3DRoIHead(nn.Module):
-    """Points around each proposal -> one feature per proposal (B, R, d)."""
+    """Points around each proposal -> one feature per proposal (B, R, d), set up by `cfg`; each point
+    carries `point_features` values after x, y, z (a Batch's: the intensity)."""
 
-    def __init__(self, num_points: int = 256, radius_scale: float = 1.2, hidden_dim: int = 256, heads: int = 4,
-                 enc_layers: int = 3, dim_feedforward: int = 512, dropout: float = 0.1, point_features: int = 1,
-                 mlp_hidden: int = 64, max_pool_skip: bool = False):
+    def __init__(self, cfg: CT3DHeadConfig, point_features: int):
         super().__init__()
-        self.num_points, self.radius_scale = int(num_points), float(radius_scale)
+        self.num_points, self.radius_scale = cfg.num_points, cfg.radius_scale
+        hidden_dim, heads, enc_layers, dropout = cfg.hidden_dim, cfg.heads, cfg.enc_layers, cfg.dropout
+        mlp_hidden, dim_feedforward = cfg.mlp_hidden, cfg.dim_feedforward
         cin = 27 + point_features
         self.up = nn.Sequential(nn.Linear(cin, mlp_hidden), nn.ReLU(inplace=True), nn.Linear(mlp_hidden, mlp_hidden),
                                 nn.ReLU(inplace=True), nn.Linear(mlp_hidden, hidden_dim))
@@ -180,7 +226,7 @@ class CT3DRoIHead(nn.Module):
         self.encoder = nn.TransformerEncoder(layer, enc_layers, enable_nested_tensor=False) if enc_layers else None
         self.query = nn.Parameter(torch.randn(hidden_dim) * 0.02)
         self.decoder = ChannelWiseDecoderLayer(hidden_dim, heads, dim_feedforward, dropout)
-        self.max_pool_skip = bool(max_pool_skip)
+        self.max_pool_skip = cfg.max_pool_skip
         self.out_channels = hidden_dim * (2 if self.max_pool_skip else 1)
 
     def forward(self, points: torch.Tensor, rois: torch.Tensor) -> torch.Tensor:

@@ -12,6 +12,8 @@ import math
 import os
 from dataclasses import dataclass
 
+from .config import Section
+
 # the largest tensor a model may ask for (bytes): a config whose grid or anchors would need more is refused before
 # anything is allocated; DETBENCH_MAX_TENSOR_GB raises or lowers it
 MAX_TENSOR_GB_DEFAULT = 16.0
@@ -36,10 +38,24 @@ def check_memory(nbytes: float, what: str) -> None:
 
 
 
+def read_point_cloud_range(s: Section) -> tuple[float, float, float, float, float, float]:
+    """`point_cloud_range` of a model section: [x_min, y_min, z_min, x_max, y_max, z_max] in metres."""
+    r = s.numbers("point_cloud_range", 6, need="6 numbers [x_min, y_min, z_min, x_max, y_max, z_max] in metres")
+    if any(r[i] >= r[i + 3] for i in range(3)):
+        raise s.error("point_cloud_range", "a range whose minima are below its maxima")
+    return r
+
+
 @dataclass(frozen=True)
 class VoxelGrid:
     point_cloud_range: tuple[float, float, float, float, float, float]  # x0, y0, z0, x1, y1, z1 (m)
     voxel_size: tuple[float, float, float]  # vx, vy, vz (m)
+
+    @classmethod
+    def read(cls, s: Section) -> VoxelGrid:
+        """The grid of a model section's `point_cloud_range` and `voxel_size` (metres)."""
+        return cls(read_point_cloud_range(s),
+                   s.numbers("voxel_size", 3, low=0, need="3 positive numbers [vx, vy, vz] in metres"))
 
     def __post_init__(self):
         r, v = tuple(map(float, self.point_cloud_range)), tuple(map(float, self.voxel_size))

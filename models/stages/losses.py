@@ -10,7 +10,7 @@ from detbench.ops import boxes_to_corners_3d
 
 
 def sigmoid_focal_loss(logits: torch.Tensor, targets: torch.Tensor, weights: torch.Tensor,
-                       alpha: float = 0.25, gamma: float = 2.0) -> torch.Tensor:
+                       alpha: float, gamma: float) -> torch.Tensor:
     """Focal loss (Lin et al. 2017) summed over elements with per-element `weights`.
 
     logits, targets (0/1 float) and weights share a shape; returns a scalar.
@@ -79,7 +79,7 @@ def _safe_div(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
     return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
 
 
-def od_iou_loss(pred: torch.Tensor, target: torch.Tensor, distance: bool = True) -> torch.Tensor:
+def od_iou_loss(pred: torch.Tensor, target: torch.Tensor, distance: bool) -> torch.Tensor:
     """Orientation-decoupled IoU loss (PillarNet) of matching rows; (N, 7), (N, 7) -> (N,).
 
     The IoU is taken between the target and the predicted box turned to the target's

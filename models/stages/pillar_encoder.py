@@ -19,6 +19,7 @@ sites (batch, y, x) int32 on the grid (Y, X), features (V, C) with C = the last 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
@@ -27,10 +28,25 @@ import torch.nn.functional as F
 from detbench.ops.voxelize import dynamic_voxelize, scatter_max, scatter_mean, unique_voxels
 from detbench.sparse import SparseConvTensor
 
+from .config import Section, StageConfig
 from .grid import VoxelGrid
 from .norm import sparse_bn
 
 NUM_POINT_FEATURES = 9
+
+
+@dataclass(frozen=True)
+class PillarEncoderConfig(StageConfig):
+    """PillarNet's `model.encoder`: the pillar MLP and the sparse ResNet after it (sparse_resnet2d)."""
+
+    pillar_channels: tuple[int, ...]  # point-wise MLP widths before the max per pillar
+    channels: tuple[int, int, int, int, int]  # ResNet stages at strides 1, 2, 4, 8 (sparse) and 16 (dense)
+    blocks: tuple[int, int, int, int, int]  # residual blocks per stage
+
+    @classmethod
+    def read(cls, s: Section) -> PillarEncoderConfig:
+        return cls(pillar_channels=s.counts("pillar_channels"), channels=s.counts("channels", length=5),
+                   blocks=s.counts("blocks", low=0, length=5))
 
 
 class DynamicPillarEncoder(nn.Module):
@@ -42,7 +58,7 @@ class DynamicPillarEncoder(nn.Module):
         num_point_features: input columns per point after the batch index (x, y, z, intensity).
     """
 
-    def __init__(self, grid: VoxelGrid, mlp_channels: Sequence[int] = (32,), num_point_features: int = 4):
+    def __init__(self, grid: VoxelGrid, mlp_channels: Sequence[int], num_point_features: int = 4):
         super().__init__()
         if grid.grid_size[2] != 1:
             z0, z1 = grid.point_cloud_range[2], grid.point_cloud_range[5]

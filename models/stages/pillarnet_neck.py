@@ -13,10 +13,30 @@ Every convolution is followed by BatchNorm2d (`norm.dense_bn`: eps=1e-3, momentu
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn as nn
 
+from .config import Section, StageConfig
 from .norm import dense_bn
+
+
+@dataclass(frozen=True)
+class NeckConfig(StageConfig):
+    """PillarNet's `model.neck` (see the module docstring for the layers)."""
+
+    semantic_channels: int  # width of the 3x3 convolutions on the 16x map
+    semantic_blocks: int  # how many of them (>= 0)
+    up_channels: int  # width of the 16x map up-sampled to 8x
+    out_channels: int  # width of the fused 8x BEV map
+    fuse_blocks: int  # 3x3 convolutions after the first fusing one (>= 0)
+
+    @classmethod
+    def read(cls, s: Section) -> NeckConfig:
+        return cls(semantic_channels=s.count("semantic_channels"), semantic_blocks=s.count("semantic_blocks", 0),
+                   up_channels=s.count("up_channels"), out_channels=s.count("out_channels"),
+                   fuse_blocks=s.count("fuse_blocks", 0))
 
 
 def _cbr(cin: int, cout: int) -> list[nn.Module]:
@@ -28,14 +48,13 @@ class SpatialSemanticNeck(nn.Module):
 
     Args:
         in_channels8, in_channels16: widths of the encoder's 8x and 16x maps.
-        semantic_channels, semantic_blocks: width and number (>= 0) of the 3x3 convs at 16x.
-        up_channels: width of the up-sampled 16x map.
-        out_channels, fuse_blocks: width of the output and number (>= 0) of 3x3 convs after the first fusing conv.
+        cfg: widths and block counts (`NeckConfig`).
     """
 
-    def __init__(self, in_channels8: int, in_channels16: int, semantic_channels: int = 256, semantic_blocks: int = 2,
-                 up_channels: int = 128, out_channels: int = 128, fuse_blocks: int = 2):
+    def __init__(self, in_channels8: int, in_channels16: int, cfg: NeckConfig):
         super().__init__()
+        semantic_channels, semantic_blocks, up_channels = cfg.semantic_channels, cfg.semantic_blocks, cfg.up_channels
+        out_channels, fuse_blocks = cfg.out_channels, cfg.fuse_blocks
         widths = dict(semantic_channels=semantic_channels, up_channels=up_channels, out_channels=out_channels)
         if min(widths.values()) < 1 or semantic_blocks < 0 or fuse_blocks < 0:
             raise ValueError(f"SpatialSemanticNeck: widths must be >= 1 and block counts >= 0, got {widths}, "

@@ -19,22 +19,79 @@
   focal loss for segmentation, the coding's box loss on the foreground points) and `decode`.
 
 Every configurable value comes from the `model.point_head` section of configs/pointrcnn.yaml,
-their one home: the signatures here take them without defaults.
+their one home, read by `PointHeadConfig`.
 """
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 import torch.nn as nn
-
 import torch.nn.functional as F
 
 from detbench.ops import PointBinCoder, ResidualBoxCoder, points_in_boxes_mask
 
+from .config import Section, StageConfig, is_size3
 from .losses import sigmoid_focal_loss, weighted_smooth_l1
-from .two_stage import require_keys
+
+
+@dataclass(frozen=True)
+class BinCodingConfig(StageConfig):
+    """The bin-based box coding (`point_head.bin`)."""
+
+    loc_scope: float  # m: the x / y bins cover +- this around the point
+    loc_bin_size: float  # m per x / y bin
+    num_heading_bins: int
+
+    @classmethod
+    def read(cls, s: Section) -> BinCodingConfig:
+        return cls(loc_scope=s.positive("loc_scope", "a positive number of metres"),
+                   loc_bin_size=s.positive("loc_bin_size", "a positive number of metres"),
+                   num_heading_bins=s.count("num_heading_bins"))
+
+
+@dataclass(frozen=True)
+class PointLossWeights(StageConfig):
+    """Multipliers of the point head's loss terms (`point_head.loss_weights`)."""
+
+    point_cls: float  # segmentation focal loss
+    point_box: float  # box loss of the foreground points
+    point_size: float  # the bin coding's size term inside the box loss
+
+    @classmethod
+    def read(cls, s: Section) -> PointLossWeights:
+        return cls(point_cls=s.non_negative("point_cls"), point_box=s.non_negative("point_box"),
+                   point_size=s.non_negative("point_size"))
+
+
+@dataclass(frozen=True)
+class PointHeadConfig(StageConfig):
+    """PointRCNN's point head (`model.point_head`)."""
+
+    cls_fc: tuple[int, ...]  # widths of the segmentation branch's hidden layers
+    reg_fc: tuple[int, ...]  # widths of the box branch's hidden layers
+    extra_width: float  # m per side: points in this margin around a box are ignored by segmentation
+    fg_bottom_lift: float  # m: foreground = inside a box with its bottom raised this much
+    mean_size: tuple[float, float, float] | None  # m of the box coding; None = auto (from the training boxes)
+    box_coding: str  # bin (the paper's) or residual (OpenPCDet's PointResidualCoder)
+    bin: BinCodingConfig
+    focal_alpha: float  # segmentation focal loss: weight of the foreground
+    focal_gamma: float  # segmentation focal loss: focusing exponent
+    loss_weights: PointLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> PointHeadConfig:
+        size = s.check("mean_size", lambda v: v == "auto" or is_size3(v), "auto or [length, width, height] in "
+                                                                           "positive metres")
+        return cls(cls_fc=s.counts("cls_fc", empty=True), reg_fc=s.counts("reg_fc", empty=True),
+                   extra_width=s.non_negative("extra_width", "a number of metres >= 0"),
+                   fg_bottom_lift=s.non_negative("fg_bottom_lift", "a number of metres >= 0"),
+                   mean_size=None if size == "auto" else tuple(float(v) for v in size),
+                   box_coding=s.choice("box_coding", ("residual", "bin")), bin=s.section("bin", BinCodingConfig),
+                   focal_alpha=s.fraction("focal_alpha", "a weight"), focal_gamma=s.non_negative("focal_gamma"),
+                   loss_weights=s.section("loss_weights", PointLossWeights))
 
 
 class PointTargets(NamedTuple):
@@ -81,40 +138,31 @@ class PointHeadOutput(NamedTuple):
 class PointHead(nn.Module):
     """Segmentation and box branches on per-point features (B, N, C)."""
 
-    def __init__(self, in_channels: int, cls_fc: Sequence[int], reg_fc: Sequence[int],
-                 mean_size: Sequence[float], *, extra_width: float, loss_weights: dict, box_coding: str,
-                 bin_cfg: dict | None, fg_bottom_lift: float, focal_alpha: float = 0.25,
-                 focal_gamma: float = 2.0):
-        """`box_coding` 'residual' or 'bin' (then `bin_cfg` holds loc_scope, loc_bin_size and
-        num_heading_bins); `loss_weights` point_cls, point_box and point_size (the bin coding's
-        size term); `extra_width` metres per side; `fg_bottom_lift` metres the boxes' bottoms
-        are raised for the foreground labels (`point_targets`). The focal loss's alpha and gamma
-        are the published ones."""
+    def __init__(self, in_channels: int, cfg: PointHeadConfig):
+        """Set up by `cfg`, its mean size resolved (PointRCNN.prepare_config): with `box_coding` 'bin' the
+        x / y / heading bins of `cfg.bin`; `extra_width` metres per side; `fg_bottom_lift` metres the
+        boxes' bottoms are raised for the foreground labels (`point_targets`)."""
         super().__init__()
-        ms = [float(v) for v in mean_size]
-        if len(ms) != 3 or min(ms) <= 0:
-            raise ValueError(f"PointRCNN: point_head.mean_size must be [length, width, height] > 0 m, got {mean_size}")
-        if box_coding not in ("residual", "bin"):
-            raise ValueError(f"PointRCNN: point_head.box_coding must be 'residual' or 'bin', got {box_coding!r}")
-        self.box_coding = box_coding
-        if box_coding == "bin":
-            b = require_keys(bin_cfg, ("loc_scope", "loc_bin_size", "num_heading_bins"),
-                             "pointrcnn model.point_head.bin")
-            self.bin_coder = PointBinCoder(ms, float(b["loc_scope"]), float(b["loc_bin_size"]),
-                                           int(b["num_heading_bins"]))
+        if cfg.mean_size is None:
+            raise ValueError("PointRCNN: point_head.mean_size is still 'auto'; resolve it from the training data "
+                             "(tools/train.py does) or give [length, width, height] in metres")
+        ms = list(cfg.mean_size)
+        self.cfg = cfg
+        self.box_coding = cfg.box_coding
+        if cfg.box_coding == "bin":
+            b = cfg.bin
+            self.bin_coder = PointBinCoder(ms, b.loc_scope, b.loc_bin_size, b.num_heading_bins)
             code_size = self.bin_coder.code_size
         else:
             code_size = 8
         self.code_size = code_size
-        self.cls = self._branch(in_channels, cls_fc, 1)
-        self.reg = self._branch(in_channels, reg_fc, code_size)
+        self.cls = self._branch(in_channels, cfg.cls_fc, 1)
+        self.reg = self._branch(in_channels, cfg.reg_fc, code_size)
         nn.init.constant_(self.cls[-1].bias, -4.6)  # prior foreground probability 0.01
         self.coder = ResidualBoxCoder(encode_angle_by_sincos=True)
         self.register_buffer("mean_size", torch.tensor(ms), persistent=False)
-        self.extra_width, self.fg_bottom_lift = float(extra_width), float(fg_bottom_lift)
-        self.focal_alpha, self.focal_gamma = float(focal_alpha), float(focal_gamma)
-        self.loss_weights = require_keys(loss_weights, ("point_cls", "point_box", "point_size"),
-                                         "pointrcnn model.point_head.loss_weights")
+        self.extra_width, self.fg_bottom_lift = cfg.extra_width, cfg.fg_bottom_lift
+        self.loss_weights = cfg.loss_weights
 
     @staticmethod
     def _branch(cin: int, fc: Sequence[int], cout: int) -> nn.Sequential:
@@ -151,7 +199,8 @@ class PointHead(nn.Module):
         fg = targets.labels == 1
         n_fg = fg.sum().clamp(min=1).float()
         cls_w = (targets.labels >= 0).float() / n_fg
-        loss_cls = sigmoid_focal_loss(out.cls_logits.float(), fg.float(), cls_w, self.focal_alpha, self.focal_gamma)
+        loss_cls = sigmoid_focal_loss(out.cls_logits.float(), fg.float(), cls_w, self.cfg.focal_alpha,
+                                      self.cfg.focal_gamma)
         if self.box_coding == "bin":
             loss_box = self._bin_loss(out.box_deltas.float(), targets.boxes, xyz, fg) / n_fg
         else:
@@ -159,7 +208,7 @@ class PointHead(nn.Module):
             target = torch.where(fg[..., None], target, torch.zeros_like(target))
             loss_box = weighted_smooth_l1(out.box_deltas.float(), target, fg.float() / n_fg)
         w = self.loss_weights
-        total = w["point_cls"] * loss_cls + w["point_box"] * loss_box
+        total = w.point_cls * loss_cls + w.point_box * loss_box
         return total, {"loss_point_cls": float(loss_cls.detach()), "loss_point_box": float(loss_box.detach()),
                        "num_fg_points": float(fg.sum()) / max(b, 1)}
 
@@ -183,4 +232,4 @@ class PointHead(nn.Module):
                                 in_bin(p["h_res"], t.h_bin)], dim=-1)
         res_target = torch.stack([t.x_res, t.y_res, t.z_res, t.h_res], dim=-1)
         loss = loss + weighted_smooth_l1(res_pred, res_target, ones)
-        return loss + self.loss_weights["point_size"] * weighted_smooth_l1(p["size_res"], t.size_res, ones)
+        return loss + self.loss_weights.point_size * weighted_smooth_l1(p["size_res"], t.size_res, ones)

@@ -16,6 +16,7 @@ stage. Every level keeps a fixed number of points per frame, so counts stay unif
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -25,6 +26,39 @@ from detbench.ops import ball_query, farthest_point_sample, group_neighbours, th
 
 from detbench.sparse import SafeBatchNorm1d
 
+from .config import Section, StageConfig, ball_radii, centre_counts, nested_counts
+
+@dataclass(frozen=True)
+class SamplingConfig(StageConfig):
+    """PointRCNN's `model.sampling`: each frame's points to a fixed budget (`sample_frame_points`)."""
+
+    num_points: int  # points per frame fed to the network
+    far_threshold: float  # m (BEV): points farther than this are kept first
+    shuffle: bool  # sampled points in random order
+
+    @classmethod
+    def read(cls, s: Section) -> SamplingConfig:
+        return cls(num_points=s.count("num_points"),
+                   far_threshold=s.non_negative("far_threshold", "a distance >= 0 in metres"),
+                   shuffle=s.flag("shuffle"))
+
+
+@dataclass(frozen=True)
+class PointNet2Config(StageConfig):
+    """PointRCNN's `model.backbone`: one entry per set-abstraction level (and per scale inside one)."""
+
+    npoints: tuple[int | None, ...]  # centres per frame of each level (-1 in the YAML, None here: all points)
+    radii: tuple[tuple[float, ...], ...]  # m, ball radius of each scale
+    nsamples: tuple[tuple[int, ...], ...]  # points per ball of each scale
+    mlps: tuple[tuple[tuple[int, ...], ...], ...]  # layer widths of each scale
+    fp_mlps: tuple[tuple[int, ...], ...]  # layer widths of each feature-propagation level
+
+    @classmethod
+    def read(cls, s: Section) -> PointNet2Config:
+        return cls(npoints=centre_counts(s, "npoints"), radii=ball_radii(s, "radii"),
+                   nsamples=nested_counts(s, "nsamples", 2), mlps=nested_counts(s, "mlps", 3),
+                   fp_mlps=nested_counts(s, "fp_mlps", 2))
+
 
 class SampledPoints(NamedTuple):
     points: torch.Tensor  # (B * N, C) the sampled rows of each frame, frames in order
@@ -33,8 +67,8 @@ class SampledPoints(NamedTuple):
 
 
 @torch.no_grad()
-def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, far_threshold: float = 40.0,
-                        generator: torch.Generator | None = None, shuffle: bool = False) -> SampledPoints:
+def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, far_threshold: float,
+                        generator: torch.Generator | None = None, *, shuffle: bool) -> SampledPoints:
     """Each frame of a Batch's points (P, 1 + C) to exactly `num_points` rows (PointRCNN's sampling).
 
     A frame with more points keeps all points farther than `far_threshold` (BEV distance from
@@ -83,7 +117,7 @@ class SharedMLP(nn.Module):
     """Per-point layers: (..., C_in) -> (..., C_out), Linear (no bias) + BatchNorm + ReLU each,
     or with `batch_norm` False Linear (with bias) + ReLU."""
 
-    def __init__(self, channels: Sequence[int], batch_norm: bool = True):
+    def __init__(self, channels: Sequence[int], batch_norm: bool):
         super().__init__()
         layers: list[nn.Module] = []
         for cin, cout in zip(channels[:-1], channels[1:]):
@@ -115,7 +149,7 @@ class SetAbstraction(nn.Module):
     """
 
     def __init__(self, npoint: int | None, radii: Sequence[float], nsamples: Sequence[int],
-                 mlps: Sequence[Sequence[int]], in_channels: int, batch_norm: bool = True):
+                 mlps: Sequence[Sequence[int]], in_channels: int, batch_norm: bool):
         super().__init__()
         if npoint is not None and not (len(radii) == len(nsamples) == len(mlps)):
             raise ValueError(f"SetAbstraction: radii {list(radii)}, nsamples {list(nsamples)} and mlps need one "
@@ -149,7 +183,7 @@ class FeaturePropagation(nn.Module):
 
     def __init__(self, coarse_channels: int, fine_channels: int, mlp: Sequence[int]):
         super().__init__()
-        self.mlp = SharedMLP([coarse_channels + fine_channels, *mlp])
+        self.mlp = SharedMLP([coarse_channels + fine_channels, *mlp], batch_norm=True)
         self.out_channels = self.mlp.out_channels
 
     def forward(self, fine: PointLevel, coarse: PointLevel) -> PointLevel:
@@ -177,7 +211,7 @@ class PointNet2MSG(nn.Module):
         channels = [in_channels]
         c = in_channels
         for npoint, r, ns, m in zip(npoints, radii, nsamples, mlps):
-            layer = SetAbstraction(npoint, r, ns, m, c)
+            layer = SetAbstraction(npoint, r, ns, m, c, batch_norm=True)
             self.sa.append(layer)
             c = layer.out_channels
             channels.append(c)

@@ -22,34 +22,86 @@ backbone's point features (the first stage then learns from its own loss only).
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 import torch.nn as nn
 
 from detbench.ops import roi_point_pool
 
+from .config import Section, StageConfig, ball_radii, centre_counts, nested_counts
 from .pointnet2 import PointLevel, SetAbstraction, SharedMLP
+from .two_stage import ProposalConfig, RefineLossWeights, TargetConfig
+
+
+@dataclass(frozen=True)
+class TestSplitConfig(StageConfig):
+    """`roi_head.test_split`: the test proposal budget split by range (`select_proposals_by_distance`)."""
+
+    enabled: bool
+    distance: float  # m (BEV) from the sensor: proposals within it are near
+    near_share: float  # share of the budget that goes to the near proposals
+
+    @classmethod
+    def read(cls, s: Section) -> TestSplitConfig:
+        return cls(enabled=s.flag("enabled"), distance=s.non_negative("distance", "a distance >= 0 in metres"),
+                   near_share=s.fraction("near_share", "a share"))
+
+
+@dataclass(frozen=True)
+class PointRCNNRoIHeadConfig(StageConfig):
+    """PointRCNN's `model.roi_head`: RoI point pooling, its PointNet++ and the shared second stage."""
+
+    num_points: int  # pooled points per RoI
+    pool_extra_width: float  # m per side the RoI is grown by for pooling
+    depth_normalizer: float  # m: depth feature = distance / this - 0.5
+    batch_norm: bool  # Linear + BatchNorm + ReLU layers (true) or Linear + ReLU
+    scaled_xyz: bool  # also the canonical x, y, z divided by the RoI's half-size
+    roi_size: bool  # the RoI's log l, w, h appended to its pooled feature
+    detach_features: bool  # the refinement's gradients stop at the backbone's point features
+    test_split: TestSplitConfig
+    xyz_up: tuple[int, ...]  # widths lifting the pooled point's coordinates to a feature
+    sa_npoints: tuple[int | None, ...]  # centres of each set-abstraction level (None: every point)
+    sa_radii: tuple[float, ...]  # m, ball radius of each level
+    sa_nsamples: tuple[int, ...]  # points per ball of each level
+    sa_mlps: tuple[tuple[int, ...], ...]  # layer widths of each level
+    fc: tuple[int, ...]  # hidden widths of the confidence and box branches
+    dropout: float  # dropout probability in those branches
+    proposals: ProposalConfig
+    targets: TargetConfig
+    loss_weights: RefineLossWeights
+
+    @classmethod
+    def read(cls, s: Section) -> PointRCNNRoIHeadConfig:
+        return cls(num_points=s.count("num_points"),
+                   pool_extra_width=s.non_negative("pool_extra_width", "a number of metres >= 0"),
+                   depth_normalizer=s.positive("depth_normalizer", "a positive distance in metres"),
+                   batch_norm=s.flag("batch_norm"), scaled_xyz=s.flag("scaled_xyz"), roi_size=s.flag("roi_size"),
+                   detach_features=s.flag("detach_features"), test_split=s.section("test_split", TestSplitConfig),
+                   xyz_up=s.counts("xyz_up"), sa_npoints=centre_counts(s, "sa_npoints"),
+                   sa_radii=ball_radii(s, "sa_radii", depth=1), sa_nsamples=nested_counts(s, "sa_nsamples", 1),
+                   sa_mlps=nested_counts(s, "sa_mlps", 2), fc=s.counts("fc", empty=True),
+                   dropout=s.fraction("dropout", "a probability"), proposals=s.section("proposals", ProposalConfig),
+                   targets=s.section("targets", TargetConfig),
+                   loss_weights=s.section("loss_weights", RefineLossWeights))
 
 
 class PointRCNNRoIHead(nn.Module):
-    def __init__(self, point_channels: int, num_points: int = 512, pool_extra_width: float = 1.0,
-                 depth_normalizer: float = 70.0, xyz_up: Sequence[int] = (128, 128),
-                 sa_npoints: Sequence[int | None] = (128, 32, None), sa_radii: Sequence[float] = (0.2, 0.4, 100.0),
-                 sa_nsamples: Sequence[int] = (16, 16, 16),
-                 sa_mlps: Sequence[Sequence[int]] = ((128, 128, 128), (128, 128, 256), (256, 256, 512)),
-                 *, batch_norm: bool = True, scaled_xyz: bool = False, roi_size: bool = False,
-                 detach_features: bool = False):
+    """RoI point pooling and PointNet++ inside each RoI, set up by `cfg`, on the backbone's point
+    features of width `point_channels`."""
+
+    def __init__(self, point_channels: int, cfg: PointRCNNRoIHeadConfig):
         super().__init__()
-        self.num_points, self.pool_extra_width = int(num_points), float(pool_extra_width)
-        self.depth_normalizer = float(depth_normalizer)
-        self.scaled_xyz, self.roi_size, self.detach_features = bool(scaled_xyz), bool(roi_size), bool(detach_features)
+        self.num_points, self.pool_extra_width = cfg.num_points, cfg.pool_extra_width
+        self.depth_normalizer = cfg.depth_normalizer
+        self.scaled_xyz, self.roi_size, self.detach_features = cfg.scaled_xyz, cfg.roi_size, cfg.detach_features
+        batch_norm, xyz_up = cfg.batch_norm, cfg.xyz_up
         width = int(xyz_up[-1])
         self.xyz_up = SharedMLP([8 if self.scaled_xyz else 5, *xyz_up], batch_norm)
         self.merge_down = SharedMLP([width + point_channels, width], batch_norm)
         self.sa = nn.ModuleList()
         c = width
-        for npoint, r, ns, mlp in zip(sa_npoints, sa_radii, sa_nsamples, sa_mlps):
+        for npoint, r, ns, mlp in zip(cfg.sa_npoints, cfg.sa_radii, cfg.sa_nsamples, cfg.sa_mlps):
             layer = SetAbstraction(npoint, [r], [ns], [mlp], c, batch_norm)
             self.sa.append(layer)
             c = layer.out_channels

@@ -85,8 +85,8 @@ class SparseResNet2d(nn.Module):
 
     stride8, stride16 = 8, 16
 
-    def __init__(self, in_channels: int, spatial_shape: Sequence[int],
-                 channels: Sequence[int] = (32, 64, 128, 256, 256), blocks: Sequence[int] = (2, 2, 2, 2, 2)):
+    def __init__(self, in_channels: int, spatial_shape: Sequence[int], channels: Sequence[int],
+                 blocks: Sequence[int]):
         super().__init__()
         channels, blocks = [int(c) for c in channels], [int(b) for b in blocks]
         if len(channels) != 5 or len(blocks) != 5 or min(channels) < 1 or min(blocks) < 0:

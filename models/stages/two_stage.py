@@ -23,6 +23,8 @@ a Huber loss, so neither the loss nor its gradient can explode on a wild early p
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
@@ -32,20 +34,93 @@ import torch.nn.functional as F
 from detbench.data.batch import Detections
 from detbench.ops import ResidualBoxCoder, boxes_iou3d, nms_bev, normalize_heading
 
+from .config import Section, StageConfig, is_list_of, is_number
 from .losses import corner_loss, weighted_smooth_l1
-from .postprocess import select_detections
+from .postprocess import PostConfig
 
 LOG_SIZE_CLAMP = 3.0  # |log(size / roi size)| at most e^3 when decoding residuals
 # A padding RoI (frames with fewer proposals than slots): a car-sized box far from anything,
 # so its geometry stays finite; it is masked out of every loss and prediction.
 PAD_ROI = (1000.0, 0.0, 1.0, 4.0, 1.8, 1.5, 0.0)
 
-# The keys of a model's `roi_head.proposals.{train,test}` and `roi_head.targets` sections.
-# Their values live in the model's YAML (configs/pointrcnn.yaml, configs/ct3d.yaml), the one
-# home of every default; the meaning of each is documented there and in the functions below.
-PROPOSAL_KEYS = ("pre_nms_top_k", "post_nms_top_k", "nms_threshold")
-TARGET_KEYS = ("roi_per_image", "fg_ratio", "reg_fg_thresh", "cls_fg_thresh", "cls_bg_thresh", "cls_bg_thresh_lo",
-               "hard_bg_ratio", "cls_score_type", "gt_jitter_copies", "gt_jitter")
+
+# --------------------------------------------------------------------------------------
+# the second stage's configs (a two-stage model's `roi_head:` section holds them)
+# --------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ProposalBudget(StageConfig):
+    """One NMS budget of `roi_head.proposals` (train or test)."""
+
+    pre_nms_top_k: int  # the best first-stage boxes that enter NMS (0: none, the second stage idles)
+    post_nms_top_k: int  # RoI slots per frame after NMS
+    nms_threshold: float  # BEV IoU above which the lower-scored box is suppressed
+
+    @classmethod
+    def read(cls, s: Section) -> ProposalBudget:
+        return cls(pre_nms_top_k=s.count("pre_nms_top_k", 0), post_nms_top_k=s.count("post_nms_top_k", 0),
+                   nms_threshold=s.fraction("nms_threshold", "an IoU"))
+
+
+@dataclass(frozen=True)
+class ProposalConfig(StageConfig):
+    """`roi_head.proposals`: the budgets in training and in evaluation."""
+
+    train: ProposalBudget
+    test: ProposalBudget
+
+    @classmethod
+    def read(cls, s: Section) -> ProposalConfig:
+        return cls(train=s.section("train", ProposalBudget), test=s.section("test", ProposalBudget))
+
+
+CLS_SCORE_TYPES = ("roi_iou", "binary")
+
+
+@dataclass(frozen=True)
+class TargetConfig(StageConfig):
+    """`roi_head.targets`: proposal target sampling in training (`sample_proposal_targets`)."""
+
+    roi_per_image: int  # RoIs per frame the second stage is trained on
+    fg_ratio: float  # share of foreground RoIs among them (when there are enough)
+    reg_fg_thresh: float  # 3D IoU from which a RoI is foreground and regressed
+    cls_fg_thresh: float  # confidence target 1 from this IoU ...
+    cls_bg_thresh: float  # ... 0 below this one (roi_iou: linear in between; binary: in between ignored)
+    cls_bg_thresh_lo: float  # below: easy background; from here to reg_fg_thresh: hard background
+    hard_bg_ratio: float  # share of hard background among the background RoIs
+    cls_score_type: str  # roi_iou (IoU-guided confidence) or binary
+    gt_jitter_copies: int  # jittered copies of each ground-truth box added as training RoIs
+    gt_jitter: tuple[float, ...]  # their std: x y z (m), log sizes, heading (rad)
+
+    @classmethod
+    def read(cls, s: Section) -> TargetConfig:
+        c = cls(roi_per_image=s.count("roi_per_image", 0), fg_ratio=s.fraction("fg_ratio", "a share"),
+                reg_fg_thresh=s.fraction("reg_fg_thresh", "an IoU"),
+                cls_fg_thresh=s.fraction("cls_fg_thresh", "an IoU"),
+                cls_bg_thresh=s.fraction("cls_bg_thresh", "an IoU"),
+                cls_bg_thresh_lo=s.fraction("cls_bg_thresh_lo", "an IoU"),
+                hard_bg_ratio=s.fraction("hard_bg_ratio", "a share"),
+                cls_score_type=s.choice("cls_score_type", CLS_SCORE_TYPES),
+                gt_jitter_copies=s.count("gt_jitter_copies", 0),
+                gt_jitter=tuple(float(v) for v in s.check(
+                    "gt_jitter", lambda v: is_list_of(v, lambda x: is_number(x) and x >= 0) and len(v) == 7,
+                    "7 standard deviations >= 0: x y z (m), log sizes, heading (rad)")))
+        s.order("cls_bg_thresh", "cls_fg_thresh")
+        s.order("cls_bg_thresh_lo", "cls_bg_thresh")
+        return c
+
+
+@dataclass(frozen=True)
+class RefineLossWeights(StageConfig):
+    """Multipliers of the second stage's loss terms (`roi_head.loss_weights`)."""
+
+    rcnn_cls: float  # confidence binary cross-entropy
+    rcnn_reg: float  # residual smooth-L1
+    rcnn_corner: float  # corner loss
+
+    @classmethod
+    def read(cls, s: Section) -> RefineLossWeights:
+        return cls(rcnn_cls=s.non_negative("rcnn_cls"), rcnn_reg=s.non_negative("rcnn_reg"),
+                   rcnn_corner=s.non_negative("rcnn_corner"))
 
 
 class Proposals(NamedTuple):
@@ -86,23 +161,6 @@ class OutputStageSwitch:
         if stage not in OUTPUT_STAGES:
             raise ValueError(f"output stage must be 'refined' or 'proposals', got {stage!r}")
         self.output_stage = stage
-
-
-def require_keys(cfg: dict | None, keys: tuple[str, ...], where: str) -> dict:
-    """A copy of `cfg` after checking it holds exactly `keys`; errors name `where` and the key."""
-    cfg = dict(cfg or {})
-    missing, unknown = [k for k in keys if k not in cfg], sorted(set(cfg) - set(keys))
-    if missing or unknown:
-        raise ValueError(f"{where}: " + "; ".join(
-            ([f"missing key(s) {missing}"] if missing else []) + ([f"unknown key(s) {unknown}"] if unknown else []))
-            + f" (expected {list(keys)}; see the model's YAML in configs/)")
-    return cfg
-
-
-def proposal_budgets(cfg: dict, where: str) -> dict:
-    """{'train': {...}, 'test': {...}} NMS budgets from a model's `roi_head.proposals` section."""
-    cfg = require_keys(cfg, ("train", "test"), where)
-    return {k: require_keys(cfg[k], PROPOSAL_KEYS, f"{where}.{k}") for k in ("train", "test")}
 
 
 # --------------------------------------------------------------------------------------
@@ -192,25 +250,25 @@ def _pick(idx: torch.Tensor, n: int, gen: torch.Generator | None, replace: bool)
     return idx[torch.randperm(idx.numel(), generator=gen)[:n].to(idx.device)]
 
 
-def confidence_targets(iou: torch.Tensor, cfg: dict) -> tuple[torch.Tensor, torch.Tensor]:
+def confidence_targets(iou: torch.Tensor, cfg: TargetConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """(target in [0, 1], mask) of the confidence branch for RoIs with 3D IoU `iou`.
 
     roi_iou (CT3D, the IoU-guided score): 1 at IoU >= cls_fg_thresh, 0 at IoU <= cls_bg_thresh,
     linear in between; every RoI counts. binary (PointRCNN): 1 from cls_fg_thresh, 0 below
     cls_bg_thresh, RoIs in between are ignored.
     """
-    fg, bg = float(cfg["cls_fg_thresh"]), float(cfg["cls_bg_thresh"])
-    if cfg["cls_score_type"] == "roi_iou":
+    fg, bg = cfg.cls_fg_thresh, cfg.cls_bg_thresh
+    if cfg.cls_score_type == "roi_iou":
         target = ((iou - bg) / max(fg - bg, 1e-6)).clamp(0.0, 1.0)
         return target, torch.ones_like(iou, dtype=torch.bool)
-    if cfg["cls_score_type"] == "binary":
+    if cfg.cls_score_type == "binary":
         target = (iou >= fg).float()
         return target, (iou >= fg) | (iou < bg)
-    raise ValueError(f"cls_score_type must be 'roi_iou' or 'binary', got {cfg['cls_score_type']!r}")
+    raise ValueError(f"cls_score_type must be 'roi_iou' or 'binary', got {cfg.cls_score_type!r}")
 
 
 @torch.no_grad()
-def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mask: torch.Tensor, cfg: dict,
+def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mask: torch.Tensor, cfg: TargetConfig,
                             generator: torch.Generator | None = None) -> RoiTargets:
     """Sample `roi_per_image` RoIs per frame and give each its training targets.
 
@@ -222,22 +280,20 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
     filling in when one is missing). With foreground only, S draws with replacement; with
     background only, S background draws. A frame with no candidate at all gets padding
     RoIs (valid False). Random draws use `generator` (a CPU torch.Generator) when given.
-    `cfg` holds every key of TARGET_KEYS (a model's `roi_head.targets` section).
     """
-    cfg = require_keys(cfg, TARGET_KEYS, "proposal targets")
     b = proposals.rois.shape[0]
-    s = int(cfg["roi_per_image"])
+    s = cfg.roi_per_image
     device = proposals.rois.device
     pad = torch.tensor(PAD_ROI, dtype=torch.float32, device=device)
     rois = pad.repeat(b, s, 1)
     gt_of = torch.zeros(b, s, 7, device=device)
     ious = torch.zeros(b, s, device=device)
     valid = torch.zeros(b, s, dtype=torch.bool, device=device)
-    n_fg_want = int(round(float(cfg["fg_ratio"]) * s))
+    n_fg_want = int(round(cfg.fg_ratio * s))
     for i in range(b):
         gt = gt_boxes[i][gt_mask[i]].float()
         cand = torch.cat([proposals.rois[i][proposals.mask[i]].float(),
-                          _jitter_gt(gt, int(cfg["gt_jitter_copies"]), cfg["gt_jitter"], generator)])
+                          _jitter_gt(gt, cfg.gt_jitter_copies, list(cfg.gt_jitter), generator)])
         if cand.shape[0] == 0:
             continue
         if gt.shape[0]:
@@ -246,9 +302,9 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
         else:
             max_iou = torch.zeros(cand.shape[0], device=device)
             assign = torch.zeros(cand.shape[0], dtype=torch.long, device=device)
-        fg = (max_iou >= cfg["reg_fg_thresh"]).nonzero(as_tuple=True)[0]
-        hard = ((max_iou < cfg["reg_fg_thresh"]) & (max_iou >= cfg["cls_bg_thresh_lo"])).nonzero(as_tuple=True)[0]
-        easy = (max_iou < cfg["cls_bg_thresh_lo"]).nonzero(as_tuple=True)[0]
+        fg = (max_iou >= cfg.reg_fg_thresh).nonzero(as_tuple=True)[0]
+        hard = ((max_iou < cfg.reg_fg_thresh) & (max_iou >= cfg.cls_bg_thresh_lo)).nonzero(as_tuple=True)[0]
+        easy = (max_iou < cfg.cls_bg_thresh_lo).nonzero(as_tuple=True)[0]
         n_bg_avail = hard.numel() + easy.numel()
         if fg.numel() and n_bg_avail:
             take_fg = _pick(fg, min(n_fg_want, fg.numel()), generator, replace=False)
@@ -258,7 +314,7 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
             take_fg = fg[:0]
         n_bg = s - take_fg.numel()
         if n_bg > 0 and n_bg_avail:
-            n_hard = int(round(n_bg * float(cfg["hard_bg_ratio"]))) if easy.numel() else n_bg
+            n_hard = int(round(n_bg * cfg.hard_bg_ratio)) if easy.numel() else n_bg
             n_hard = n_hard if hard.numel() else 0
             take_bg = torch.cat([_pick(hard, n_hard, generator, replace=True),
                                  _pick(easy, n_bg - n_hard, generator, replace=True)])
@@ -271,7 +327,7 @@ def sample_proposal_targets(proposals: Proposals, gt_boxes: torch.Tensor, gt_mas
         if gt.shape[0]:
             gt_of[i, :k] = gt[assign[take]]
         valid[i, :k] = True
-    reg_mask = valid & (ious >= cfg["reg_fg_thresh"])
+    reg_mask = valid & (ious >= cfg.reg_fg_thresh)
     cls_target, cls_mask = confidence_targets(ious, cfg)
     return RoiTargets(rois, gt_of, ious, reg_mask, cls_target, cls_mask & valid, valid)
 
@@ -283,22 +339,32 @@ class RoIs(NamedTuple):
     targets: RoiTargets | None  # training targets of the RoIs (None in evaluation)
 
 
-def rois_for_refinement(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor | None, gt_boxes: torch.Tensor,
-                        gt_mask: torch.Tensor, budgets: dict, target_cfg: dict, training: bool,
-                        test_split: dict | None = None) -> RoIs:
+def rois_for_refinement(boxes: torch.Tensor, scores: torch.Tensor, valid: torch.Tensor | None,
+                        proposals: ProposalConfig, targets: TargetConfig,
+                        gt: tuple[torch.Tensor, torch.Tensor] | None,
+                        test_split: tuple[float, float] | None = None) -> RoIs:
     """The step between the stages: proposals under the train or test budget, then (training)
     target sampling; the first stage's boxes (B, A, 7) and scores (B, A) are detached.
-    `test_split` ({distance, near_share}, or None) splits the test budget by range
-    (`select_proposals_by_distance`)."""
-    if not training and test_split is not None:
-        props = select_proposals_by_distance(boxes.detach(), scores.detach(), valid=valid, **budgets["test"],
-                                             distance=test_split["distance"], near_share=test_split["near_share"])
+
+    `gt` is the batch's (gt_boxes (B, M, 7), gt_mask (B, M)) in training and None in evaluation,
+    which uses the test budget and never sees the ground truth. `test_split` (distance m,
+    near_share), or None, splits the test budget by range (`select_proposals_by_distance`).
+    """
+    if gt is None and test_split is not None:
+        distance, near_share = test_split
+        props = select_proposals_by_distance(boxes.detach(), scores.detach(), valid=valid,
+                                             **_budget(proposals.test), distance=distance, near_share=near_share)
         return RoIs(props, props.rois, props.mask, None)
-    props = select_proposals(boxes.detach(), scores.detach(), valid=valid, **budgets["train" if training else "test"])
-    if not training:
+    props = select_proposals(boxes.detach(), scores.detach(), valid=valid,
+                             **_budget(proposals.test if gt is None else proposals.train))
+    if gt is None:
         return RoIs(props, props.rois, props.mask, None)
-    targets = sample_proposal_targets(props, gt_boxes, gt_mask, target_cfg)
-    return RoIs(props, targets.rois, targets.valid, targets)
+    sampled = sample_proposal_targets(props, gt[0], gt[1], targets)
+    return RoIs(props, sampled.rois, sampled.valid, sampled)
+
+
+def _budget(b: ProposalBudget) -> dict:
+    return {"pre_nms_top_k": b.pre_nms_top_k, "post_nms_top_k": b.post_nms_top_k, "nms_threshold": b.nms_threshold}
 
 
 # --------------------------------------------------------------------------------------
@@ -351,14 +417,14 @@ def decode_refined(deltas: torch.Tensor, rois: torch.Tensor, coder: ResidualBoxC
 # --------------------------------------------------------------------------------------
 # the second stage's loss (the loss functions themselves live in losses.py)
 # --------------------------------------------------------------------------------------
-def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None = None) -> tuple[torch.Tensor, dict]:
+def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: RefineLossWeights) -> tuple[torch.Tensor, dict]:
     """Loss of the second stage: confidence BCE + residual smooth-L1 + corner loss.
 
     The confidence loss averages over RoIs with a confidence target; the regression terms
     average over foreground RoIs. Frames with no RoI (or no foreground) contribute 0.
     """
     t = out.targets
-    w = {"rcnn_cls": 1.0, "rcnn_reg": 1.0, "rcnn_corner": 1.0, **(weights or {})}  # unit weights unless given
+    w = weights
     logits = out.cls_logits.float()
     cm = t.cls_mask.float()
     bce = F.binary_cross_entropy_with_logits(logits, t.cls_target, reduction="none")
@@ -377,7 +443,7 @@ def refine_loss(out: RefineOutput, coder: ResidualBoxCoder, weights: dict | None
         loss_corner = corner_loss(pred_local, gt_local).sum() / n_fg
     else:
         loss_corner = deltas.sum() * 0.0
-    total = w["rcnn_cls"] * loss_cls + w["rcnn_reg"] * loss_reg + w["rcnn_corner"] * loss_corner
+    total = w.rcnn_cls * loss_cls + w.rcnn_reg * loss_reg + w.rcnn_corner * loss_corner
     parts = {"loss_rcnn_cls": float(loss_cls.detach()), "loss_rcnn_reg": float(loss_reg.detach()),
              "loss_rcnn_corner": float(loss_corner.detach()), "num_fg_rois": float(fg.sum()) / max(fg.shape[0], 1)}
     return total, parts
@@ -394,7 +460,7 @@ class RefineHead(nn.Module):
     near zero (std 0.001) so the first refinements are small.
     """
 
-    def __init__(self, in_channels: int, fc: list[int], dropout: float = 0.1, code_size: int = 7):
+    def __init__(self, in_channels: int, fc: Sequence[int], dropout: float, code_size: int = 7):
         super().__init__()
         self.cls = self._branch(in_channels, fc, dropout, 1)
         self.reg = self._branch(in_channels, fc, dropout, code_size)
@@ -402,7 +468,7 @@ class RefineHead(nn.Module):
         nn.init.zeros_(self.reg[-1].bias)
 
     @staticmethod
-    def _branch(cin: int, fc: list[int], dropout: float, cout: int) -> nn.Sequential:
+    def _branch(cin: int, fc: Sequence[int], dropout: float, cout: int) -> nn.Sequential:
         layers: list[nn.Module] = []
         for c in fc:
             layers += [nn.Linear(cin, c), nn.LayerNorm(c), nn.ReLU(inplace=True)]
@@ -418,12 +484,12 @@ class RefineHead(nn.Module):
 
 
 @torch.no_grad()
-def predict_refined(out: RefineOutput, coder: ResidualBoxCoder, post: dict) -> list[Detections]:
+def predict_refined(out: RefineOutput, coder: ResidualBoxCoder, post: PostConfig) -> list[Detections]:
     """Decoded refined boxes, sigmoid confidence, the detector's final NMS, per frame."""
     boxes = decode_refined(out.box_deltas.float(), out.rois.float(), coder)
     scores = torch.sigmoid(out.cls_logits.float())
     dets = []
     for i in range(boxes.shape[0]):
         m = out.roi_mask[i]
-        dets.append(select_detections(boxes[i][m], scores[i][m], **post))
+        dets.append(post.select(boxes[i][m], scores[i][m]))
     return dets

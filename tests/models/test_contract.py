@@ -41,6 +41,9 @@ def test_class_declares_the_contract(name):
     prep = inspect.getattr_static(cls, "prepare_config", None)
     assert isinstance(prep, (staticmethod, classmethod)), f"{name}.prepare_config must be a static or class method"
     assert list(inspect.signature(cls.prepare_config).parameters)[-2:] == ["model_cfg", "train_boxes"]
+    from models.stages import StageConfig
+
+    assert isinstance(cls.CONFIG, type) and issubclass(cls.CONFIG, StageConfig), f"{name}.CONFIG: its typed config"
     stages = inspect.getattr_static(cls, "STAGES", None)
     assert isinstance(stages, dict) and stages and all(
         isinstance(k, str) and isinstance(v, list) and v and all(isinstance(c, str) for c in v)

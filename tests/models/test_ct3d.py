@@ -65,12 +65,12 @@ def test_cylinder_gathering_matches_brute_force(random):
 def test_gathering_is_deterministic_in_evaluation_and_seeded_in_training():
     pts, rois = random_scene(1, n=2000)
     points = torch.cat([torch.zeros(len(pts), 1), pts], 1)
-    a = gather_cylinder_points(points, rois[None], 8, random=False)
-    b = gather_cylinder_points(points, rois[None], 8, random=False)
+    a = gather_cylinder_points(points, rois[None], 8, 1.2, random=False)
+    b = gather_cylinder_points(points, rois[None], 8, 1.2, random=False)
     assert torch.equal(a.points, b.points)
     g1, g2 = torch.Generator().manual_seed(5), torch.Generator().manual_seed(5)
-    c = gather_cylinder_points(points, rois[None], 8, random=True, generator=g1)
-    d = gather_cylinder_points(points, rois[None], 8, random=True, generator=g2)
+    c = gather_cylinder_points(points, rois[None], 8, 1.2, random=True, generator=g1)
+    d = gather_cylinder_points(points, rois[None], 8, 1.2, random=True, generator=g2)
     assert torch.equal(c.points, d.points) and not torch.equal(a.points, c.points)
 
 

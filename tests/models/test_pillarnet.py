@@ -13,8 +13,8 @@ from detbench.data.batch import collate
 from detbench.ops import boxes_iou3d, boxes_iou3d_aligned
 from models.pillarnet import PillarNet
 from models.stages import VoxelGrid
-from models.stages.center_head import (CenterHead, CenterHeadOutput, build_center_targets, decode_regression,
-                                       gaussian_radius)
+from models.stages.center_head import (CenterHead, CenterHeadConfig, CenterHeadOutput, CenterPostConfig,
+                                       build_center_targets, decode_regression, gaussian_radius)
 from models.stages.losses import centernet_focal_loss, od_iou_loss
 from models.stages.pillar_encoder import DynamicPillarEncoder
 from tests.helpers import ROOT
@@ -97,7 +97,7 @@ def test_gaussian_targets_on_hand_made_boxes():
     grid = VoxelGrid((0.0, -16.0, -0.6, 153.6, 16.0, 4.2), (0.1, 0.1, 4.8))
     # stride 8: 0.8 m cells; a car's radius falls below the floor of 2 cells
     box = torch.tensor([[[20.43, 1.23, 0.8, 4.5, 1.8, 1.6, 0.4]]])  # away from cell borders
-    t = build_center_targets(box, torch.ones(1, 1, dtype=torch.bool), grid, 8, min_radius=2)
+    t = build_center_targets(box, torch.ones(1, 1, dtype=torch.bool), grid, 8, min_radius=2, min_overlap=0.1)
     heat = t.heatmap[0, 0]
     cx, cy = int(20.43 / 0.8), int((1.23 + 16) / 0.8)
     assert heat[cy, cx] == 1.0 and int((heat == 1.0).sum()) == 1
@@ -112,7 +112,7 @@ def test_gaussian_targets_on_hand_made_boxes():
     assert torch.allclose(reg[2:], torch.tensor([0.8, math.log(4.5), math.log(1.8), math.log(1.6), math.sin(0.4),
                                                  math.cos(0.4)]), atol=1e-6)
     # stride 1 (0.1 m cells): the radius comes from the box size (45 x 18 cells)
-    t1 = build_center_targets(box, torch.ones(1, 1, dtype=torch.bool), grid, 1, min_radius=2)
+    t1 = build_center_targets(box, torch.ones(1, 1, dtype=torch.bool), grid, 1, min_radius=2, min_overlap=0.1)
     r = int(math.floor(float(gaussian_radius(torch.tensor(45.0), torch.tensor(18.0), 0.1))))
     assert r >= 5
     nz = t1.heatmap[0, 0].nonzero()
@@ -121,7 +121,7 @@ def test_gaussian_targets_on_hand_made_boxes():
     assert int((nz[:, 1] - cx1).abs().max()) == r and int((nz[:, 0] - cy1).abs().max()) == r
     # boxes off the map and padding rows are masked out
     off = torch.tensor([[[200.0, 0.0, 0.8, 4.0, 2.0, 1.5, 0.0], [0.0] * 7]])
-    t2 = build_center_targets(off, torch.tensor([[True, False]]), grid, 8)
+    t2 = build_center_targets(off, torch.tensor([[True, False]]), grid, 8, min_radius=2, min_overlap=0.1)
     assert not t2.mask.any() and float(t2.heatmap.sum()) == 0.0
 
 
@@ -167,8 +167,10 @@ def _perfect_output(head: CenterHead, boxes: torch.Tensor, mask: torch.Tensor) -
 @pytest.mark.parametrize("method", ["maxpool", "nms"])
 def test_head_decoding_round_trip(method):
     grid = VoxelGrid((0.0, -16.0, -0.6, 153.6, 16.0, 4.2), (0.1, 0.1, 4.8))
-    post = {"method": method, "score_threshold": 0.3}
-    head = CenterHead(8, grid, 8, post=post)
+    cfg = default_cfg()
+    cfg["head"].update(shared_channels=64, head_channels=64)
+    post = CenterPostConfig.from_config({**cfg["post"], "method": method, "score_threshold": 0.3}, "model.post")
+    head = CenterHead(8, grid, 8, CenterHeadConfig.from_config(cfg["head"], "model.head"), post)
     gt = torch.tensor([[[10.37, 2.11, 0.8, 4.5, 1.9, 1.6, 0.2], [25.71, -4.43, 1.6, 12.0, 2.5, 3.2, -3.0],
                         [80.05, 13.9, 0.9, 4.2, 1.8, 1.5, 3.1]],
                        [[140.2, -15.5, 0.8, 4.8, 2.0, 1.6, -1.2], [0.0] * 7, [0.0] * 7]])
@@ -197,10 +199,10 @@ def test_decode_regression_matches_cell_geometry():
 # ----------------------------------------------------------------------------- OD-IoU loss
 def test_od_iou_loss_identical_degenerate_and_exact():
     box = torch.tensor([[10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.7]])
-    assert float(od_iou_loss(box, box)) == pytest.approx(0.0, abs=1e-6)
+    assert float(od_iou_loss(box, box, True)) == pytest.approx(0.0, abs=1e-6)
     flipped = box.clone()
     flipped[:, 6] += math.pi  # the heading is decoupled: a box turned by pi (or any angle) costs nothing
-    assert float(od_iou_loss(flipped, box)) == pytest.approx(0.0, abs=1e-6)
+    assert float(od_iou_loss(flipped, box, True)) == pytest.approx(0.0, abs=1e-6)
     # degenerate rows: zero-size prediction, zero-size target, both zero at the same centre, far apart
     pred = torch.tensor([[10.0, 2.0, 0.8, 0.0, 0.0, 0.0, 0.0],
                          [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.0],
@@ -212,7 +214,7 @@ def test_od_iou_loss_identical_degenerate_and_exact():
                            [10.0, 2.0, 0.8, 0.0, 0.0, 0.0, -2.0],
                            [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.0],
                            [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 3.0 - math.pi]])
-    loss = od_iou_loss(pred, target)
+    loss = od_iou_loss(pred, target, True)
     loss_values = loss.detach()
     assert torch.isfinite(loss_values).all() and float(loss_values.min()) >= 0 and float(loss_values.max()) <= 2
     assert float(loss_values[4]) == pytest.approx(0.0, abs=1e-6)
@@ -282,7 +284,7 @@ def test_config_checks_give_clear_errors():
         PillarNet(cfg)
     cfg = default_cfg()
     cfg["post"]["method"] = "circle"
-    with pytest.raises(ValueError, match="maxpool' or 'nms"):
+    with pytest.raises(ValueError, match="model.post.method must be one of 'maxpool', 'nms'"):
         PillarNet(cfg)
 
 

@@ -12,11 +12,14 @@ from tests.helpers import batch_of, box_points
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
 
 
-def point_head_args(box_coding: str) -> dict:
-    """PointHead's configured values (configs/pointrcnn.yaml) with the given box coding."""
+def point_head_cfg(box_coding: str):
+    """PointHead's configured values (configs/pointrcnn.yaml) with narrow branches, a fixed mean size and the
+    given box coding."""
+    from models.stages.point_head import PointHeadConfig
+
     ph = load_run_config("pointrcnn", "paper")["model"]["point_head"]
-    return {"extra_width": ph["extra_width"], "loss_weights": ph["loss_weights"], "bin_cfg": ph["bin"],
-            "box_coding": box_coding, "fg_bottom_lift": ph["fg_bottom_lift"]}
+    ph.update(cls_fc=[32], reg_fc=[32], mean_size=[4.5, 1.9, 1.6], box_coding=box_coding)
+    return PointHeadConfig.from_config(ph, "model.point_head")
 
 
 def tiny_cfg():
@@ -49,15 +52,15 @@ def test_sampling_keeps_far_points_first_and_fills_small_frames():
     frame1 = near[:10]
     points = torch.cat([torch.cat([torch.zeros(len(frame0), 1), frame0], 1),
                         torch.cat([torch.ones(len(frame1), 1), frame1], 1)])
-    s = sample_frame_points(points, 3, 64, far_threshold=40.0, generator=g)  # frame 2 is empty
+    s = sample_frame_points(points, 3, 64, far_threshold=40.0, generator=g, shuffle=False)  # frame 2 is empty
     assert s.points.shape == (192, 4) and s.num_points == 64
     f0, f1, f2 = s.points[:64], s.points[64:128], s.points[128:]
     assert int((torch.hypot(f0[:, 0], f0[:, 1]) > 40).sum()) == 20  # every far point kept
     assert len({tuple(p.tolist()) for p in f0}) == 64  # no repeats while there are enough points
     assert {tuple(p.tolist()) for p in f1} == {tuple(p.tolist()) for p in frame1}  # all 10, repeated
     assert s.valid[:128].all() and not s.valid[128:].any() and (f2[:, 2] == -10).all()
-    a = sample_frame_points(points, 3, 64, generator=torch.Generator().manual_seed(1))
-    b = sample_frame_points(points, 3, 64, generator=torch.Generator().manual_seed(1))
+    a = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False)
+    b = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False)
     assert torch.equal(a.points, b.points)
 
 
@@ -248,7 +251,7 @@ def test_bin_coder_edges_and_clamping():
 def test_bin_coding_point_head_losses_are_finite_and_learnable():
     from models.stages.point_head import PointHead, PointHeadOutput, PointTargets
     torch.manual_seed(0)
-    head = PointHead(16, [32], [32], [4.5, 1.9, 1.6], **point_head_args("bin"))
+    head = PointHead(16, point_head_cfg("bin"))
     assert head.code_size == head.bin_coder.code_size
     xyz = torch.tensor([[[10.0, 2.0, 0.8], [7.8, 1.2, 0.2], [40.0, 0.0, 0.5], [9.0, 2.0, 0.8]]])
     # point 1 lies 2.2 m behind the centre; point 3's box is 25 m away (clamped to the range's edge)
@@ -288,8 +291,8 @@ def test_bin_coding_point_head_losses_are_finite_and_learnable():
         loss.backward()
         opt.step()
     assert parts["loss_point_box"] < 0.3 * first
-    with pytest.raises(ValueError, match="box_coding"):
-        PointHead(16, [32], [32], [4.5, 1.9, 1.6], **point_head_args("bins"))
+    with pytest.raises(ValueError, match="model.point_head.box_coding must be one of 'residual', 'bin'"):
+        point_head_cfg("bins")
 
 
 def test_both_box_codings_build_and_the_config_names_every_point_head_value():
@@ -300,7 +303,7 @@ def test_both_box_codings_build_and_the_config_names_every_point_head_value():
     cfg["point_head"]["box_coding"] = "residual"
     assert models.build_model("pointrcnn", cfg).point_head.code_size == 8
     del cfg["point_head"]["box_coding"]  # the model has no value of its own: configs/pointrcnn.yaml is the home
-    with pytest.raises(ValueError, match=r"point_head: missing key\(s\) \['box_coding'\]"):
+    with pytest.raises(ValueError, match=r"configs/pointrcnn.yaml: model.point_head.box_coding is missing"):
         models.build_model("pointrcnn", cfg)
 
 
@@ -326,14 +329,15 @@ def test_shuffled_sampling_is_deterministic_per_seed():
     points = torch.cat([torch.zeros(500, 1), frame], 1)
 
     def sample(seed, shuffle):
-        return sample_frame_points(points, 1, 128, generator=torch.Generator().manual_seed(seed), shuffle=shuffle)
+        return sample_frame_points(points, 1, 128, 40.0, generator=torch.Generator().manual_seed(seed),
+                                   shuffle=shuffle)
 
     ordered, a, b, c = sample(3, False), sample(3, True), sample(3, True), sample(4, True)
     assert torch.equal(a.points, b.points) and not torch.equal(a.points, c.points)
     assert {tuple(p.tolist()) for p in a.points} == {tuple(p.tolist()) for p in ordered.points}
     assert not torch.equal(a.points, ordered.points)
     # a small frame (repeats) is shuffled too: the original rows no longer lead
-    small = sample_frame_points(points[:50], 1, 128, generator=torch.Generator().manual_seed(3), shuffle=True)
+    small = sample_frame_points(points[:50], 1, 128, 40.0, generator=torch.Generator().manual_seed(3), shuffle=True)
     assert not torch.equal(small.points[:50], frame[:50])
 
 

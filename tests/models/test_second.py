@@ -36,7 +36,7 @@ def test_assign_targets_thresholds_and_best_anchor():
     t = assign_targets(anchors, gt, 0.6, 0.45)
     assert t.labels.tolist() == [1, 1, 0, -1, 0, 1]  # the last is gt 1's best anchor, forced positive
     assert torch.equal(t.boxes[5], gt[1]) and torch.equal(t.boxes[1], gt[0])
-    empty = assign_targets(anchors, torch.zeros(0, 7))
+    empty = assign_targets(anchors, torch.zeros(0, 7), 0.6, 0.45)
     assert empty.labels.tolist() == [0] * 6
 
 

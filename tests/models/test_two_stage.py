@@ -9,7 +9,7 @@ from detbench.ops import ResidualBoxCoder, boxes_iou3d, from_canonical, to_canon
 from detbench.train.run_config import load_run_config
 from models.stages.losses import corner_loss
 from models.stages.two_stage import (
-    PAD_ROI, Proposals, RefineOutput, confidence_targets, decode_refined,
+    PAD_ROI, Proposals, RefineLossWeights, RefineOutput, TargetConfig, confidence_targets, decode_refined,
     encode_refine_targets, fold_heading, refine_loss, sample_proposal_targets, select_proposals,
 )
 
@@ -17,8 +17,8 @@ CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
 TARGETS = load_run_config("ct3d", "paper")["model"]["roi_head"]["targets"]  # the published values
 
 
-def targets_cfg(**over):
-    return {**TARGETS, **over}
+def targets_cfg(**over) -> TargetConfig:
+    return TargetConfig.from_config({**TARGETS, **over}, "model.roi_head.targets")
 
 
 def proposals_of(rows, b=1):
@@ -130,13 +130,12 @@ def test_refine_loss_finite_without_rois_or_foreground():
                                 targets_cfg(roi_per_image=4))
     cls = torch.zeros(2, 4, requires_grad=True)
     reg = torch.zeros(2, 4, 7, requires_grad=True)
-    total, parts = refine_loss(RefineOutput(cls, reg, t.rois, t.valid, t), coder)
+    total, parts = refine_loss(RefineOutput(cls, reg, t.rois, t.valid, t), coder, RefineLossWeights(1.0, 1.0, 1.0))
     total.backward()
     assert torch.isfinite(total) and float(total.detach()) == 0.0 and parts["num_fg_rois"] == 0
     assert torch.isfinite(cls.grad).all() and torch.isfinite(reg.grad).all()
 
 
 def test_target_config_must_be_complete():
-    with pytest.raises(ValueError, match="missing key.*fg_ratio"):
-        sample_proposal_targets(proposals_of([CAR]), torch.tensor([[CAR]]), torch.ones(1, 1, dtype=torch.bool),
-                                {k: v for k, v in TARGETS.items() if k != "fg_ratio"})
+    with pytest.raises(ValueError, match="model.roi_head.targets.fg_ratio is missing"):
+        TargetConfig.from_config({k: v for k, v in TARGETS.items() if k != "fg_ratio"}, "model.roi_head.targets")
