@@ -27,7 +27,7 @@ from .pillarnet import PillarNet
 from .pointrcnn import PointRCNN
 from .second import SECOND
 from .stages import ModelConfigError, StageConfig
-from .stored_config import upgrade_stored_model_config
+from .stored_config import upgrade_stored_model_config, upgrade_stored_run_config
 
 if TYPE_CHECKING:  # detbench.train loads the whole training stack: imported for the annotations only
     from detbench.train.detector import Detector
@@ -75,7 +75,8 @@ def build_model(name: str, model_cfg: dict) -> nn.Module:
 
 
 __all__ = ["REGISTRY", "ModelConfigError", "build_model", "check_model_config", "get_model_class",
-           "prepare_model_config", "upgrade_stored_model_config"]
+           "prepare_model_config", "upgrade_stored_model_config",
+           "upgrade_stored_run_config"]
 
 
 def load_from_checkpoint(path, device="cpu"):

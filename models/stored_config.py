@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Mapping
 from typing import Any
 
 from .stages import ModelConfigError
@@ -53,6 +54,15 @@ def upgrade_stored_model_config(name: str, model_cfg: dict) -> dict:
         parent, key = _parent(cfg, dotted, create=True)
         if parent is not None and key not in parent:
             parent[key] = value
+    return cfg
+
+
+def upgrade_stored_run_config(name: str, run_cfg: Mapping) -> dict:
+    """A copy of a `name` checkpoint's whole stored run config with its `model:` section in today's keys
+    (`upgrade_stored_model_config`), so a run started by an earlier version resumes."""
+    cfg = dict(run_cfg)
+    if isinstance(cfg.get("model"), dict):
+        cfg["model"] = upgrade_stored_model_config(name, cfg["model"])
     return cfg
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from functools import partial
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -148,7 +149,8 @@ def train_in(args, cfg: dict, out: Path) -> int:
     try:
         result = train(model, train_set, tcfg, out, model_name=model_name, run_config=cfg,
                        data_info=data_info, dist_info=info,
-                       resume=args.resume, eval_fn=eval_fn, progress=not args.no_progress,
+                       resume=args.resume, stored_config=partial(models.upgrade_stored_run_config, model_name),
+                       eval_fn=eval_fn, progress=not args.no_progress,
                        resume_hint=f"run the same command again with --resume (--out {out})")
     except (CheckpointError, ConfigError, ValueError, FloatingPointError) as e:
         cleanup(info, wait_for_peers=False)  # a peer may not reach its cleanup: no barrier

@@ -30,7 +30,7 @@ import warnings
 import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -166,6 +166,7 @@ def config_diff(saved: Mapping, current: Mapping, ignore: Iterable[str] = ()) ->
 
 def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, config: Mapping | None = None,
                     data: Mapping | None = None, ignore_keys: Iterable[str] = (),
+                    stored_config: Callable[[Mapping], Mapping] | None = None,
                     map_location: str | torch.device = "cpu") -> dict:
     """Read and validate a checkpoint with `torch.load(weights_only=True)`.
 
@@ -174,6 +175,8 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
         model_name / config / data: when given, must match what the checkpoint recorded
             (config compared key by key, `ignore_keys` dotted keys excepted; data by height and by the
             training frames' content fingerprint when both record one, else by source path).
+        stored_config: turns the checkpoint's stored config into today's keys before it is compared with
+            `config` (a checkpoint of an earlier version lacks keys that had values in code then).
         map_location: where tensors are loaded (default CPU; `load_state_dict` moves them).
     Returns:
         The checkpoint dict (see the module doc).
@@ -231,7 +234,8 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
         if _fingerprint_of(ckpt["data"]) is not None and _fingerprint_of(ckpt["data"]) == _fingerprint_of(data):
             ignore_keys += ("data.root",)  # the same frames, moved: their content decides, not the path
     if config is not None:
-        bad = config_diff(ckpt["config"], config, ignore_keys)
+        stored = stored_config(ckpt["config"]) if stored_config is not None else ckpt["config"]
+        bad = config_diff(stored, config, ignore_keys)
         if bad:
             shown = "; ".join(bad[:6]) + (f"; and {len(bad) - 6} more" if len(bad) > 6 else "")
             raise CheckpointError(f"{path}: checkpoint was written with another config ({shown}); resume with "

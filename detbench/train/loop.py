@@ -86,6 +86,7 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
           run_config: Mapping, data_info: Mapping, dist_info: DistInfo | None = None, resume: bool = False,
           eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None = None, preview: Sample | None = None,
           resume_ignore_keys: Iterable[str] = RESUME_IGNORE_KEYS,
+          stored_config: Callable[[Mapping], Mapping] | None = None,
           resume_hint: str = "run the same command again with --resume", progress: bool = True) -> TrainResult:
     """Train `model` on `train_set`, or resume the run in `out_dir`.
 
@@ -108,6 +109,8 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
         preview: the frame drawn in the per-epoch bird's-eye image (default: the first training
             frame without augmentation).
         resume_ignore_keys: dotted config keys allowed to differ on resume.
+        stored_config: on resume, turns the config a checkpoint stores into today's keys before it is compared
+            with `run_config` (the model registry's upgrade of configs stored by earlier versions).
         resume_hint: how the user resumes, printed after Ctrl-C.
         progress: show tqdm bars (rank 0 only).
     Returns:
@@ -116,7 +119,8 @@ def train(model: nn.Module, train_set, cfg: TrainConfig, out_dir: str | Path, *,
     """
     info = dist_info or DistInfo()
     run = _setup(model, train_set, cfg, Path(out_dir), info, model_name=model_name, run_config=run_config,
-                 data_info=data_info, resume=resume, resume_ignore_keys=resume_ignore_keys, preview=preview)
+                 data_info=data_info, resume=resume, resume_ignore_keys=resume_ignore_keys, stored_config=stored_config,
+                 preview=preview)
     interrupted = False
     with StopRequest(announce=info.is_main) as stop:
         try:
@@ -194,6 +198,7 @@ def _gather_rng(info: DistInfo) -> list[dict]:
 
 def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: DistInfo, *, model_name: str,
            run_config: Mapping, data_info: Mapping, resume: bool, resume_ignore_keys: Iterable[str],
+           stored_config: Callable[[Mapping], Mapping] | None,
            preview: Sample | None) -> _Run:
     """Seed, move the model, build the loader, optimizer and schedule, then resume if asked."""
     device = info.device
@@ -226,8 +231,8 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     meta = {"config": run_config, "data": data_info, "model_name": model_name}
     state, last_ckpt, history = TrainState(seed=cfg.seed), None, []
     if resume:
-        state, last_ckpt, history = _resume(ckpts, cfg, info, out_dir, meta, resume_ignore_keys, model=core,
-                                            optimizer=optimizer, scheduler=scheduler, scaler=scaler)
+        state, last_ckpt, history = _resume(ckpts, cfg, info, out_dir, meta, resume_ignore_keys, stored_config,
+                                            model=core, optimizer=optimizer, scheduler=scheduler, scaler=scaler)
     if info.is_main:  # the run is accepted: from here on it may write
         remove_stale_temporaries(ckpts.directory)  # checkpoints a killed run was writing
         atomic_write_text(out_dir / "config.yaml", dump(run_config))
@@ -244,7 +249,8 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
 
 
 def _resume(ckpts: CheckpointManager, cfg: TrainConfig, info: DistInfo, out_dir: Path, meta: dict,
-            ignore_keys: Iterable[str], **objects) -> tuple[TrainState, Path | None, list[dict]]:
+            ignore_keys: Iterable[str], stored_config: Callable[[Mapping], Mapping] | None,
+            **objects) -> tuple[TrainState, Path | None, list[dict]]:
     """(state, checkpoint, history so far) of the newest checkpoint, restored into `objects`
     (model, optimizer, scheduler, scaler); a fresh state when there is none."""
     last_ckpt = ckpts.latest()
@@ -253,7 +259,7 @@ def _resume(ckpts: CheckpointManager, cfg: TrainConfig, info: DistInfo, out_dir:
             tqdm.write(f"--resume: no checkpoint in {ckpts.directory}; starting a new run")
         return TrainState(seed=cfg.seed), None, []
     ckpt = load_checkpoint(last_ckpt, model_name=meta["model_name"], config=meta["config"], data=meta["data"],
-                           ignore_keys=ignore_keys)
+                           ignore_keys=ignore_keys, stored_config=stored_config)
     state = restore_training(ckpt, path=last_ckpt, rank=info.rank, **objects)
     history = []
     if (out_dir / "history.json").is_file():

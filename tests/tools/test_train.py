@@ -190,3 +190,33 @@ def test_train_option_overrides_follow_the_users_set_values(tmp_path):
     assert option_overrides(["train.lr=0.1"]) == ["train.lr=0.1"]
     assert option_overrides(["a=1"], epochs=3, batch_size=2, workers=0, data=str(tmp_path)) == [
         "a=1", "train.epochs=3", "train.batch_size=2", "train.workers=0", f"data.root={tmp_path.resolve()}"]
+
+
+def test_a_run_whose_checkpoint_stores_an_earlier_versions_model_config_resumes(tiny_dataset, tmp_path):
+    """A checkpoint stores its model config; one written before the head's loss weights, focal loss and
+    direction bins were YAML keys lacks them. --resume upgrades the stored config before comparing it with
+    today's (models.upgrade_stored_run_config), so such a run continues instead of being refused as another
+    config; a real difference is still refused."""
+    import torch
+
+    from detbench.train.checkpoint import config_digest
+
+    out = tmp_path / "run"
+    args = ["tools/train.py", "--model", "second", "--height", "1.8", "--preset", "smoke", "--data",
+            str(tiny_dataset), "--out", str(out), "--no-progress", "--set", "train.tensorboard=false"]
+    run([*args, "--epochs", "1"])
+    ckpt_path = Path(json.loads((out / "train_summary.json").read_text())["checkpoint"])
+    ck = torch.load(ckpt_path, weights_only=True)
+    head = ck["config"]["model"]["head"]
+    for key in ("num_dir_bins", "dir_offset", "focal_alpha", "focal_gamma", "loss_weights"):
+        del head[key]
+    ck["config_digest"] = config_digest(ck["config"])
+    torch.save(ck, ckpt_path)
+    proc = run([*args, "--epochs", "1", "--resume"])
+    assert "already complete" in proc.stdout + proc.stderr
+    head["focal_gamma"] = 3.0  # a value today's YAML does not hold: another config
+    ck["config_digest"] = config_digest(ck["config"])
+    torch.save(ck, ckpt_path)
+    proc = subprocess.run([sys.executable, *args, "--epochs", "1", "--resume"], cwd=ROOT, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 2 and "model.head.focal_gamma: 3.0 (checkpoint) vs 2.0 (now)" in proc.stderr
