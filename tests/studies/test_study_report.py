@@ -1,0 +1,214 @@
+"""study.md and study.json of a finished study, written without running a job, against the expected files;
+and the data behind each of study.md's tables checked against the evaluation reports they come from.
+
+The finished study is tests/studies/data/study/out (made by tests/studies/data/make_study_fixture.py:
+three models at three heights, two training seeds, the cross-height evaluations). study.md and study.json
+must stay as tests/studies/data/study/expected/ holds them, figure for figure; the dataset's folder, which
+depends on where the checkout is, reads DATA there.
+"""
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from itertools import combinations
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from detbench.data.regions import LEVELS, RANGE_NAMES
+from detbench.eval.paper import paper_recall
+from detbench.utils.io import read_json
+
+FIXTURE = Path(__file__).resolve().parent / "data" / "study"
+EXPECTED = FIXTURE / "expected"
+MODELS = ["ct3d", "pointrcnn", "second"]
+LEFT_OUT = ["pillarnet"]
+HEIGHTS = [0.5, 1.0, 1.8]
+SEEDS = [0, 1]
+SECONDS = 150.0  # the study's wall time in this invocation, as the report states it
+
+
+class _NoExecutor:
+    slots = 2
+
+    def close(self) -> None:
+        pass
+
+
+def _write_study(out: Path, monkeypatch) -> tuple[str, dict]:
+    """(study.md, study.json) of the finished study in `out`, written by the study with every job current."""
+    import detbench.sim.dataset
+    import detbench.studies.study as st
+    from detbench.studies.study import StudyOptions, _run_stages
+    from detbench.train.run_config import load_run_config
+
+    root = FIXTURE / "dataset"
+    clock = iter([0.0])
+    monkeypatch.setattr(detbench.sim.dataset, "default_dataset", lambda cfg, progress=True: root)
+    monkeypatch.setattr(st, "dataset_fingerprint", lambda _root, hs, _hashes: "fp " + " ".join(f"{h:g}" for h in hs))
+    monkeypatch.setattr(st, "changes", lambda *a, **k: [])
+    monkeypatch.setattr(st, "split_ability_reports", lambda _root, _hs, o, _fp, no_progress=True: {
+        s: read_json(o / "splits" / f"{s}.json") for s in ("train", "test")})
+    monkeypatch.setattr(st, "_executor", lambda *a: _NoExecutor())
+    monkeypatch.setattr(st, "_cuda_available", lambda: False)
+    monkeypatch.setattr(st, "run_graph", lambda *a, **k: None)
+    monkeypatch.setattr(st, "time", SimpleNamespace(perf_counter=lambda: next(clock, SECONDS)))
+    args = StudyOptions(preset="smoke", models=MODELS, out=str(out), cross_height=True, seeds=SEEDS,
+                        no_progress=True)
+    _run_stages(args, out, MODELS, LEFT_OUT, load_run_config(MODELS[0], "smoke"), repo=".")
+    return _normal(out / "study.md", root), json.loads(_normal(out / "study.json", root))
+
+
+def _normal(path: Path, root: Path) -> str:
+    return path.read_text(encoding="utf-8").replace(str(root), "DATA")
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    out = tmp_path_factory.mktemp("study") / "out"
+    shutil.copytree(FIXTURE / "out", out)
+    with pytest.MonkeyPatch.context() as mp:
+        md, study = _write_study(out, mp)
+    return SimpleNamespace(out=out, md=md, study=study)
+
+
+def _report(out: Path, model: str, trained: float, seed: int, tested: float | None = None) -> dict:
+    run = out / (f"{model}_h{trained:.1f}" + ("" if seed == SEEDS[0] else f"_s{seed}"))
+    return read_json(run / f"eval_h{trained if tested is None else tested:.1f}_test" / "report.json")
+
+
+def _train_seconds(out: Path, model: str, height: float, seed: int) -> float:
+    run = out / (f"{model}_h{height:.1f}" + ("" if seed == SEEDS[0] else f"_s{seed}"))
+    return sum(e["seconds"] for e in read_json(run / "history.json")["epochs"])
+
+
+def test_study_md_is_the_expected_one(written):
+    expected = (EXPECTED / "study.md").read_text(encoding="utf-8")
+    got, want = written.md.splitlines(), expected.splitlines()
+    first = next((i for i, (a, b) in enumerate(zip(got, want)) if a != b), min(len(got), len(want)))
+    assert got == want, (f"study.md differs from line {first + 1}:\n  got:  {got[first:first + 1]}\n"
+                         f"  want: {want[first:first + 1]}")
+
+
+def test_study_json_is_the_expected_one(written):
+    want = read_json(EXPECTED / "study.json")
+    assert sorted(written.study) == sorted(want)
+    for key in want:
+        assert written.study[key] == want[key], key
+
+
+def test_the_detector_table_holds_each_model_and_heights_seed_mean(written):
+    """The detector table's cells: per model and height the mean over seeds of each report's figure, the
+    seeds' own figures, two seeds, the training minutes as the mean over seeds of each run's epochs."""
+    seeds = written.study["seeds"]
+    assert seeds["seeds"] == SEEDS
+    for h in HEIGHTS:
+        models = seeds["by_height"][f"{h:g}"]["models"]
+        assert sorted(models) == MODELS
+        for m in MODELS:
+            reps = [_report(written.out, m, h, s) for s in SEEDS]
+            comb = models[m]
+            assert comb["num_seeds"] == 2 and comb["seeds"] == SEEDS
+            for r in RANGE_NAMES:
+                for lv in LEVELS:
+                    for metric in ("recall", "ap_r40"):
+                        cell = comb["results"][r][lv][metric]
+                        values = [rep["results"][r][lv][metric] for rep in reps]
+                        assert cell["per_seed"] == [round(v, 6) for v in values]
+                        assert cell["mean"] == pytest.approx(np.mean(values), abs=1e-6)
+                        assert cell["ci95"][0] <= cell["mean"] + 1e-6 and cell["mean"] - 1e-6 <= cell["ci95"][1]
+            minutes = sum(_train_seconds(written.out, m, h, s) / 60 for s in SEEDS) / len(SEEDS)
+            assert seeds["train_minutes"][f"{m} {h:g}"] == round(minutes, 2)
+            assert paper_recall(m, h)  # the table's Table VII column has a figure for every cell here
+
+
+def test_the_seed_spread_is_pooled_over_each_models_heights(written):
+    """sd is the pooled spread of a model's heights (df = heights x (seeds - 1)); each height's own sd beside it."""
+    by_height = written.study["seeds"]["by_height"]
+    for m in MODELS:
+        for r in RANGE_NAMES:
+            cells = [by_height[f"{h:g}"]["models"][m]["results"][r]["all"]["recall"] for h in HEIGHTS]
+            own = [np.std(c["per_seed"], ddof=1) for c in cells]
+            pooled = math.sqrt(sum(s * s for s in own) / len(own))
+            for c, s in zip(cells, own):
+                assert c["seed_df"] == len(HEIGHTS) and c["seed_pool"] == m
+                assert c["sd"] == pytest.approx(pooled, abs=2e-6)
+                assert c["sd_own"] == pytest.approx(s, abs=2e-6)
+
+
+def test_the_pairs_rank_by_seed_mean_and_resolve_only_where_the_interval_excludes_0(written):
+    pairs = written.study["seeds"]["pairs"]
+    by_height = written.study["seeds"]["by_height"]
+    resolved = 0
+    for h in HEIGHTS:
+        for r in RANGE_NAMES:
+            for metric, other in (("recall", "ap_r40"), ("ap_r40", "recall")):
+                entry = pairs[f"{h:g}"][r][metric]
+                cells = {m: by_height[f"{h:g}"]["models"][m]["results"][r]["all"] for m in MODELS}
+                order = sorted(MODELS, key=lambda m: (-cells[m][metric]["mean"], -cells[m][other]["mean"]))
+                assert [e["model"] for e in entry["ranking"]] == order
+                assert [(p["model"], p["over"]) for p in entry["pairs"]] == list(combinations(order, 2))
+                for p in entry["pairs"]:
+                    diff = cells[p["model"]][metric]["mean"] - cells[p["over"]][metric]["mean"]
+                    assert p["diff"] == pytest.approx(diff, abs=2e-6)
+                    lo, hi = p["ci95"]
+                    assert lo <= p["diff"] + 1e-6 and p["diff"] - 1e-6 <= hi
+                    assert p["ahead"] == (lo > 0 or hi < 0)
+                    resolved += p["ahead"]
+    assert resolved > 0  # the fixture's models differ enough for some leads to be resolved
+
+
+def test_the_seed_summary_names_the_leader_per_height_and_per_model(written):
+    seeds = written.study["seeds"]
+    for h in HEIGHTS:
+        cell = seeds["by_height"][f"{h:g}"]
+        for metric, (r, lv) in (("recall", ("large", "all")), ("ap_r40", ("small", "all"))):
+            means = {m: c["results"][r][lv][metric]["mean"] for m, c in cell["models"].items()}
+            assert (cell[metric]["range"], cell[metric]["level"]) == (r, lv)
+            assert cell[metric]["best"] == max(means, key=lambda m: means[m])
+            assert cell[metric]["ranking"][0]["mean"] == max(means.values())
+    for m in MODELS:
+        entry = seeds["by_model"][m]["recall"]
+        means = {h: seeds["by_height"][f"{h:g}"]["models"][m]["results"]["large"]["all"]["recall"]["mean"]
+                 for h in HEIGHTS}
+        assert entry["best"] == max(means, key=lambda h: means[h])
+
+
+def test_the_summary_tables_come_from_the_ability_study_and_the_primary_seeds_reports(written):
+    summary = written.study["summary"]
+    ability = read_json(written.out / "ability" / "ability.json")
+    for r in RANGE_NAMES:
+        for lv in LEVELS:
+            ldr = {h: ability["heights"][h][r][lv]["ldr"] for h in ability["heights"]}
+            assert summary["heights"][r][lv]["ldr"] == max(ldr.values())
+    for h in HEIGHTS:
+        recall = {m: _report(written.out, m, h, SEEDS[0])["results"]["large"]["all"]["recall"] for m in MODELS}
+        cell = summary["detectors"][str(h)]
+        assert [e["model"] for e in cell["ranking"]] == sorted(MODELS, key=lambda m: -recall[m])
+        assert cell["ranking"][0]["recall"] == max(recall.values())
+
+
+def test_the_cross_height_matrix_holds_each_reports_figure(written):
+    mats = {(m["metric"], m["range"]): m for m in written.study["cross_height"]}
+    assert sorted(mats) == [("ap_r40", "small"), ("recall", "large")]
+    for (metric, r), mat in mats.items():
+        assert mat["heights"] == HEIGHTS and mat["models"] == MODELS
+        for m in MODELS:
+            for i, trained in enumerate(HEIGHTS):
+                for j, tested in enumerate(HEIGHTS):
+                    rep = _report(written.out, m, trained, SEEDS[0], tested)
+                    assert mat["values"][m][i][j] == rep["results"][r]["all"][metric]
+
+
+def test_the_study_names_what_it_was_run_on(written):
+    study = written.study
+    assert study["preset"] == "smoke" and study["models"] == MODELS and study["left_out"] == LEFT_OUT
+    assert study["heights"] == HEIGHTS and study["seconds_this_invocation"] == SECONDS
+    first = _report(written.out, MODELS[0], HEIGHTS[0], SEEDS[0])
+    assert study["test_frames"] == first["num_frames"]
+    assert study["test_scenes"] == first["uncertainty"]["num_clusters"]
+    assert study["train_seconds"] == {
+        m: round(sum(_train_seconds(written.out, m, h, s) for h in HEIGHTS for s in SEEDS), 1) for m in MODELS}
