@@ -38,7 +38,7 @@ class _NoExecutor:
         pass
 
 
-def _write_study(out: Path, monkeypatch) -> tuple[str, dict]:
+def _write_study(out: Path, monkeypatch, seeds=tuple(SEEDS), cross_height=True) -> tuple[str, dict]:
     """(study.md, study.json) of the finished study in `out`, written by the study with every job current."""
     import detbench.sim.dataset
     import detbench.studies.study as st
@@ -56,7 +56,7 @@ def _write_study(out: Path, monkeypatch) -> tuple[str, dict]:
     monkeypatch.setattr(st, "_cuda_available", lambda: False)
     monkeypatch.setattr(st, "run_graph", lambda *a, **k: None)
     monkeypatch.setattr(st, "time", SimpleNamespace(perf_counter=lambda: next(clock, SECONDS)))
-    args = StudyOptions(preset="smoke", models=MODELS, out=str(out), cross_height=True, seeds=SEEDS,
+    args = StudyOptions(preset="smoke", models=MODELS, out=str(out), cross_height=cross_height, seeds=list(seeds),
                         no_progress=True)
     _run_stages(args, out, MODELS, LEFT_OUT, load_run_config(MODELS[0], "smoke"), repo=".")
     return _normal(out / "study.md", root), json.loads(_normal(out / "study.json", root))
@@ -75,6 +75,16 @@ def written(tmp_path_factory):
     return SimpleNamespace(out=out, md=md, study=study)
 
 
+@pytest.fixture(scope="module")
+def one_seed(tmp_path_factory):
+    """The same study with the config's seed alone and no cross-height evaluations."""
+    out = tmp_path_factory.mktemp("study") / "out"
+    shutil.copytree(FIXTURE / "out", out)
+    with pytest.MonkeyPatch.context() as mp:
+        md, study = _write_study(out, mp, seeds=SEEDS[:1], cross_height=False)
+    return SimpleNamespace(out=out, md=md, study=study)
+
+
 def _report(out: Path, model: str, trained: float, seed: int, tested: float | None = None) -> dict:
     run = out / (f"{model}_h{trained:.1f}" + ("" if seed == SEEDS[0] else f"_s{seed}"))
     return read_json(run / f"eval_h{trained if tested is None else tested:.1f}_test" / "report.json")
@@ -85,19 +95,32 @@ def _train_seconds(out: Path, model: str, height: float, seed: int) -> float:
     return sum(e["seconds"] for e in read_json(run / "history.json")["epochs"])
 
 
-def test_study_md_is_the_expected_one(written):
-    expected = (EXPECTED / "study.md").read_text(encoding="utf-8")
-    got, want = written.md.splitlines(), expected.splitlines()
+def _same_lines(got: str, want: str) -> None:
+    got, want = got.splitlines(), want.splitlines()
     first = next((i for i, (a, b) in enumerate(zip(got, want)) if a != b), min(len(got), len(want)))
     assert got == want, (f"study.md differs from line {first + 1}:\n  got:  {got[first:first + 1]}\n"
                          f"  want: {want[first:first + 1]}")
 
 
-def test_study_json_is_the_expected_one(written):
-    want = read_json(EXPECTED / "study.json")
-    assert sorted(written.study) == sorted(want)
+def _same_json(got: dict, want: dict) -> None:
+    assert sorted(got) == sorted(want)
     for key in want:
-        assert written.study[key] == want[key], key
+        assert got[key] == want[key], key
+
+
+def test_study_md_is_the_expected_one(written, one_seed):
+    _same_lines(written.md, (EXPECTED / "study.md").read_text(encoding="utf-8"))
+    _same_lines(one_seed.md, (EXPECTED / "study_one_seed.md").read_text(encoding="utf-8"))
+
+
+def test_study_json_is_the_expected_one(written, one_seed):
+    _same_json(written.study, read_json(EXPECTED / "study.json"))
+    _same_json(one_seed.study, read_json(EXPECTED / "study_one_seed.json"))
+
+
+def test_one_seed_has_no_seed_section_and_no_cross_height(one_seed, written):
+    assert "seeds" not in one_seed.study and "cross_height" not in one_seed.study
+    assert one_seed.study["summary"] == written.study["summary"]  # seed 0's reports, as with two seeds
 
 
 def test_the_detector_table_holds_each_model_and_heights_seed_mean(written):
