@@ -31,34 +31,26 @@ SEEDS = [0, 1]
 SECONDS = 150.0  # the study's wall time in this invocation, as the report states it
 
 
-class _NoExecutor:
-    slots = 2
-
-    def close(self) -> None:
-        pass
-
-
 def _write_study(out: Path, monkeypatch, seeds=tuple(SEEDS), cross_height=True) -> tuple[str, dict]:
-    """(study.md, study.json) of the finished study in `out`, written by the study with every job current."""
-    import detbench.sim.dataset
-    import detbench.studies.study as st
-    from detbench.studies.study import StudyOptions, _run_stages
+    """(study.md, study.json) of the finished study in `out`: its plan, the outputs read into study.json, and
+    study.md rendered from study.json read back; no job runs."""
+    import detbench.studies.study_plan as study_plan
+    from detbench.studies.stage_inputs import FileHashes
+    from detbench.studies.study_plan import build_plan
+    from detbench.studies.study_report import study_markdown
+    from detbench.studies.study_results import study_results
     from detbench.train.run_config import load_run_config
 
     root = FIXTURE / "dataset"
-    clock = iter([0.0])
-    monkeypatch.setattr(detbench.sim.dataset, "default_dataset", lambda cfg, progress=True: root)
-    monkeypatch.setattr(st, "dataset_fingerprint", lambda _root, hs, _hashes: "fp " + " ".join(f"{h:g}" for h in hs))
-    monkeypatch.setattr(st, "changes", lambda *a, **k: [])
-    monkeypatch.setattr(st, "split_ability_reports", lambda _root, _hs, o, _fp, no_progress=True: {
-        s: read_json(o / "splits" / f"{s}.json") for s in ("train", "test")})
-    monkeypatch.setattr(st, "_executor", lambda *a: _NoExecutor())
-    monkeypatch.setattr(st, "_cuda_available", lambda: False)
-    monkeypatch.setattr(st, "run_graph", lambda *a, **k: None)
-    monkeypatch.setattr(st, "time", SimpleNamespace(perf_counter=lambda: next(clock, SECONDS)))
-    args = StudyOptions(preset="smoke", models=MODELS, out=str(out), cross_height=cross_height, seeds=list(seeds),
-                        no_progress=True)
-    _run_stages(args, out, MODELS, LEFT_OUT, load_run_config(MODELS[0], "smoke"), repo=".")
+    monkeypatch.setattr(study_plan, "dataset_fingerprint", lambda _root, hs, _hashes: "fp " + " ".join(
+        f"{h:g}" for h in hs))
+    plan = build_plan(preset="smoke", models=MODELS, left_out=LEFT_OUT, heights=HEIGHTS, seeds=list(seeds),
+                      base_cfg=load_run_config(MODELS[0], "smoke"), out=out, data_root=root,
+                      data_info=read_json(root / "dataset.json"), hashes=FileHashes(out / "hashes.json"),
+                      simulated=True, cross_height=cross_height)
+    study = json.loads(json.dumps(study_results(plan, SECONDS)))
+    (out / "study.json").write_text(json.dumps(study), encoding="utf-8")
+    (out / "study.md").write_text(study_markdown(study), encoding="utf-8")
     return _normal(out / "study.md", root), json.loads(_normal(out / "study.json", root))
 
 
