@@ -24,6 +24,8 @@ tradeoff                     the trade study's Pareto flags, planner, cost model
 tradeoff_points              the trade study's knobs and points
 tradeoff_worker              one point measured in its own process (python -m detbench.studies.tradeoff_worker)
 tradeoff_sweep               the trade sweep's scheduler within a budget, resuming (tools/tradeoff.py)
-runner                       one stage or task run as a child process, streamed or logged, with a deadline
+executor                     the jobs and tasks run as child processes of this machine, with a deadline
+jobs                         the study's job graph, its scheduler and the driver that runs it
+ray_executor                 the study's jobs as tasks of a Ray cluster
 registry                     what the studies need of the detector registry, which the tools pass in
 """

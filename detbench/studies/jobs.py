@@ -19,32 +19,24 @@ installs its handler, would not see SIGINT and would run on until the kill after
 SIGTERM ends it at once (it has not trained yet) and, once the loop runs, makes it save a
 checkpoint. The study resumes afterwards with the same command.
 
-`LocalExecutor` runs the jobs as child processes of this machine: `slots` at once, each with
-one torch and one numba thread (`JOB_ENV`) whatever the number of slots, so results do not
-depend on it. With one slot a job's output streams through to the terminal (and into its log);
-with several it goes to its log only. detbench.studies.ray_executor runs the same graph on Ray.
+detbench.studies.executor's `LocalExecutor` runs the jobs as child processes of this machine, each
+with one torch and one numba thread whatever the number at once, so results do not depend on it;
+detbench.studies.ray_executor runs the same graph on Ray.
 """
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from detbench.studies.runner import STOP_GRACE_S
+from detbench.studies.executor import STOP_GRACE_S
 from detbench.utils.cli import EXIT_USER_ERROR, UserError, sigterm_as_ctrl_c
 
 LOGS_DIR = "logs"  # OUT/logs/<job id>.log
 TAIL_LINES = 20  # lines of a failed job's log printed with its path
-
-# Every job's environment on top of the driver's: one torch (OpenMP) and one numba thread, unbuffered
-# output (the log is current while the job runs). The same for every number of jobs at once.
-JOB_ENV = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 KINDS = ("ability", "train", "eval", "cross_eval", "combine")  # the data and the splits' counts come before the graph
 
@@ -56,7 +48,7 @@ class Job:
     id: str
     kind: str  # one of KINDS
     what: str  # what the progress line calls it: "train second 0.5 m"
-    prepare: Callable[[], list[str] | None]  # the command, or None: its output is current (skipped)
+    prepare: Callable[[], list[str] | None] | None = None  # the command, or None: its output is current (skipped)
     deps: tuple[str, ...] = ()
     model: str | None = None
     finish: Callable[[], None] | None = None  # after it succeeded: record its inputs
@@ -299,94 +291,6 @@ class GraphProgress:
         self.running.pop(job.id, None)
 
 
-class LocalExecutor:
-    """Runs jobs as child processes of this machine, `slots` at once (see the module's docstring).
-
-    devices: with --device cuda, the GPU indices; each job gets one of them as CUDA_VISIBLE_DEVICES."""
-
-    def __init__(self, slots: int, *, cwd: str | os.PathLike | None = None, devices: list[str] | None = None,
-                 stream: bool | None = None):
-        self.slots = max(1, int(slots))
-        self.cwd = cwd
-        self.devices = list(devices) if devices else None
-        if self.devices:
-            self.slots = min(self.slots, len(self.devices))
-        self.stream = (self.slots == 1) if stream is None else stream
-        self.procs: dict[str, tuple[subprocess.Popen, str | None, threading.Thread | None]] = {}
-
-    def start(self, job: Job, cmd: list[str]) -> None:
-        assert job.log is not None
-        job.log.parent.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, **JOB_ENV}
-        device = None
-        if self.devices:
-            used = {d for _, d, _ in self.procs.values()}
-            device = next(d for d in self.devices if d not in used)
-            env["CUDA_VISIBLE_DEVICES"] = device
-        fh = open(job.log, "w", encoding="utf-8")
-        fh.write(f"$ {' '.join(cmd)}\n")
-        fh.flush()
-        if self.stream:
-            print(f"$ {' '.join(cmd)}", flush=True)
-            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-            pump = threading.Thread(target=_tee, args=(proc.stdout, fh), daemon=True)
-            pump.start()
-        else:
-            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=fh, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)
-            fh.close()
-            pump = None
-        self.procs[job.id] = (proc, device, pump)
-
-    def wait(self, timeout: float) -> list[tuple[str, int]]:
-        """(job id, exit status) of the jobs that ended, waiting up to `timeout` s for the first."""
-        deadline = time.monotonic() + timeout
-        while True:
-            ended = [(i, p.poll()) for i, (p, _, _) in self.procs.items() if p.poll() is not None]
-            if ended or not self.procs or time.monotonic() >= deadline:
-                for i, _ in ended:
-                    _, _, pump = self.procs.pop(i)
-                    if pump is not None:
-                        pump.join()
-                return [(i, int(rc)) for i, rc in ended]
-            time.sleep(0.05)
-
-    def interrupt(self) -> None:
-        """SIGTERM to every running job (a training writes its checkpoint and exits; a job still starting ends)."""
-        for p, _, _ in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-
-    def kill(self) -> None:
-        for p, _, _ in self.procs.values():
-            if p.poll() is None:
-                p.kill()
-
-    @property
-    def running(self) -> list[str]:
-        return list(self.procs)
-
-    def close(self) -> None:
-        pass
-
-
-def _tee(src, fh) -> None:
-    """Copy a child's output to this process's stdout and to its log, as it comes."""
-    out = getattr(sys.stdout, "buffer", None)
-    try:
-        for chunk in iter(lambda: src.read1(65536), b""):
-            if out is not None:
-                out.write(chunk)
-                out.flush()
-            else:
-                sys.stdout.write(chunk.decode("utf-8", "replace"))
-                sys.stdout.flush()
-            fh.write(chunk.decode("utf-8", "replace"))
-            fh.flush()
-    finally:
-        fh.close()
-
-
 @dataclass
 class GraphResult:
     """ran: ids of the jobs that ran and succeeded; kept: ids skipped as current; seconds per job that ran."""
@@ -530,5 +434,5 @@ def job_counts(jobs: Iterable[Job]) -> dict[str, int]:
     return counts
 
 
-__all__ = ["GraphProgress", "GraphResult", "JOB_ENV", "Job", "KINDS", "LOGS_DIR", "LocalExecutor", "TAIL_LINES",
+__all__ = ["GraphProgress", "GraphResult", "Job", "KINDS", "LOGS_DIR", "TAIL_LINES",
            "busy_cores", "check_graph", "cuda_devices", "default_jobs", "free_cpus", "job_counts", "run_graph", "tail"]

@@ -16,8 +16,8 @@ from __future__ import annotations
 import os
 import time
 
-from detbench.studies.jobs import JOB_ENV, Job
-from detbench.studies.runner import STOP_GRACE_S
+from detbench.studies.executor import JOB_ENV, STOP_GRACE_S
+from detbench.studies.jobs import Job
 from detbench.utils.cli import UserError
 
 INSTALL_HINT = "pip install .[cluster]"

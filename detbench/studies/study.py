@@ -33,9 +33,8 @@ from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
-from detbench.studies.jobs import (
-    LOGS_DIR, LocalExecutor, check_graph, cuda_devices, default_jobs, job_counts, run_graph,
-)
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import LOGS_DIR, check_graph, cuda_devices, default_jobs, job_counts, run_graph
 from detbench.studies.registry import ModelRegistry
 from detbench.studies.split_check import split_check_warnings
 from detbench.studies.stage_inputs import RECORDS_DIR, FileHashes, changes, dataset_fingerprint, write_record

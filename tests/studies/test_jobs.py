@@ -11,9 +11,8 @@ from pathlib import Path
 import pytest
 
 import detbench.studies.jobs as jobs_mod
-from detbench.studies.jobs import (
-    GraphProgress, Job, LocalExecutor, busy_cores, check_graph, free_cpus, run_graph,
-)
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import GraphProgress, Job, busy_cores, check_graph, free_cpus, run_graph
 from detbench.utils.cli import UserError
 from tests.helpers import ROOT
 
@@ -214,7 +213,8 @@ def as_in_a_terminal() -> None:
 DRIVER = """
 import sys
 from pathlib import Path
-from detbench.studies.jobs import Job, LocalExecutor, run_graph
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import Job, run_graph
 d = Path(sys.argv[1])
 training = sys.argv[2]
 run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", training, str(d)], model="m")],
@@ -259,7 +259,8 @@ def test_ctrl_c_in_a_terminal_reaches_driver_and_training_and_the_checkpoint_is_
 TOOL_DRIVER = """
 import sys
 from pathlib import Path
-from detbench.studies.jobs import Job, LocalExecutor, run_graph
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import Job, run_graph
 from detbench.utils.cli import run_main
 d = Path(sys.argv[1])
 training = sys.argv[2]
