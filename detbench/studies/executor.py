@@ -24,6 +24,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from detbench.studies.cpu_load import MachineLoad, slots_note
+
 STOP_GRACE_S = 120.0  # seconds a stopped job has to finish (a training writes its checkpoint) before a kill
 # Every study job's environment on top of the driver's: one torch (OpenMP) and one numba thread, unbuffered
 # output (the log is current while the job runs). The same for every number of jobs at once.
@@ -54,10 +56,13 @@ class LocalExecutor:
 
     devices: with --device cuda, the GPU indices; each job gets one of them as CUDA_VISIBLE_DEVICES.
     stream: each job's output through to this terminal too (default: with one slot). append_logs: a job's
-    log grows over reruns (the trade sweep's) instead of starting anew (the study's)."""
+    log grows over reruns (the trade sweep's) instead of starting anew (the study's). load: the machine's
+    other load (detbench.studies.cpu_load.MachineLoad), measured again whenever a slot is free: the slots
+    a core of which it keeps busy stay empty (`room`); None: every slot runs (--jobs N)."""
 
     def __init__(self, slots: int, *, cwd: str | os.PathLike | None = None, devices: list[str] | None = None,
-                 stream: bool | None = None, env: dict | None = None, append_logs: bool = False):
+                 stream: bool | None = None, env: dict | None = None, append_logs: bool = False,
+                 load: MachineLoad | None = None):
         self.slots = max(1, int(slots))
         self.cwd = cwd
         self.devices = list(devices) if devices else None
@@ -66,6 +71,7 @@ class LocalExecutor:
         self.stream = (self.slots == 1) if stream is None else stream
         self.env = dict(JOB_ENV if env is None else env)
         self.append_logs = append_logs
+        self.load = load
         self.procs: dict[str, _Running] = {}
         self.usage: dict[str, tuple[float, float]] = {}  # job id -> (wall s, CPU s) of the jobs that ended
 
@@ -93,6 +99,15 @@ class LocalExecutor:
             fh.close()
             pump = None
         self.procs[job.id] = _Running(proc, device, pump, t0)
+
+    def room(self) -> tuple[int, str | None]:
+        """(how many jobs may run now, why fewer than the slots or None): the slots less the cores the machine's
+        other load keeps busy (rounded to whole cores), at least one."""
+        other = None if self.load is None else self.load.other_cores()
+        if other is None:
+            return self.slots, None
+        allowed = max(1, min(self.slots, self.slots - int(round(other))))
+        return allowed, slots_note(allowed, self.slots, other)
 
     def _reap(self, jid: str) -> int | None:
         """The job's exit status once it ended (its wall and CPU time then in `usage`), else None."""

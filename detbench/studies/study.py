@@ -33,6 +33,7 @@ from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
+from detbench.studies.cpu_load import MachineLoad
 from detbench.studies.executor import LocalExecutor
 from detbench.studies.jobs import LOGS_DIR, check_graph, cuda_devices, default_jobs, job_counts, run_graph
 from detbench.studies.registry import ModelRegistry
@@ -65,7 +66,7 @@ class StudyOptions:
     cross_height: bool = False
     fresh: bool = False  # empty OUT (a study's folder) first instead of resuming
     no_progress: bool = False
-    jobs: int | None = None  # jobs at once; None: one per free CPU core (or per GPU), or the Ray cluster's
+    jobs: int | None = None  # jobs at once; None: one per usable core (fewer under other load), GPU or Ray CPU
     executor: str = "local"  # local or ray
     address: str | None = None  # the Ray cluster (None: a local Ray instance)
     seeds: list[int] | None = None  # training seeds; None: the config's train.seed
@@ -248,7 +249,7 @@ def _check_executor_options(args: StudyOptions) -> None:
     """UserError for --jobs, --executor, --address or --seeds that cannot work (before anything is created)."""
     if args.jobs is not None and args.jobs < 1:
         raise UserError(f"--jobs {args.jobs}: the number of jobs at once is at least 1 (leave it out for one per "
-                        f"free CPU core, or one per GPU with --device cuda)")
+                        f"CPU core this process may use, or one per GPU with --device cuda)")
     if args.executor not in ("local", "ray"):
         raise UserError(f"--executor {args.executor}: one of local, ray")
     if args.address and args.executor != "ray":
@@ -264,14 +265,18 @@ def _check_executor_options(args: StudyOptions) -> None:
 
 
 def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
-    """The executor of the study's jobs: local (--jobs N at once, default one per free CPU core or per GPU)
-    or Ray (--executor ray --address ADDR; --jobs caps the jobs at once)."""
+    """The executor of the study's jobs: local (--jobs N at once; default one per GPU, or one per CPU core this
+    process may use, fewer while the machine's other load keeps cores busy) or Ray (--executor ray --address
+    ADDR; --jobs caps the jobs at once)."""
     if args.executor == "ray":
         from detbench.studies.ray_executor import RayExecutor
 
         return RayExecutor(address=args.address, cwd=repo, gpu=gpu, slots=args.jobs)
-    devices = cuda_devices() if gpu else None
-    return LocalExecutor(args.jobs or default_jobs("cuda" if gpu else "cpu"), cwd=repo, devices=devices)
+    if gpu:
+        return LocalExecutor(args.jobs or default_jobs("cuda"), cwd=repo, devices=cuda_devices())
+    if args.jobs:  # a fixed number, whatever else runs
+        return LocalExecutor(args.jobs, cwd=repo)
+    return LocalExecutor(default_jobs("cpu"), cwd=repo, load=MachineLoad())
 
 
 __all__ = ["StudyOptions", "run_study", "study_models"]
