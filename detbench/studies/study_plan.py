@@ -39,11 +39,12 @@ class AbilitySource:
 
 @dataclass(frozen=True)
 class PresetFacts:
-    """What the report states of the preset: its training epochs, and the paper preset's frames and epochs."""
+    """What the report states of the preset: each model's training epochs (with the study's --set), and the
+    paper preset's frames and each model's epochs there."""
 
-    epochs: int
+    epochs: Mapping[str, int]
     paper_frames: int
-    paper_epochs: int
+    paper_epochs: Mapping[str, int]
 
 
 @dataclass(frozen=True)
@@ -134,7 +135,7 @@ def build_plan(*, preset: str, models: list[str], left_out: list[str], heights: 
                      seeds=tuple(seeds), config_seed=config_seed, out=out, data_root=data_root, data_info=data_info,
                      data_fingerprints=fingerprints, ability=ability, ability_inputs=ability_inputs,
                      train_inputs=train_inputs, eval_digests=eval_digests, overrides=tuple(overrides), device=device,
-                     cross_height=cross_height, facts=preset_facts(models[0], preset, overrides))
+                     cross_height=cross_height, facts=preset_facts(models, preset, overrides))
 
 
 def _seed_overrides(seed: int, config_seed: int) -> tuple[str, ...]:
@@ -142,12 +143,14 @@ def _seed_overrides(seed: int, config_seed: int) -> tuple[str, ...]:
     return () if seed == config_seed else (f"train.seed={seed}",)
 
 
-def preset_facts(model: str, preset: str, overrides=()) -> PresetFacts:
-    """The preset's training epochs (with `overrides`) and the paper preset's frames and epochs, for the report."""
-    cfg = load_run_config(model, preset, overrides=list(overrides))
-    paper = load_run_config(model, PAPER_PRESET)
-    return PresetFacts(epochs=int(cfg["train"]["epochs"]), paper_frames=int(paper["data"]["frames"]),
-                       paper_epochs=int(paper["train"]["epochs"]))
+def preset_facts(models, preset: str, overrides=()) -> PresetFacts:
+    """Each model's training epochs at `preset` (with `overrides`), the paper preset's frames and each model's
+    epochs there, for the report."""
+    cfgs = {m: load_run_config(m, preset, overrides=list(overrides)) for m in models}
+    paper = {m: load_run_config(m, PAPER_PRESET) for m in models}
+    return PresetFacts(epochs={m: int(c["train"]["epochs"]) for m, c in cfgs.items()},
+                       paper_frames=int(paper[models[0]]["data"]["frames"]),
+                       paper_epochs={m: int(c["train"]["epochs"]) for m, c in paper.items()})
 
 
 __all__ = ["AbilitySource", "PAPER_PRESET", "PresetFacts", "StudyPlan", "build_plan", "preset_facts"]

@@ -6,7 +6,10 @@ training seeds when there are several), the preset's caveat, the ability study w
 against it, the detectors' table, the cross-height matrices, and the paths of the per-run reports
 and figures. The ability study's and the combined report's own tables are embedded as their tools
 wrote them, one heading level down, each heading followed by the line naming its data.
-`cross_height_file_markdown(study)` is OUT/cross_height/cross_height.md.
+`cross_height_file_markdown(study)` is OUT/cross_height/cross_height.md. Every rule and figure the text
+states comes from study.json: the evaluation's IoU and score thresholds from the reports, the range
+extents from detbench.data.regions, the preset's frames and epochs from its config, the training
+minutes and AP@R40 from the study's own results.
 """
 from __future__ import annotations
 
@@ -17,20 +20,65 @@ from detbench.studies.seed_markdown import detector_table_markdown, pairwise_mar
 from detbench.studies.split_check import split_check_markdown
 from detbench.studies.study_summary import detector_summary_markdown, height_summary_lines, unlearned_markdown
 
-# What each preset's detector figures can and cannot show (printed in the study's summary).
-PRESET_CAVEATS = {
-    "smoke": "*Preset `smoke` proves that the pipeline runs end to end: a few frames, narrow models, two epochs. "
-             "Its detectors have not learned; their recall and AP (near 0) say nothing about the models or the "
-             "heights. Run `--preset quick` for figures that do.*",
-    "quick": "*Preset `quick` trains narrow models for a few minutes each on a small simulated dataset: the "
-             "detectors that learn at this budget reach AP@R40 0.4-0.7 and their ranking per height is meaningful "
-             "within the intervals shown, but absolute figures are far below the paper's (full models, 8000 frames, "
-             "80 epochs). The ability figures are at the paper's scale.*",
-    "cpu": "*Preset `cpu` trains each detector 7-16 minutes on one CPU core: absolute "
-           "figures are below the "
-           "paper's scale; differences between heights and models hold within the intervals shown.*",
-    "paper": "*Preset `paper`: the paper's data size and schedule.*",
-}
+def _span(values, digits: int = 0) -> str:
+    """"a-b" of the values (one figure when they agree to `digits`); "-" for none."""
+    values = [v for v in values if v is not None]
+    if not values:
+        return "-"
+    lo, hi = f"{min(values):.{digits}f}", f"{max(values):.{digits}f}"
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _epochs(per_model: Mapping[str, int]) -> str:
+    return f"{_span(per_model.values())} epochs" + (
+        "" if len(set(per_model.values())) < 2 else f" ({', '.join(f'{m} {n}' for m, n in per_model.items())})")
+
+
+def preset_caveat(study: Mapping) -> str:
+    """What the preset's detector figures can and cannot show, with the preset's epochs and frames from its
+    config and the training minutes and AP@R40 from the study's own results."""
+    preset, facts = study["preset"], study.get("preset_facts")
+    if facts is None:
+        return ""
+    frames = (study.get("data_info") or {}).get("num_frames")
+    minutes = _span(study["run_minutes"].values(), 1)
+    paper = f"full models, {facts['paper_frames']} frames, {_span(facts['paper_epochs'].values())} epochs"
+    if preset == "smoke":
+        return (f"*Preset `smoke` proves that the pipeline runs end to end: {frames} frames, narrow models, "
+                f"{_epochs(facts['epochs'])}. Its detectors are not trained to learn, so their recall and AP say "
+                f"nothing about the models or the heights. Run `--preset quick` for figures that do.*")
+    if preset == "quick":
+        not_learned = study["not_learned"]["models"]
+        aps = [ap for m, by_h in study["ap_r40_small"].items() if m not in not_learned for ap in by_h.values()]
+        reach = (f"the detectors that learn at this budget reach AP@R40 {_span(aps, 2)} here (small range, all "
+                 f"vehicles)" if aps else "no detector learns at this budget here")
+        ability = (" The ability figures are at the paper's scale." if study.get("ability_frames") ==
+                   facts["paper_frames"] else "")
+        return (f"*Preset `quick` trains narrow models for {_epochs(facts['epochs'])} ({minutes} minutes per model "
+                f"and height here) on {frames} simulated frames: {reach}, and their ranking per height is "
+                f"meaningful within the intervals shown, but absolute figures are far below the paper's ({paper})."
+                f"{ability}*")
+    if preset == "cpu":
+        return (f"*Preset `cpu` trains each detector {_epochs(facts['epochs'])} on one CPU core ({minutes} minutes "
+                f"per model and height here): absolute figures are below the paper's scale ({paper}); differences "
+                f"between heights and models hold within the intervals shown.*")
+    if preset == "paper":
+        return f"*Preset `paper`: the paper's data size and schedule ({paper}).*"
+    return ""
+
+
+def _rules(study: Mapping) -> tuple[str, str, str]:
+    """(the large range's extent, the evaluation's IoU and score rule, every range's x extent) as study.md says
+    them: "every vehicle within 150 m ahead, |y| <= 15 m", "3D IoU >= 0.7 and score >= 0.1", "small range
+    0-50 m, moderate 0-100 m, large 0-150 m"."""
+    ranges, ev = study["ranges"], study["evaluation"]
+    large = ranges["large"]
+    extent = f"every vehicle within {large['x_max']:g} m ahead, |y| <= {large['abs_y_max']:g} m"
+    kind = str(ev.get("iou_kind") or "3d").upper()
+    rule = f"{kind} IoU >= {ev['iou_threshold']:g} and score >= {ev['score_threshold']:g}"
+    spans = ", ".join(f"{r}{' range' if i == 0 else ''} {e['x_min']:g}-{e['x_max']:g} m"
+                      for i, (r, e) in enumerate(ranges.items()))
+    return extent, rule, spans
 
 
 def _data_words(study: Mapping) -> str:
@@ -88,8 +136,8 @@ def _seed_lines(study: Mapping) -> list[str]:
     return [f"**Over the training seeds** {', '.join(map(str, study['train_seeds']))} (the lines above are seed "
             f"{study['primary_seed']}'s alone): each model and height's mean over seeds, its interval holding both "
             f"the test-scene bootstrap and the seed-to-seed spread.", "",
-            "**Which detector** (seed means; small range 0-50 m, moderate 0-100 m, large 0-150 m; training "
-            "minutes: the mean over seeds of each run's training epochs):", "",
+            f"**Which detector** (seed means; {_rules(study)[2]}; training minutes: the mean over seeds of each "
+            f"run's training epochs):", "",
             *detector_table_markdown(seeds["table"]), "", *pairwise_markdown(seeds["pairs"]), "",
             *seed_markdown_lines(seeds["by_height"], seeds["by_model"]), ""]
 
@@ -99,24 +147,26 @@ def _summary(study: Mapping) -> list[str]:
     left_out = study["left_out"]
     add_left_out = f"--models {' '.join(sorted(set(study['models']) | set(left_out)))}"
     not_learned = study["not_learned"]
+    extent, rule, _ = _rules(study)
+    facts = study.get("preset_facts") or {}
+    paper_scale = (f" ({facts['paper_frames']} frames, full models, {_span(facts['paper_epochs'].values())} epochs; "
+                   f"a GPU)" if facts else "")
     return ["## Summary", "",
             "**Which height sees the most vehicles?** LiDAR detection rate (LDR: vehicles with >= 1 point / all "
             "vehicles), best height per importance level and range, and its paired lead over the next height "
             "(95 % scene-bootstrap interval).", "", source_ability, "",
             *height_summary_lines(study["ability"]), "",
-            "**Which detector finds the most LiDAR-detected vehicles?** Per height, the model with the highest "
-            "recall of the LiDAR-detected vehicles in the large range (every vehicle within 150 m ahead, "
-            "|y| <= 15 m), at 3D IoU >= 0.7 and score >= 0.1; intervals from a bootstrap over test scenes, the "
-            "lead paired over the same scenes.", "", _detect_source(study), "",
+            f"**Which detector finds the most LiDAR-detected vehicles?** Per height, the model with the highest "
+            f"recall of the LiDAR-detected vehicles in the large range ({extent}), at {rule}; intervals from a "
+            f"bootstrap over test scenes, the lead paired over the same scenes.", "", _detect_source(study), "",
             *detector_summary_markdown(study["summary"]["detectors"]), "",
             *_seed_lines(study),
             *unlearned_markdown(not_learned["models"], not_learned["below_ap_r40"]),
             *([f"*Not in this study: {', '.join(left_out)} (the preset's `study.models`, "
                f"configs/presets/{study['preset']}.yaml, says why); add it with `{add_left_out}`.*", ""]
               if left_out else []),
-            PRESET_CAVEATS.get(study["preset"], ""), "",
-            "Paper-scale figures (8000 frames, full models, 80 epochs; a GPU): "
-            "`python tools/study.py --preset paper --device cuda`.", ""]
+            preset_caveat(study), "",
+            f"Paper-scale figures{paper_scale}: `python tools/study.py --preset paper --device cuda`.", ""]
 
 
 def _ability_section(study: Mapping) -> list[str]:
@@ -163,4 +213,4 @@ def study_markdown(study: Mapping) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["PRESET_CAVEATS", "cross_height_file_markdown", "study_markdown"]
+__all__ = ["cross_height_file_markdown", "preset_caveat", "study_markdown"]

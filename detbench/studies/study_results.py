@@ -11,10 +11,12 @@ their text, e.g. "1.8"); times in seconds or minutes as the key says.
 
 What it holds, besides the summary's and the statistics' own layouts: "data_info" (the dataset's
 frames), "splits" (each split's frames and scenes), "evaluation" (the reports' IoU kind and
-thresholds), "ranges" (the extents of detbench.data.regions), "preset_facts" (the preset's epochs,
-the paper preset's frames and epochs), "not_learned" (the models below NOT_LEARNED_AP at every
-height), "markdown" (the ability study's and the combined report's own tables), "report_files" and
-"figures" (paths relative to the study's folder).
+thresholds), "ranges" (the extents of detbench.data.regions), "preset_facts" (each model's epochs
+at the preset, the paper preset's frames and epochs), "run_minutes" (each model and height's
+training minutes, the mean over seeds), "ap_r40_small" (the primary seed's AP@R40 per model and
+height, small range, all vehicles), "not_learned" (the models below NOT_LEARNED_AP at every
+height), "markdown" (the ability study's and the combined report's own tables), "report_files"
+and "figures" (paths relative to the study's folder).
 """
 from __future__ import annotations
 
@@ -43,7 +45,8 @@ def study_results(plan: StudyPlan, seconds: float) -> dict:
     out = plan.out
     ability = read_json(out / "ability" / "ability.json")
     splits = {name: read_json(out / "splits" / f"{name}.json") for name in SPLITS}
-    reports = [read_json(plan.report(m, h, plan.primary)) for m in plan.models for h in plan.heights]
+    by_run = {(m, h): read_json(plan.report(m, h, plan.primary)) for m in plan.models for h in plan.heights}
+    reports = list(by_run.values())
     # training time per model: the epochs' own seconds from each run's history.json, so a training that was
     # stopped and resumed counts every invocation's epochs; per model and height the minutes of each seed
     train_min = {(m, h): [training_seconds(plan.run_dir(m, h, s)) / 60.0 for s in plan.seeds]
@@ -80,8 +83,11 @@ def study_results(plan: StudyPlan, seconds: float) -> dict:
                    for name, rep in splits.items()},
         "evaluation": {k: first.get(k) for k in ("iou_kind", "iou_threshold", "score_threshold")},
         "ranges": {r: {"x_min": x0, "x_max": x1, "abs_y_max": y} for r, (x0, x1, y) in RANGES.items()},
-        "preset_facts": None if facts is None else {"epochs": facts.epochs, "paper_frames": facts.paper_frames,
-                                                    "paper_epochs": facts.paper_epochs},
+        "preset_facts": None if facts is None else {"epochs": dict(facts.epochs), "paper_frames": facts.paper_frames,
+                                                    "paper_epochs": dict(facts.paper_epochs)},
+        "run_minutes": {f"{m} {h:g}": round(sum(v) / len(v), 2) for (m, h), v in train_min.items()},
+        "ap_r40_small": {m: {f"{h:g}": by_run[(m, h)]["results"]["small"]["all"]["ap_r40"] for h in plan.heights}
+                         for m in plan.models},
         "not_learned": {"below_ap_r40": NOT_LEARNED_AP, "models": unlearned_models(reports)},
         "markdown": {"ability": (out / "ability" / "ability.md").read_text(encoding="utf-8"),
                      "detection": (out / "combined" / "combined.md").read_text(encoding="utf-8")},

@@ -227,3 +227,48 @@ def test_the_study_names_what_it_was_run_on(written):
     assert study["test_scenes"] == first["uncertainty"]["num_clusters"]
     assert study["train_seconds"] == {
         m: round(sum(_train_seconds(written.out, m, h, s) for h in HEIGHTS for s in SEEDS), 1) for m in MODELS}
+
+
+def test_the_rules_the_report_states_come_from_the_reports_and_the_regions(written):
+    """study.md's IoU and score rule is the reports' own, its range extents detbench.data.regions': another
+    evaluation or another extent in study.json changes the text, not a sentence typed in the code."""
+    from detbench.data.regions import RANGES
+    from detbench.studies.study_report import study_markdown
+
+    first = _report(written.out, MODELS[0], HEIGHTS[0], SEEDS[0])
+    study = written.study
+    assert study["evaluation"] == {k: first[k] for k in ("iou_kind", "iou_threshold", "score_threshold")}
+    assert {r: (e["x_min"], e["x_max"], e["abs_y_max"]) for r, e in study["ranges"].items()} == RANGES
+    assert "at 3D IoU >= 0.7 and score >= 0.1;" in written.md
+    assert "(every vehicle within 150 m ahead, |y| <= 15 m)" in written.md
+    assert "(seed means; small range 0-50 m, moderate 0-100 m, large 0-150 m;" in written.md
+    other = json.loads(json.dumps(study))
+    other["evaluation"] = {"iou_kind": "bev", "iou_threshold": 0.5, "score_threshold": 0.05}
+    other["ranges"]["large"]["x_max"], other["ranges"]["large"]["abs_y_max"] = 120.0, 12.5
+    md = study_markdown(other)
+    assert "at BEV IoU >= 0.5 and score >= 0.05;" in md and "IoU >= 0.7" not in md.split("## 1.")[0]
+    assert "(every vehicle within 120 m ahead, |y| <= 12.5 m)" in md and "large 0-120 m;" in md
+
+
+def test_the_presets_caveat_takes_its_figures_from_the_config_and_the_studys_results(written):
+    """The caveat's frames and epochs are the config's, its minutes and AP@R40 the study's own."""
+    from detbench.studies.study_report import preset_caveat
+    from detbench.train.run_config import load_run_config
+
+    study = json.loads(json.dumps(written.study))
+    epochs = {m: load_run_config(m, "smoke")["train"]["epochs"] for m in MODELS}
+    assert study["preset_facts"]["epochs"] == epochs
+    assert study["preset_facts"]["paper_frames"] == load_run_config(MODELS[0], "paper")["data"]["frames"]
+    smoke = preset_caveat(study)
+    assert f"{study['data_info']['num_frames']} frames" in smoke and f"{epochs['ct3d']} epochs" in smoke
+    study["preset"] = "quick"
+    study["preset_facts"]["epochs"] = {"ct3d": 5, "pointrcnn": 6, "second": 4}
+    learned = [ap for m, by_h in study["ap_r40_small"].items() if m != "pointrcnn" for ap in by_h.values()]
+    minutes = [v for v in study["run_minutes"].values()]
+    quick = preset_caveat(study)
+    assert f"reach AP@R40 {min(learned):.2f}-{max(learned):.2f} here" in quick  # pointrcnn has not learned
+    assert f"4-6 epochs (ct3d 5, pointrcnn 6, second 4) ({min(minutes):.1f}-{max(minutes):.1f} minutes" in quick
+    assert "The ability figures are at the paper's scale" not in quick  # the ability study ran on the data
+    study["preset"] = "cpu"
+    assert f"({min(minutes):.1f}-{max(minutes):.1f} minutes per model and height here)" in preset_caveat(study)
+    assert not any(word in smoke + quick for word in ("a few", "near 0", "0.4-0.7", "7-16"))
