@@ -31,6 +31,7 @@ from pathlib import Path
 
 from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
+from detbench.data.frame import height_key
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
 from detbench.studies.cpu_load import MachineLoad
@@ -58,7 +59,7 @@ class StudyOptions:
 
     preset: str = "quick"
     models: list[str] | None = None  # None: the preset's study.models, else every registered model
-    heights: list[float] | None = None  # None: the preset's data.heights
+    heights: list[float] | None = None  # None: with `data` the heights it holds, else the preset's data.heights
     data: str | None = None  # a dataset on disk instead of the simulated default
     device: str = "auto"
     out: str | None = None  # None: run_layout.default_study_dir(preset)
@@ -120,15 +121,11 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     if args.data and not Path(args.data).is_dir():
         raise UserError(f"--data {args.data}: no such folder; give a dataset written by tools/simulate.py or "
                         f"python -m detbench.data.convert, or leave --data out for the simulated default")
-    if args.data:  # a folder without a readable dataset.json is refused here, not by a stage after others ran
-        try:
-            read_info(args.data)
-        except DatasetError as e:
-            raise UserError(f"--data {args.data}: {e}") from None
     bad_heights = [h for h in (args.heights or []) if not (h > 0 and h < 10)]
     if bad_heights:
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
     _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
     with ExitStack() as held:
@@ -140,17 +137,36 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
                 clear_folder(out, STUDY_FOLDER, flag="--fresh")
         except FolderNotReplaceable as e:
             raise UserError(f"--out {e}") from None
-        return _run_stages(args, out, names, left_out, base_cfg, repo=repo)
+        return _run_stages(args, out, names, left_out, heights, base_cfg, repo=repo)
+
+
+def study_heights(data: str | None, heights: list[float] | None, preset_heights: list) -> list[float]:
+    """The study's mounting heights (metres): `heights` (--heights) when given, else with `data` (--data) every
+    height that dataset holds, else the preset's data.heights. UserError for a dataset whose dataset.json
+    cannot be read, or that lacks a height of `heights` (before anything is created)."""
+    if not data:
+        return list(heights) if heights else [float(h) for h in preset_heights]
+    try:
+        held = {height_key(k): float(k) for k in read_info(data).heights}
+    except DatasetError as e:
+        raise UserError(f"--data {data}: {e}") from None
+    if not heights:
+        return sorted(held.values())
+    missing = [h for h in heights if height_key(h) not in held]
+    if missing:
+        raise UserError(f"--heights {' '.join(f'{h:g}' for h in missing)}: the dataset {data} holds "
+                        f"{', '.join(f'{h:g} m' for h in sorted(held.values()))}; give heights among them, or leave "
+                        f"--heights out to study every height it holds")
+    return list(heights)
 
 
 def _note(text: str) -> None:
     print(f"note: {text}", file=sys.stderr, flush=True)
 
 
-def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[str], base_cfg: dict, *,
-                repo: str | os.PathLike) -> tuple[Path, float]:
+def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[str], heights: list[float],
+                base_cfg: dict, *, repo: str | os.PathLike) -> tuple[Path, float]:
     """The study's stages in OUT (claimed and locked by `run_study`), then study.json and study.md."""
-    heights = args.heights or [float(h) for h in base_cfg["data"]["heights"]]
     t_start = time.perf_counter()
     if left_out:
         add = f"--models {' '.join(sorted(set(names) | set(left_out)))}"  # the study with them
@@ -279,4 +295,4 @@ def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
     return LocalExecutor(default_jobs("cpu"), cwd=repo, load=MachineLoad())
 
 
-__all__ = ["StudyOptions", "run_study", "study_models"]
+__all__ = ["StudyOptions", "run_study", "study_heights", "study_models"]

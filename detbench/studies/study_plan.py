@@ -153,4 +153,18 @@ def preset_facts(models, preset: str, overrides=()) -> PresetFacts:
                        paper_epochs={m: int(c["train"]["epochs"]) for m, c in paper.items()})
 
 
-__all__ = ["AbilitySource", "PAPER_PRESET", "PresetFacts", "StudyPlan", "build_plan", "preset_facts"]
+
+
+def preset_description(preset: str, models: list[str]) -> str:
+    """What a preset is, from its config: "48 frames, 2 epochs, every detector" (the detection data's frames,
+    the training epochs of `models`, its study.models)."""
+    cfgs = {m: load_run_config(m, preset) for m in models}
+    first = cfgs[models[0]]
+    epochs = sorted({int(c["train"]["epochs"]) for c in cfgs.values()})
+    studied = [str(m) for m in (first.get("study") or {}).get("models") or []]
+    return (f"{first['data']['frames']} frames, {epochs[0]}{'' if len(epochs) == 1 else f'-{epochs[-1]}'} epochs, "
+            + (" ".join(studied) if studied else "every detector"))
+
+
+__all__ = ["AbilitySource", "PAPER_PRESET", "PresetFacts", "StudyPlan", "build_plan", "preset_description",
+           "preset_facts"]
