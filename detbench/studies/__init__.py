@@ -25,6 +25,7 @@ tradeoff_points              the trade study's knobs and points
 tradeoff_worker              one point measured in its own process (python -m detbench.studies.tradeoff_worker)
 tradeoff_sweep               the trade sweep's scheduler within a budget, resuming (tools/tradeoff.py)
 executor                     the jobs and tasks run as child processes of this machine, with a deadline
+cpu_load                     how many jobs this machine has room for: usable cores less the other load
 jobs                         the study's job graph, its scheduler and the driver that runs it
 ray_executor                 the study's jobs as tasks of a Ray cluster
 registry                     what the studies need of the detector registry, which the tools pass in

@@ -88,7 +88,7 @@ from detbench.studies.student_t import student_t_quantile
 METRICS: tuple[str, ...] = ("recall", "ap_r40")
 CONFIDENCE = 0.95
 # The paired lead's scene bootstrap: the replicates and seed of study_summary.paired_recall_difference,
-# so one seed per model gives today's single-seed lead.
+# so one seed per model gives the single-seed lead to the digit.
 LEAD_REPLICATES = 2000
 LEAD_SEED = 0
 # What the summary ranks: recall of the LiDAR-detected vehicles in the large range (as

@@ -88,7 +88,10 @@ def test_seeds_train_each_run_once_per_seed_and_the_report_gives_the_spread(tiny
     md = (out / "study.md").read_text()
     assert "**Over the training seeds** 0, 1" in md and "seed sd" in md and "scene-only" in md
     # the one-table answer: seed means, the paper's Table VII recall beside them, the training minutes
-    minutes = got["seeds"]["train_minutes"]["second 0.5"]
+    row = json.loads((out / "study.json").read_text())["seeds"]["table"][0]  # the table's data, unrounded
+    minutes = row["train_minutes"]
+    assert (row["model"], row["height"], row["num_seeds"]) == ("second", 0.5, 2)
+    assert row["paper_recall"] == [0.97, 0.90, 0.85]
     assert minutes > 0 and "| second | 0.5 m | 2 | " in md and f"| 0.97 / 0.90 / 0.85 | {minutes:.1f} |" in md
     assert "| 0.5 m | large | Recall | second " in md and got["seeds"]["pairs"]["0.5"]["large"]["recall"]["pairs"] == []
     # the same command again: every job is kept
