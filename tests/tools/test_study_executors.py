@@ -22,12 +22,13 @@ def tiny_dataset(tmp_path_factory):
 
 
 def comparable(out: Path) -> dict:
-    """study.json without its timing fields (seconds, minutes) and with the study's own folder replaced by OUT."""
+    """study.json without its timing fields (seconds, per second, minutes) and with the study's own folder replaced
+    by OUT."""
     text = (out / "study.json").read_text().replace(str(out), "OUT")
 
     def strip(v):
         if isinstance(v, dict):
-            return {k: strip(x) for k, x in v.items() if "seconds" not in k and "minutes" not in k}
+            return {k: strip(x) for k, x in v.items() if not any(t in k for t in ("seconds", "per_second", "minutes"))}
         if isinstance(v, list):
             return [strip(x) for x in v]
         return v
