@@ -8,13 +8,13 @@ split; (4) each evaluated on the same height's test split (Table VII); (5) one c
 report with the paper's Fig. 8-10.
 
 Examples:
-  python tools/study.py --preset quick                 # the quick start: real figures in ~45 min on 2 CPU cores
-  python tools/study.py --preset smoke                 # the pipeline end to end in a minute (tests, CI)
+  python tools/study.py --preset quick                 # the quick start: every detector learns
+  python tools/study.py --preset smoke                 # the pipeline end to end (tests, CI)
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
-  python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per free CPU core)
+  python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per usable core)
   python tools/study.py --preset quick --models second pillarnet --seeds 0 1   # each run once per seed
   python tools/study.py --preset smoke --executor ray  # the jobs as tasks of a local Ray instance
   python tools/study.py --preset paper --device cuda --executor ray --address auto --out /shared/nfs/study
@@ -24,7 +24,8 @@ as soon as the jobs it needs have finished (a training needs the data, its evalu
 training, the report all of them), each in its own process with one torch thread, so a study's
 figures do not depend on how many run at once. Each job's output goes to OUT/logs/<job>.log (and
 to the terminal too with --jobs 1); a failed job prints its log's last lines and stops the study
-(the running trainings write a checkpoint first), as does Ctrl-C.
+(the running trainings write a checkpoint first), as does Ctrl-C. Measured times per preset:
+docs/results.md.
 
 The study resumes: a stage whose output exists and was computed from the same inputs (the
 data's content, the config, the heights) is skipped, an interrupted training run is resumed
@@ -48,23 +49,23 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
 import models
 from detbench.studies.study import StudyOptions, run_study
+from detbench.studies.study_plan import preset_description
 from detbench.train.run_config import preset_names
 from detbench.utils.cli import doc_parser, run_main
 
 
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
-    ap.add_argument("--preset", default="quick", choices=preset_names(),
-                    help="training budget, configs/presets/NAME.yaml (data, epochs, model widths): quick (real "
-                         "figures: the whole study of four detectors in about 45 min on 2 CPU cores), smoke (a "
-                         "minute; proves the pipeline, learns nothing: tests and CI), cpu (7-16 min per model and "
-                         "height on one core, PointRCNN the longest), "
-                         "paper (the paper's scale; a GPU). Default quick")
+    preset = ap.add_argument("--preset", default="quick", choices=preset_names(),
+                             help="training budget, configs/presets/NAME.yaml (data, epochs, model widths). Default "
+                                  "quick")
+    _describe_presets_in_help(ap, preset)
     ap.add_argument("--models", nargs="+", default=None,
                     help=f"detectors, any of {', '.join(sorted(models.REGISTRY))} (default: the preset's "
                          f"study.models, configs/presets/NAME.yaml; every one when that list is empty)")
     ap.add_argument("--heights", type=float, nargs="+", default=None,
-                    help="mounting heights in metres (default: the preset's data.heights, 0.5 1.0 1.8)")
+                    help="mounting heights in metres (default: with --data every height the dataset holds, else the "
+                         "preset's data.heights)")
     ap.add_argument("--data", default=None, metavar="ROOT", help="a dataset on disk instead of the simulated default")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     ap.add_argument("--out", default=None, help="output folder (default runs/study_<preset>)")
@@ -77,14 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="empty OUT first instead of resuming (only a study's folder: any other is refused)")
     ap.add_argument("--no-progress", action="store_true", help="hide progress bars")
     ap.add_argument("--jobs", type=int, default=None, metavar="N",
-                    help="jobs at once (default: one per free CPU core, i.e. the cores this process may use minus "
-                         "the cores busy over half a second at the start (/proc/stat), at least 1; one per GPU with "
+                    help="jobs at once, whatever else runs (default: one per CPU core this process may use, its "
+                         "affinity and any cgroup CPU quota, fewer while other processes keep some of them busy, "
+                         "measured again as slots free up, and the progress line says so; one per GPU with "
                          "--device cuda; with --executor ray the cluster's CPUs or GPUs). Each job has one torch "
                          "thread whatever N, so results do not depend on it. E.g. --jobs 2")
     ap.add_argument("--executor", choices=("local", "ray"), default="local",
                     help="local (default): the jobs as processes of this machine; ray: each job a Ray task asking "
-                         "for 1 CPU (or 1 GPU with --device cuda) on whichever worker Ray picks (pip install "
-                         ".[cluster]). With ray, OUT and --data must be folders every worker shares (NFS), and "
+                         "for 1 CPU (or 1 GPU with --device cuda) on whichever worker Ray picks (pip install -e "
+                         "'.[cluster]'). With ray, OUT and --data must be folders every worker shares (NFS), and "
                          "every worker has this checkout at the same path. E.g. --executor ray --address auto")
     ap.add_argument("--address", default=None, metavar="ADDR",
                     help="with --executor ray: the cluster, 'auto' (the one `ray start` started here) or host:port "
@@ -96,6 +98,18 @@ def build_parser() -> argparse.ArgumentParser:
                          "with an interval holding seed spread and scene bootstrap. E.g. --seeds 0 1 2")
     return ap
 
+
+def _describe_presets_in_help(ap: argparse.ArgumentParser, preset: argparse.Action) -> None:
+    """--help states what each preset is, read from configs/presets/ when the help is shown."""
+    format_help = ap.format_help
+
+    def with_presets() -> str:
+        described = "; ".join(f"{p}: {preset_description(p, sorted(models.REGISTRY))}" for p in preset_names())
+        preset.help = (f"training budget, configs/presets/NAME.yaml ({described}; measured times: "
+                       f"docs/results.md). Default quick")
+        return format_help()
+
+    ap.format_help = with_presets
 
 
 def main(argv=None) -> int:

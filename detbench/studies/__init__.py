@@ -12,11 +12,22 @@ rankcorr                     rank correlation of placement scores with trained d
 cross_height                 detectors trained at one height and tested at the others
 study_summary                the answers that open a study's report (best height, best model)
 seeds                        figures over several training seeds: the mean, its interval over scenes and seeds
-study                        the whole study: its stages, progress line and study.md (tools/study.py)
+seed_cells, seed_checks      the seed statistics' typed cells; the checks that reports can be combined
+seed_markdown                study.md's sections on training seeds
+student_t                    Student's t quantile (the seed statistics' t factor)
+study                        the whole study from its arguments (tools/study.py)
+study_plan                   the study's plan: names, heights, seeds, run folders, each stage's inputs
+study_jobs                   the plan as a graph of jobs
+study_results                the finished outputs read into study.json
+study_report                 study.md rendered from study.json
+commands                     the command lines of the studies' jobs (the tools they run)
 tradeoff                     the trade study's Pareto flags, planner, cost model, report and figures
 tradeoff_points              the trade study's knobs and points
 tradeoff_worker              one point measured in its own process (python -m detbench.studies.tradeoff_worker)
 tradeoff_sweep               the trade sweep's scheduler within a budget, resuming (tools/tradeoff.py)
-runner                       one stage or task run as a child process, streamed or logged, with a deadline
+executor                     the jobs and tasks run as child processes of this machine, with a deadline
+cpu_load                     how many jobs this machine has room for: usable cores less the other load
+jobs                         the study's job graph, its scheduler and the driver that runs it
+ray_executor                 the study's jobs as tasks of a Ray cluster
 registry                     what the studies need of the detector registry, which the tools pass in
 """

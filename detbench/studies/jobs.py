@@ -1,4 +1,4 @@
-"""The study as a graph of jobs, and the local executor that runs as many of them at once as there is room for.
+"""The study as a graph of jobs: the jobs, the scheduler that orders and times them, and the driver that runs them.
 
 A `Job` is one stage of a study (the ability study, a training, an evaluation, the combined
 report) run as one command in its own process: its id (also its log's name, OUT/logs/<id>.log),
@@ -8,8 +8,11 @@ runs only when its dependencies have finished (`prepare`: the command, or None w
 is current and it is skipped, as a study resumes); `finish` records what it was computed from
 once it succeeded. Both run in the driver process, one at a time.
 
-`run_graph` is the driver both executors share: it starts every job whose dependencies are done
-while the executor has a free slot, prints one progress line per event (`GraphProgress`), and
+`CriticalPathScheduler` decides which ready job starts first (the one with the longest remaining
+path through the graph, by the durations measured so far), estimates the time left and writes one
+progress line per event. `run_graph` is the driver both executors share: it starts the ready jobs
+in the scheduler's order while the executor has room (a free slot; on this machine also a core the
+machine's other load leaves free, which the progress line says when it holds a job back), and
 on a failed job prints its log's path and last lines, starts nothing new and sends SIGTERM to the
 running jobs so a training writes its checkpoint and exits (train_summary.json "interrupted");
 Ctrl-C does the same, and so does SIGTERM to the driver (`kill PID`: a study started with nohup or
@@ -19,32 +22,26 @@ installs its handler, would not see SIGINT and would run on until the kill after
 SIGTERM ends it at once (it has not trained yet) and, once the loop runs, makes it save a
 checkpoint. The study resumes afterwards with the same command.
 
-`LocalExecutor` runs the jobs as child processes of this machine: `slots` at once, each with
-one torch and one numba thread (`JOB_ENV`) whatever the number of slots, so results do not
-depend on it. With one slot a job's output streams through to the terminal (and into its log);
-with several it goes to its log only. detbench.studies.ray_executor runs the same graph on Ray.
+detbench.studies.executor's `LocalExecutor` runs the jobs as child processes of this machine, each
+with one torch and one numba thread whatever the number at once, so results do not depend on it,
+one per core this process may use by default (`default_jobs`; detbench.studies.cpu_load);
+detbench.studies.ray_executor runs the same graph on Ray.
 """
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from detbench.studies.runner import STOP_GRACE_S
+from detbench.studies.cpu_load import usable_cores
+from detbench.studies.executor import STOP_GRACE_S
 from detbench.utils.cli import EXIT_USER_ERROR, UserError, sigterm_as_ctrl_c
 
 LOGS_DIR = "logs"  # OUT/logs/<job id>.log
 TAIL_LINES = 20  # lines of a failed job's log printed with its path
-
-# Every job's environment on top of the driver's: one torch (OpenMP) and one numba thread, unbuffered
-# output (the log is current while the job runs). The same for every number of jobs at once.
-JOB_ENV = {"OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
 
 KINDS = ("ability", "train", "eval", "cross_eval", "combine")  # the data and the splits' counts come before the graph
 
@@ -56,7 +53,7 @@ class Job:
     id: str
     kind: str  # one of KINDS
     what: str  # what the progress line calls it: "train second 0.5 m"
-    prepare: Callable[[], list[str] | None]  # the command, or None: its output is current (skipped)
+    prepare: Callable[[], list[str] | None] | None = None  # the command, or None: its output is current (skipped)
     deps: tuple[str, ...] = ()
     model: str | None = None
     finish: Callable[[], None] | None = None  # after it succeeded: record its inputs
@@ -91,44 +88,6 @@ def check_graph(jobs: list[Job]) -> None:
         done.update(ready)
 
 
-def _cpu_times() -> tuple[float, float] | None:
-    """(busy, total) jiffies of every CPU since boot, from /proc/stat (None where there is none)."""
-    try:
-        with open("/proc/stat", encoding="ascii") as fh:
-            fields = [float(x) for x in fh.readline().split()[1:]]
-    except (OSError, ValueError):
-        return None
-    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)  # idle + iowait
-    return sum(fields) - idle, sum(fields)
-
-
-def busy_cores(window_s: float = 0.5) -> float:
-    """Cores kept busy by every process now: the busy share of CPU time over `window_s` seconds (/proc/stat)
-    times the machine's cores; where /proc/stat is missing, the 1-minute load average."""
-    a = _cpu_times()
-    if a is not None:
-        time.sleep(window_s)
-        b = _cpu_times()
-        if b is not None and b[1] > a[1]:
-            return (b[0] - a[0]) / (b[1] - a[1]) * (os.cpu_count() or 1)
-    try:
-        return os.getloadavg()[0]
-    except OSError:
-        return 0.0
-
-
-def free_cpus() -> int:
-    """CPU cores free for jobs: the cores this process may run on (sched_getaffinity) minus the cores other
-    processes keep busy now (`busy_cores`, rounded to the nearest whole core), at least 1. Measured over half a
-    second rather than by the 1-minute load average, which lags: right after a study ended it still counts
-    that study's jobs as busy."""
-    try:
-        cores = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        cores = os.cpu_count() or 1
-    return max(1, cores - int(round(busy_cores())))
-
-
 def cuda_devices() -> list[str]:
     """The GPUs jobs may use: CUDA_VISIBLE_DEVICES when set, else every device torch sees (as indices)."""
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
@@ -140,10 +99,12 @@ def cuda_devices() -> list[str]:
 
 
 def default_jobs(device: str) -> int:
-    """How many jobs run at once by default: one per GPU with --device cuda, else one per free CPU core."""
+    """How many jobs run at once at most by default: one per GPU with --device cuda, else one per CPU core this
+    process may use (`cpu_load.usable_cores`; the local executor runs fewer while other processes keep some of
+    them busy)."""
     if device.startswith("cuda"):
         return max(1, len(cuda_devices()))
-    return free_cpus()
+    return usable_cores()
 
 
 def tail(path: Path, n: int = TAIL_LINES) -> list[str]:
@@ -160,8 +121,11 @@ def _minutes(s: float) -> str:
     return "under a minute" if s < 60 else f"~{s / 60:.0f} min"
 
 
-class GraphProgress:
-    """One line per event: what started or finished, the jobs running, how many are done, the time left.
+class CriticalPathScheduler:
+    """The order in which ready jobs start, the time left, and one line per event (what started or finished,
+    the jobs running, why fewer than the slots run, how many are done, the time left).
+
+    Ready jobs start longest remaining path first (`by_path`: critical-path list scheduling).
 
     The time left is the longest remaining path through the graph over the workers: the larger of
     the critical path (each job's estimated duration, the running ones less their elapsed time, along
@@ -183,6 +147,8 @@ class GraphProgress:
         self.running: dict[str, float] = {}  # id -> start time
         self.t0 = time.perf_counter()
         self.stream = stream if stream is not None else sys.stdout
+        self.note: str | None = None  # why fewer jobs than slots run now ("1 of 2 slots: ...")
+        self.said_note: str | None = None
 
     def estimate(self, job: Job) -> tuple[float | None, bool]:
         """(seconds, a guess?) for one job; None: no measurement to go by."""
@@ -226,11 +192,11 @@ class GraphProgress:
         return max(critical, sum(rem.values()) / self.slots), guess
 
     # A job kind's duration before any is measured: what orders the first jobs (a training's chain is
-    # longer than an evaluation's); seconds, the quick preset's order of magnitude.
+    # longer than an evaluation's); seconds, rough orders of magnitude, used only for that order.
     PRIOR_S = {"train": 300.0, "eval": 60.0, "cross_eval": 60.0, "ability": 90.0}
-    # An evaluation's duration as a share of its model's training before any evaluation has finished:
-    # the quick preset's 600 test frames take 0.15-0.37 of a training (PillarNet to PointRCNN; 0.25 the
-    # mean), and longest-path-first scheduling runs every training before the first evaluation.
+    # An evaluation's duration as a share of its model's training before any evaluation has finished (a
+    # guess, said so in the line; docs/results.md has measured ones); longest-path-first scheduling runs
+    # every training before the first evaluation.
     EVAL_SHARE = 0.25
 
     def by_path(self, pending: list[Job]) -> list[Job]:
@@ -275,7 +241,8 @@ class GraphProgress:
         else:
             eta = f"{_minutes(left)} left" + (" (a guess: some model has not run this kind of job yet)"
                                               if guess else "")
-        return (f"=== {event} | running: {running} | {len(self.finished)}/{len(self.order)} done | "
+        note = f"{self.note} | " if self.note else ""
+        return (f"=== {event} | running: {running} | {note}{len(self.finished)}/{len(self.order)} done | "
                 f"{(now - self.t0) / 60:.1f} min elapsed, {eta}")
 
     def say(self, text: str) -> None:
@@ -299,94 +266,6 @@ class GraphProgress:
         self.running.pop(job.id, None)
 
 
-class LocalExecutor:
-    """Runs jobs as child processes of this machine, `slots` at once (see the module's docstring).
-
-    devices: with --device cuda, the GPU indices; each job gets one of them as CUDA_VISIBLE_DEVICES."""
-
-    def __init__(self, slots: int, *, cwd: str | os.PathLike | None = None, devices: list[str] | None = None,
-                 stream: bool | None = None):
-        self.slots = max(1, int(slots))
-        self.cwd = cwd
-        self.devices = list(devices) if devices else None
-        if self.devices:
-            self.slots = min(self.slots, len(self.devices))
-        self.stream = (self.slots == 1) if stream is None else stream
-        self.procs: dict[str, tuple[subprocess.Popen, str | None, threading.Thread | None]] = {}
-
-    def start(self, job: Job, cmd: list[str]) -> None:
-        assert job.log is not None
-        job.log.parent.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, **JOB_ENV}
-        device = None
-        if self.devices:
-            used = {d for _, d, _ in self.procs.values()}
-            device = next(d for d in self.devices if d not in used)
-            env["CUDA_VISIBLE_DEVICES"] = device
-        fh = open(job.log, "w", encoding="utf-8")
-        fh.write(f"$ {' '.join(cmd)}\n")
-        fh.flush()
-        if self.stream:
-            print(f"$ {' '.join(cmd)}", flush=True)
-            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
-            pump = threading.Thread(target=_tee, args=(proc.stdout, fh), daemon=True)
-            pump.start()
-        else:
-            proc = subprocess.Popen(cmd, cwd=self.cwd, env=env, stdout=fh, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL)
-            fh.close()
-            pump = None
-        self.procs[job.id] = (proc, device, pump)
-
-    def wait(self, timeout: float) -> list[tuple[str, int]]:
-        """(job id, exit status) of the jobs that ended, waiting up to `timeout` s for the first."""
-        deadline = time.monotonic() + timeout
-        while True:
-            ended = [(i, p.poll()) for i, (p, _, _) in self.procs.items() if p.poll() is not None]
-            if ended or not self.procs or time.monotonic() >= deadline:
-                for i, _ in ended:
-                    _, _, pump = self.procs.pop(i)
-                    if pump is not None:
-                        pump.join()
-                return [(i, int(rc)) for i, rc in ended]
-            time.sleep(0.05)
-
-    def interrupt(self) -> None:
-        """SIGTERM to every running job (a training writes its checkpoint and exits; a job still starting ends)."""
-        for p, _, _ in self.procs.values():
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-
-    def kill(self) -> None:
-        for p, _, _ in self.procs.values():
-            if p.poll() is None:
-                p.kill()
-
-    @property
-    def running(self) -> list[str]:
-        return list(self.procs)
-
-    def close(self) -> None:
-        pass
-
-
-def _tee(src, fh) -> None:
-    """Copy a child's output to this process's stdout and to its log, as it comes."""
-    out = getattr(sys.stdout, "buffer", None)
-    try:
-        for chunk in iter(lambda: src.read1(65536), b""):
-            if out is not None:
-                out.write(chunk)
-                out.flush()
-            else:
-                sys.stdout.write(chunk.decode("utf-8", "replace"))
-                sys.stdout.flush()
-            fh.write(chunk.decode("utf-8", "replace"))
-            fh.flush()
-    finally:
-        fh.close()
-
-
 @dataclass
 class GraphResult:
     """ran: ids of the jobs that ran and succeeded; kept: ids skipped as current; seconds per job that ran."""
@@ -396,22 +275,22 @@ class GraphResult:
     seconds: dict[str, float] = field(default_factory=dict)
 
 
-def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None = None,
+def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, scheduler: CriticalPathScheduler | None = None,
               poll_s: float = 1.0) -> GraphResult:
     """Run `jobs` (the longest remaining path first among those ready) on `executor`; each job's output in
     `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
     naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C (or SIGTERM)
     stopped them. See the module's docstring."""
     with sigterm_as_ctrl_c():  # `kill PID` of a driver run outside a tool's run_main, too
-        return _run_graph(jobs, executor, logs, progress=progress, poll_s=poll_s)
+        return _run_graph(jobs, executor, logs, scheduler=scheduler, poll_s=poll_s)
 
 
-def _run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: GraphProgress | None,
+def _run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, scheduler: CriticalPathScheduler | None,
                poll_s: float) -> GraphResult:
     check_graph(jobs)
     for j in jobs:
         j.log = Path(logs) / f"{j.id}.log"
-    progress = progress or GraphProgress(jobs, executor.slots)
+    progress = scheduler or CriticalPathScheduler(jobs, executor.slots)
     by_id = {j.id: j for j in jobs}
     pending = list(jobs)
     done: set[str] = set()
@@ -467,17 +346,31 @@ def _run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, progress: 
     return result
 
 
-def _start_ready(pending: list[Job], done: set[str], executor, progress: GraphProgress, result: GraphResult) -> None:
+def _room(executor, progress: CriticalPathScheduler) -> int:
+    """How many jobs the executor has room for now (`room()` where it has one, else its slots); the scheduler
+    notes why fewer than the slots."""
+    allowed, progress.note = executor.room() if hasattr(executor, "room") else (executor.slots, None)
+    return allowed
+
+
+def _start_ready(pending: list[Job], done: set[str], executor, progress: CriticalPathScheduler,
+                 result: GraphResult) -> None:
     """Start (or skip, when current) the pending jobs whose dependencies are done, the longest remaining path
-    first (`GraphProgress.by_path`), while a slot is free."""
+    first (`CriticalPathScheduler.by_path`), while the executor has room."""
+    progress.note = None
+    room = None  # asked once a ready job waits for a free slot
     again = True
     while again and len(executor.running) < executor.slots:
         again = False
         for job in progress.by_path(pending):
-            if len(executor.running) >= executor.slots:
-                return
             if not all(d in done for d in job.deps):
                 continue
+            room = _room(executor, progress) if room is None else room
+            if len(executor.running) >= room:
+                if progress.note and progress.note != progress.said_note:  # say once why it waits
+                    progress.say(progress.line(f"{job.what} waits"))
+                    progress.said_note = progress.note
+                return
             pending.remove(job)
             cmd = job.prepare()
             if cmd is None:
@@ -490,7 +383,7 @@ def _start_ready(pending: list[Job], done: set[str], executor, progress: GraphPr
             executor.start(job, cmd)
 
 
-def _report_failure(job: Job, rc: int, progress: GraphProgress, others: list[str]) -> None:
+def _report_failure(job: Job, rc: int, progress: CriticalPathScheduler, others: list[str]) -> None:
     lines = tail(job.log) if job.log is not None else []
     progress.say(f"\n=== FAILED: {job.what} (exit {rc}); its log: {job.log}")
     if lines:
@@ -503,7 +396,7 @@ def _report_failure(job: Job, rc: int, progress: GraphProgress, others: list[str
                      f"first)")
 
 
-def _stop_all(executor, progress: GraphProgress, by_id: dict[str, Job]) -> None:
+def _stop_all(executor, progress: CriticalPathScheduler, by_id: dict[str, Job]) -> None:
     """SIGTERM to the running jobs, then wait for them (a kill after STOP_GRACE_S); a second Ctrl-C kills at once."""
     executor.interrupt()
     deadline = time.monotonic() + STOP_GRACE_S
@@ -530,5 +423,5 @@ def job_counts(jobs: Iterable[Job]) -> dict[str, int]:
     return counts
 
 
-__all__ = ["GraphProgress", "GraphResult", "JOB_ENV", "Job", "KINDS", "LOGS_DIR", "LocalExecutor", "TAIL_LINES",
-           "busy_cores", "check_graph", "cuda_devices", "default_jobs", "free_cpus", "job_counts", "run_graph", "tail"]
+__all__ = ["CriticalPathScheduler", "GraphResult", "Job", "KINDS", "LOGS_DIR", "TAIL_LINES", "check_graph",
+           "cuda_devices", "default_jobs", "job_counts", "run_graph", "tail"]

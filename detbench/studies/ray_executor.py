@@ -16,11 +16,13 @@ from __future__ import annotations
 import os
 import time
 
-from detbench.studies.jobs import JOB_ENV, Job
-from detbench.studies.runner import STOP_GRACE_S
+from detbench.studies.executor import JOB_ENV, STOP_GRACE_S
+from detbench.studies.jobs import Job
 from detbench.utils.cli import UserError
 
-INSTALL_HINT = "pip install .[cluster]"
+# the editable install of the checkout (a plain `pip install .[cluster]` would replace it with a copy, after which a
+# detector added to models/ is not what runs); quoted for zsh, which reads [cluster] as a pattern
+INSTALL_HINT = "pip install -e '.[cluster]'"
 
 
 def import_ray():

@@ -62,15 +62,18 @@ The combination, and why:
   the two heights' resampled ratios. The trainings at two heights count as independent (Welch),
   which errs wide where a seed starts both from the same weights.
 
-Reports of one group (model, height) and all models at one height must come from the same test
-split (same scenes, same LiDAR-detected counts, same IoU and score thresholds, same bootstrap
-settings); anything else is refused with an error naming the group and seed. A report's training
-seed is read from its "train_seed" key when present (else the seeds are numbered by position).
+The reports are checked by detbench.studies.seed_checks (one test split, one evaluation setting);
+the Student-t quantile is detbench.studies.student_t's. `seed_statistics` computes everything a
+study reports of its seeds once: the combined cells per model and height, the leader per height
+and per model, every pair of models, the detector table's rows; the Markdown of it is
+detbench.studies.seed_markdown's. The cells are typed (`MetricCell`, `SeedCombined`, `Lead`,
+`Leader`); the public functions return their JSON layouts (`to_dict`), as study.json holds them.
 """
 from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
+from dataclasses import replace
 from itertools import combinations
 
 import numpy as np
@@ -78,175 +81,21 @@ import numpy as np
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.eval.paper import paper_recall
-from detbench.eval.report import check_report
+from detbench.studies.seed_cells import Lead, Leader, MetricCell, SeedCombined, SeedPool
+from detbench.studies.seed_checks import bootstrap_settings, checked_groups, checked_reports, seed_label
+from detbench.studies.student_t import student_t_quantile
 
 METRICS: tuple[str, ...] = ("recall", "ap_r40")
-METRIC_WORDS = {"recall": "Recall", "ap_r40": "AP@R40"}
 CONFIDENCE = 0.95
 # The paired lead's scene bootstrap: the replicates and seed of study_summary.paired_recall_difference,
-# so one seed per model gives today's single-seed lead.
+# so one seed per model gives the single-seed lead to the digit.
 LEAD_REPLICATES = 2000
 LEAD_SEED = 0
 # What the summary ranks: recall of the LiDAR-detected vehicles in the large range (as
 # detector_summary) and AP@R40 in the small range, both over all vehicles.
 RECALL_CELL = ("large", "all")
 AP_CELL = ("small", "all")
-
-
-# --------------------------------------------------------------------------------------------
-# Student's t quantile (plain math: scipy is not a dependency)
-# --------------------------------------------------------------------------------------------
-
-def _betacf(a: float, b: float, x: float) -> float:
-    """Continued fraction of the regularised incomplete beta function (modified Lentz)."""
-    tiny = 1e-300
-    qab, qap, qam = a + b, a + 1.0, a - 1.0
-    c, d = 1.0, 1.0 - qab * x / qap
-    d = 1.0 / (d if abs(d) > tiny else tiny)
-    h = d
-    for m in range(1, 500):
-        m2 = 2 * m
-        aa = m * (b - m) * x / ((qam + m2) * (a + m2))
-        d = 1.0 + aa * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + aa / c
-        c = c if abs(c) > tiny else tiny
-        h *= d * c
-        aa = -(a + m) * (qab + m) * x / ((a + m2) * (qap + m2))
-        d = 1.0 + aa * d
-        d = 1.0 / (d if abs(d) > tiny else tiny)
-        c = 1.0 + aa / c
-        c = c if abs(c) > tiny else tiny
-        delta = d * c
-        h *= delta
-        if abs(delta - 1.0) < 1e-15:
-            break
-    return h
-
-
-def _betainc(a: float, b: float, x: float) -> float:
-    """Regularised incomplete beta I_x(a, b) for x in [0, 1]."""
-    if x <= 0.0:
-        return 0.0
-    if x >= 1.0:
-        return 1.0
-    front = math.exp(math.lgamma(a + b) - math.lgamma(a) - math.lgamma(b) + a * math.log(x) + b * math.log1p(-x))
-    if x < (a + 1.0) / (a + b + 2.0):
-        return front * _betacf(a, b, x) / a
-    return 1.0 - front * _betacf(b, a, 1.0 - x) / b
-
-
-def _t_cdf(t: float, df: float) -> float:
-    tail = 0.5 * _betainc(df / 2.0, 0.5, df / (df + t * t))
-    return 1.0 - tail if t >= 0 else tail
-
-
-def student_t_quantile(p: float, df: float) -> float:
-    """The p quantile of Student's t with df > 0 degrees of freedom (df need not be whole:
-    Welch's df is not). E.g. t(0.975, 1) = 12.706, t(0.975, 2) = 4.303, t(0.975, 30) = 2.042."""
-    p, df = float(p), float(df)
-    if not 0.0 < p < 1.0:
-        raise ValueError(f"quantile p must be in (0, 1), got {p}")
-    if not df > 0.0 or not math.isfinite(df):
-        raise ValueError(f"degrees of freedom must be a finite number > 0, got {df}")
-    if p < 0.5:
-        return -student_t_quantile(1.0 - p, df)
-    lo, hi = 0.0, 1.0
-    while _t_cdf(hi, df) < p:
-        hi *= 2.0
-    for _ in range(200):
-        mid = 0.5 * (lo + hi)
-        if _t_cdf(mid, df) < p:
-            lo = mid
-        else:
-            hi = mid
-        if hi - lo < 1e-12 * max(1.0, hi):
-            break
-    return 0.5 * (lo + hi)
-
-
-# --------------------------------------------------------------------------------------------
-# checks: one test split, one evaluation setting
-# --------------------------------------------------------------------------------------------
-
-def _settings(rep: dict) -> tuple:
-    return (rep.get("iou_kind", "3d"), float(rep["iou_threshold"]), float(rep["score_threshold"]))
-
-
-def _bootstrap_settings(rep: dict) -> tuple | None:
-    unc = rep.get("uncertainty")
-    if not unc:
-        return None
-    return (int(unc["num_clusters"]), int(unc["replicates"]), int(unc["seed"]), float(unc.get("confidence", 0.95)))
-
-
-def _split_signature(rep: dict) -> dict:
-    """What two reports on the same test split share: frames, ground truth per range and level,
-    and (when bootstrapped) the scenes and their LiDAR-detected counts."""
-    sig = {"split": rep.get("split"), "num_frames": int(rep["num_frames"]),
-           "ground truth (total, LiDAR detected)": [
-               (rep["results"][r][lv]["total"], rep["results"][r][lv]["lidar_detected"])
-               for r in RANGE_NAMES for lv in LEVELS]}
-    unc = rep.get("uncertainty")
-    if unc:
-        sig["scenes"] = list(unc["clusters"])
-        sig["LiDAR-detected vehicles per scene"] = [
-            list(unc["per_cluster"][r][lv]["lidar_detected"]) for r in RANGE_NAMES for lv in LEVELS]
-    return sig
-
-
-def _name(where: str, i: int, rep: dict) -> str:
-    return f"{where} seed {_seed_label(rep, i)}"
-
-
-def _seed_label(rep: dict, i: int):
-    s = rep.get("train_seed")
-    return s if s is not None else f"#{i + 1}"
-
-
-def _check_same(reports: Sequence[dict], where: Sequence[str]) -> None:
-    """Raise ValueError unless every report shares the first one's evaluation and test split."""
-    ref, ref_where = reports[0], where[0]
-    ref_set, ref_boot, ref_sig = _settings(ref), _bootstrap_settings(ref), _split_signature(ref)
-    for rep, w in zip(reports[1:], where[1:]):
-        if _settings(rep) != ref_set:
-            raise ValueError(f"{w}: evaluated with (iou_kind, iou_threshold, score_threshold) = {_settings(rep)}, "
-                             f"but {ref_where} with {ref_set}; evaluate every seed and model alike")
-        boot = _bootstrap_settings(rep)
-        if (boot is None) != (ref_boot is None):
-            has, lacks = (w, ref_where) if boot else (ref_where, w)
-            raise ValueError(f"{lacks}: no scene bootstrap ('uncertainty'), but {has} has one; evaluate every "
-                             f"seed and model with the same --bootstrap")
-        if boot is not None and boot != ref_boot:
-            raise ValueError(f"{w}: scene bootstrap (scenes, replicates, seed, confidence) = {boot}, but "
-                             f"{ref_where} has {ref_boot}; evaluate every seed and model with the same settings")
-        sig = _split_signature(rep)
-        for key, value in ref_sig.items():
-            if sig.get(key) != value:
-                raise ValueError(f"{w} and {ref_where} are not on the same test split: their {key} differ "
-                                 f"({_short(sig.get(key))} vs {_short(value)}); evaluate every seed and model on "
-                                 f"the same test split of the same data")
-
-
-def _short(v) -> str:
-    text = repr(v)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-def _checked(reports: Sequence[dict], where: str) -> list[dict]:
-    if isinstance(reports, Mapping) or not isinstance(reports, Sequence) or not reports:
-        raise ValueError(f"{where}: give a non-empty list of eval reports, one per training seed")
-    names = []
-    for i, rep in enumerate(reports):
-        check_report(rep, f"{where} report {i}")
-        names.append(_name(where, i, rep))
-    labels = [_seed_label(rep, i) for i, rep in enumerate(reports)]
-    dup = sorted({str(s) for s in labels if labels.count(s) > 1})
-    if dup:
-        raise ValueError(f"{where}: training seed(s) {', '.join(dup)} appear more than once; give each seed's "
-                         f"report once")
-    _check_same(reports, names)
-    return list(reports)
+WHAT = (("recall", RECALL_CELL, "ap_r40"), ("ap_r40", AP_CELL, "recall"))  # (metric, cell, tie-breaker)
 
 
 # --------------------------------------------------------------------------------------------
@@ -292,30 +141,44 @@ def _det(rep: dict, r: str, lv: str) -> np.ndarray:
 
 
 def _cell(reports: Sequence[dict], r: str, lv: str, metric: str, weights: np.ndarray | None,
-          confidence: float) -> dict:
+          confidence: float) -> MetricCell:
     values = [rep["results"][r][lv][metric] for rep in reports]
-    out = {"mean": None, "sd": None, "per_seed": [_r6(v) for v in values], "seed_t": None, "seed_half_width": None,
-           "scene_ci95": None, "scene_method": None, "ci95": None}
+    per_seed = tuple(_r6(v) for v in values)
     if any(v is None for v in values):
-        return out  # nothing evaluated in this cell (the same for every seed: one test split)
+        return MetricCell(per_seed=per_seed)  # nothing evaluated in this cell (the same for every seed)
     m = float(np.mean(np.asarray(values, dtype=np.float64)))
     sd, t, q = _seed_half_width(values, confidence)
-    scene_ci = None
+    scene_ci, method = None, None
     if weights is not None:
         if metric == "recall":
             scene_ci = percentile_interval(bootstrap_ratios(weights, _mean_tp(reports, r, lv), _det(reports[0], r, lv)),
                                            confidence)
-            out["scene_method"] = "paired scene bootstrap of the seed mean (the same draws for every seed)"
+            method = "paired scene bootstrap of the seed mean (the same draws for every seed)"
         else:
             cis = [((rep["uncertainty"].get("results") or {}).get(r, {}).get(lv) or {}).get("ap_r40_ci95")
                    for rep in reports]
             if all(cis):
                 ends = np.mean(np.asarray(cis, dtype=np.float64), axis=0)
                 scene_ci = [round(float(ends[0]), 6), round(float(ends[1]), 6)]
-            out["scene_method"] = "mean of the seeds' scene-bootstrap interval ends (AP needs per-frame ranks)"
-    out.update(mean=_r6(m), sd=_r6(sd), seed_t=_r6(t), seed_half_width=_r6(q), scene_ci95=scene_ci,
-               ci95=_add_seed_term(m, scene_ci, q, (0.0, 1.0)))
-    return out
+            method = "mean of the seeds' scene-bootstrap interval ends (AP needs per-frame ranks)"
+    return MetricCell(mean=_r6(m), sd=_r6(sd), per_seed=per_seed, seed_t=_r6(t), seed_half_width=_r6(q),
+                      scene_ci95=scene_ci, scene_method=method, ci95=_add_seed_term(m, scene_ci, q, (0.0, 1.0)))
+
+
+def combine_seeds(reports: Sequence[dict], where: str = "reports") -> SeedCombined:
+    """The seed mean of one (model, height) with its intervals, typed (`seed_combined` gives its JSON layout)."""
+    reports = checked_reports(reports, where)
+    unc = reports[0].get("uncertainty")
+    boot = bootstrap_settings(reports[0])
+    confidence = boot[3] if boot else CONFIDENCE
+    weights = None
+    if boot is not None and boot[0] >= 2 and boot[1] > 0:
+        weights = scene_bootstrap_weights(boot[0], boot[1], boot[2])
+    results = {r: {lv: {m: _cell(reports, r, lv, m, weights, confidence) for m in METRICS} for lv in LEVELS}
+               for r in RANGE_NAMES}
+    return SeedCombined(num_seeds=len(reports), seeds=tuple(seed_label(rep, i) for i, rep in enumerate(reports)),
+                        num_scenes=None if unc is None else int(unc["num_clusters"]),
+                        replicates=None if boot is None else boot[1], confidence=confidence, results=results)
 
 
 def seed_combined(reports: Sequence[dict], where: str = "reports") -> dict:
@@ -331,36 +194,89 @@ def seed_combined(reports: Sequence[dict], where: str = "reports") -> dict:
     [0, 1]; None where nothing is evaluated or no interval exists (sd and the seed terms with one
     seed; the intervals without a scene bootstrap). The module docstring gives the reasoning.
     """
-    reports = _checked(reports, where)
-    unc = reports[0].get("uncertainty")
-    boot = _bootstrap_settings(reports[0])
-    confidence = boot[3] if boot else CONFIDENCE
-    weights = None
-    if boot is not None and boot[0] >= 2 and boot[1] > 0:
-        weights = scene_bootstrap_weights(boot[0], boot[1], boot[2])
-    results = {r: {lv: {m: _cell(reports, r, lv, m, weights, confidence) for m in METRICS} for lv in LEVELS}
-               for r in RANGE_NAMES}
-    return {"num_seeds": len(reports), "seeds": [_seed_label(rep, i) for i, rep in enumerate(reports)],
-            "num_scenes": None if unc is None else int(unc["num_clusters"]),
-            "replicates": None if boot is None else boot[1], "confidence": confidence,
-            "seed_spread_measured": len(reports) >= 2, "results": results}
+    return combine_seeds(reports, where).to_dict()
 
 
 # --------------------------------------------------------------------------------------------
-# several models at one height: who leads, and is the lead resolved
+# a model's seed spread pooled over its heights
 # --------------------------------------------------------------------------------------------
 
-def _welch(cell_a: dict, cell_b: dict, n_a: int, n_b: int, confidence: float) -> tuple[float | None, float | None]:
+def _pool_cells(model: str, combs: list[SeedCombined], r: str, lv: str, metric: str) -> list[MetricCell] | None:
+    """The cells of one (range, level, metric) of `model`'s heights with the pooled spread, or None when fewer
+    than two of them measured a spread."""
+    cells = [c.cell(r, lv, metric) for c in combs]
+    measured = [(cell, c.num_seeds) for cell, c in zip(cells, combs) if cell.sd is not None and c.num_seeds >= 2]
+    df = sum(n - 1 for _, n in measured)
+    if df < 1 or len(measured) < 2:
+        return None
+    sd = math.sqrt(sum((n - 1) * cell.sd ** 2 for cell, n in measured) / df)
+    out = []
+    for cell, c in zip(cells, combs):
+        if cell.mean is None:
+            out.append(cell)
+            continue
+        t = student_t_quantile(0.5 + c.confidence / 2.0, df)
+        q = t * sd / math.sqrt(c.num_seeds)
+        out.append(replace(cell, sd=_r6(sd), seed_t=_r6(t), seed_half_width=_r6(q),
+                           ci95=_add_seed_term(cell.mean, cell.scene_ci95, q, (0.0, 1.0)),
+                           pool=SeedPool(sd_own=cell.sd, df=df, model=model)))
+    return out
+
+
+def pooled(combined: Mapping[tuple[str, float], SeedCombined]) -> dict[tuple[str, float], SeedCombined]:
+    """`combined` with each model's seed variance pooled over its heights (module docstring): for every
+    range, level and metric whose groups measured a spread (2 or more seeds), each cell of the model carries
+    the pooled sd, its own sd, the pooled df and t, and its interval recombined. A model with one height, or
+    with one seed everywhere, is returned as it is."""
+    by_model: dict[str, list[tuple[str, float]]] = {}
+    for key in combined:
+        by_model.setdefault(str(key[0]), []).append(key)
+    out = dict(combined)
+    for model, keys in by_model.items():
+        if len(keys) < 2:
+            continue
+        combs = [combined[k] for k in keys]
+        results = [{r: {lv: dict(c.results[r][lv]) for lv in LEVELS} for r in RANGE_NAMES} for c in combs]
+        any_pooled = False
+        for r in RANGE_NAMES:
+            for lv in LEVELS:
+                for metric in METRICS:
+                    cells = _pool_cells(model, combs, r, lv, metric)
+                    if cells is None:
+                        continue
+                    any_pooled = True
+                    for res, cell in zip(results, cells):
+                        res[r][lv][metric] = cell
+        for k, c, res in zip(keys, combs, results):
+            out[k] = replace(c, results=res, pooled_over_heights=any_pooled)
+    return out
+
+
+def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> dict[tuple[str, float], dict]:
+    """{(model, height): seed_combined(...)} with each model's seed spread pooled over its heights (`pooled`):
+    each pooled cell gets sd = the pooled s_p, "sd_own" (its own s, None for one seed), "seed_df" (the pooled
+    df), "seed_pool" (the model), "seed_t" = t(df), "seed_half_width" = t * s_p / sqrt(n) and "ci95"
+    recombined with its scene interval. The input is left as it is."""
+    typed = {k: SeedCombined.from_dict(c) for k, c in combined.items()}
+    return {k: c.to_dict() for k, c in pooled(typed).items()}
+
+
+# --------------------------------------------------------------------------------------------
+# leads: two models at one height, or one model at two heights
+# --------------------------------------------------------------------------------------------
+
+def _welch(ca: MetricCell, cb: MetricCell, n_a: int, n_b: int, confidence: float) -> tuple[float | None, float | None]:
     """(t factor, half-width) of the seed term of mean_a - mean_b (module docstring)."""
-    sa, sb = cell_a["sd"], cell_b["sd"]
+    sa, sb = ca.sd, cb.sd
     if sa is None and sb is None:
         return None, None
-    da, db = cell_a.get("seed_df") or n_a - 1, cell_b.get("seed_df") or n_b - 1
+    da = (ca.pool.df if ca.pool else None) or n_a - 1
+    db = (cb.pool.df if cb.pool else None) or n_b - 1
     if sa is None:  # one seed of a: assume b's seed variance, the df b measured
         sa, df = sb, db
     elif sb is None:
         sb, df = sa, da
-    elif cell_a.get("seed_pool") is not None and cell_a.get("seed_pool") == cell_b.get("seed_pool"):
+    elif ca.pool is not None and cb.pool is not None and ca.pool.model == cb.pool.model:
         df = min(da, db)  # one pooled estimate on both sides (a model at two heights): its own df, not twice it
     else:
         va, vb = sa * sa / n_a, sb * sb / n_b
@@ -370,158 +286,171 @@ def _welch(cell_a: dict, cell_b: dict, n_a: int, n_b: int, confidence: float) ->
     return t, t * math.sqrt(var)
 
 
-def _scene_quadrature(diff: float, ca: dict, cb: dict) -> list | None:
+def _scene_quadrature(diff: float, ca: MetricCell, cb: MetricCell) -> list | None:
     """Unpaired scene interval of mean_a - mean_b: the two scene intervals' sides in quadrature."""
-    if not ca["scene_ci95"] or not cb["scene_ci95"]:
+    if not ca.scene_ci95 or not cb.scene_ci95:
         return None
-    a_lo, a_hi = ca["mean"] - ca["scene_ci95"][0], ca["scene_ci95"][1] - ca["mean"]
-    b_lo, b_hi = cb["mean"] - cb["scene_ci95"][0], cb["scene_ci95"][1] - cb["mean"]
+    a_lo, a_hi = ca.mean - ca.scene_ci95[0], ca.scene_ci95[1] - ca.mean
+    b_lo, b_hi = cb.mean - cb.scene_ci95[0], cb.scene_ci95[1] - cb.mean
     return [round(diff - math.hypot(max(a_lo, 0.0), max(b_hi, 0.0)), 6),
             round(diff + math.hypot(max(a_hi, 0.0), max(b_lo, 0.0)), 6)]
 
 
-def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: dict, comb_b: dict, r: str, lv: str, metric: str,
-          confidence: float) -> dict | None:
+def _paired_recall(rep_a: Sequence[dict], rep_b: Sequence[dict], r: str, lv: str,
+                   confidence: float) -> tuple[float, list | None, str | None]:
+    """(diff, scene interval, method) of the recall lead over the same scenes, each side over its own
+    LiDAR-detected vehicles (the same ones for two models at one height)."""
+    da, db = _det(rep_a[0], r, lv), _det(rep_b[0], r, lv)
+    ta, tb = _mean_tp(rep_a, r, lv), _mean_tp(rep_b, r, lv)
+    same_det = np.array_equal(da, db)
+    # da.sum(), db.sum() > 0: both recall means exist
+    diff = float((ta.sum() - tb.sum()) / da.sum()) if same_det else float(ta.sum() / da.sum() - tb.sum() / db.sum())
+    if len(da) < 2:
+        return diff, None, None
+    w = scene_bootstrap_weights(len(da), LEAD_REPLICATES, LEAD_SEED)
+    boot = (bootstrap_ratios(w, ta - tb, da) if same_det
+            else bootstrap_ratios(w, ta, da) - bootstrap_ratios(w, tb, db))
+    method = "paired scene bootstrap (the same scenes for both and every seed)"
+    return diff, percentile_interval(boot, confidence), method
+
+
+def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: SeedCombined, comb_b: SeedCombined, r: str, lv: str,
+          metric: str) -> Lead | None:
     """mean_a - mean_b in one cell with its scene term, seed term and combined interval. a and b are
     two models at one height (the same LiDAR-detected vehicles) or one model at two heights (the same
     test scenes, other LiDAR-detected vehicles)."""
-    ca, cb = comb_a["results"][r][lv][metric], comb_b["results"][r][lv][metric]
-    if ca["mean"] is None or cb["mean"] is None:
+    ca, cb = comb_a.cell(r, lv, metric), comb_b.cell(r, lv, metric)
+    if ca.mean is None or cb.mean is None:
         return None
+    confidence = comb_a.confidence
     diff = float(np.mean([x["results"][r][lv][metric] for x in rep_a])
                  - np.mean([x["results"][r][lv][metric] for x in rep_b]))
     ua, ub = rep_a[0].get("uncertainty"), rep_b[0].get("uncertainty")
     paired = bool(ua) and bool(ub) and list(ua["clusters"]) == list(ub["clusters"])
-    scene_ci, method = None, None
     if metric == "recall" and paired:
-        da, db = _det(rep_a[0], r, lv), _det(rep_b[0], r, lv)
-        ta, tb = _mean_tp(rep_a, r, lv), _mean_tp(rep_b, r, lv)
-        same_det = np.array_equal(da, db)
-        # da.sum(), db.sum() > 0: both recall means exist
-        diff = float((ta.sum() - tb.sum()) / da.sum()) if same_det else float(ta.sum() / da.sum() - tb.sum() / db.sum())
-        if len(da) >= 2:
-            w = scene_bootstrap_weights(len(da), LEAD_REPLICATES, LEAD_SEED)
-            boot = (bootstrap_ratios(w, ta - tb, da) if same_det
-                    else bootstrap_ratios(w, ta, da) - bootstrap_ratios(w, tb, db))
-            scene_ci = percentile_interval(boot, confidence)
-            method = "paired scene bootstrap (the same scenes for both and every seed)"
+        diff, scene_ci, method = _paired_recall(rep_a, rep_b, r, lv, confidence)
     else:
-        scene_ci = _scene_quadrature(diff, ca, cb)
+        scene_ci, method = _scene_quadrature(diff, ca, cb), None
         if scene_ci is not None:
             why = "AP needs per-frame ranks" if metric == "ap_r40" else "the test scenes differ"
             method = f"the two scene intervals in quadrature (unpaired: {why}; errs wide)"
-    t, q = _welch(ca, cb, comb_a["num_seeds"], comb_b["num_seeds"], confidence)
+    t, q = _welch(ca, cb, comb_a.num_seeds, comb_b.num_seeds, confidence)
     ci = _add_seed_term(diff, scene_ci, q, (-1.0, 1.0))
     ahead = bool(ci) and (ci[0] > 0 or ci[1] < 0)
-    return {"diff": _r6(diff), "scene_ci95": scene_ci, "scene_method": method, "seed_t": _r6(t),
-            "seed_half_width": _r6(q), "ci95": ci, "ahead": ahead,
-            "verdict": "ahead" if ahead else ("not resolved" if ci else "no interval")}
+    return Lead(diff=_r6(diff), scene_ci95=scene_ci, scene_method=method, seed_t=_r6(t), seed_half_width=_r6(q),
+                ci95=ci, ahead=ahead, verdict="ahead" if ahead else ("not resolved" if ci else "no interval"))
 
 
-def pool_seed_spread(combined: Mapping[tuple[str, float], dict]) -> None:
-    """Pool each model's seed variance over its heights, in place (module docstring).
-
-    combined: {(model, height): seed_combined(...)}. For every model, range, level and metric whose
-    groups measured a spread (2 or more seeds), each cell of that model gets sd = the pooled s_p,
-    "sd_own" (its own s, None for one seed), "seed_df" (the pooled df), "seed_pool" (the model),
-    "seed_t" = t(df), "seed_half_width" = t * s_p / sqrt(n) and "ci95" recombined with its scene
-    interval. A model with one height, or with one seed everywhere, is left as it is."""
-    by_model: dict[str, list[dict]] = {}
-    for (model, _), comb in combined.items():
-        by_model.setdefault(str(model), []).append(comb)
-    for model, combs in by_model.items():
-        if len(combs) < 2:
-            continue
-        pooled = False
-        for r in RANGE_NAMES:
-            for lv in LEVELS:
-                for metric in METRICS:
-                    cells = [(c["results"][r][lv][metric], c["num_seeds"], c["confidence"]) for c in combs]
-                    measured = [(cell, n) for cell, n, _ in cells if cell["sd"] is not None and n >= 2]
-                    df = sum(n - 1 for _, n in measured)
-                    if df < 1 or len(measured) < 2:
-                        continue
-                    sd = math.sqrt(sum((n - 1) * cell["sd"] ** 2 for cell, n in measured) / df)
-                    pooled = True
-                    for cell, n, confidence in cells:
-                        if cell["mean"] is None:
-                            continue
-                        t = student_t_quantile(0.5 + confidence / 2.0, df)
-                        q = t * sd / math.sqrt(n)
-                        cell.update(sd_own=cell["sd"], sd=_r6(sd), seed_df=df, seed_pool=model, seed_t=_r6(t),
-                                    seed_half_width=_r6(q),
-                                    ci95=_add_seed_term(cell["mean"], cell["scene_ci95"], q, (0.0, 1.0)))
-        for c in combs:
-            c["seed_spread_pooled_over_heights"] = pooled
-
-
-def _combined_groups(groups: Mapping, pool: bool) -> dict[float, dict[str, tuple[list[dict], dict]]]:
-    """{height: {model: (reports, seed_combined)}} with the seed spread pooled over heights when `pool`."""
-    by_height = _groups(groups)
-    out = {h: {m: (reps, seed_combined(reps, f"{m} at {h:g} m")) for m, reps in models.items()}
-           for h, models in by_height.items()}
-    if pool:
-        pool_seed_spread({(m, h): comb for h, models in out.items() for m, (_, comb) in models.items()})
-    return out
-
-
-def _groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
-    if not isinstance(groups, Mapping) or not groups:
-        raise ValueError("groups: give a non-empty dict {(model, height): [report of each training seed]}")
-    by_height: dict[float, dict[str, list[dict]]] = {}
-    first = None
-    for key, reports in groups.items():
-        try:
-            model, height = key
-            model, height = str(model), float(height)
-        except (TypeError, ValueError):
-            raise ValueError(f"groups: key {key!r} must be a (model, height in metres) pair") from None
-        where = f"{model} at {height:g} m"
-        reports = _checked(reports, where)
-        for i, rep in enumerate(reports):
-            if rep.get("model") is not None and str(rep["model"]) != model:
-                raise ValueError(f"{_name(where, i, rep)}: the report is of model {rep['model']!r}, not {model!r}; "
-                                 f"group each model's reports under its own name")
-            if rep.get("height") is not None and abs(float(rep["height"]) - height) > 1e-9:
-                raise ValueError(f"{_name(where, i, rep)}: the report is at height {float(rep['height']):g} m, not "
-                                 f"{height:g} m; group each height's reports under its own height")
-        if first is None:
-            first = (where, _settings(reports[0]))
-        elif _settings(reports[0]) != first[1]:
-            raise ValueError(f"{where}: evaluated with (iou_kind, iou_threshold, score_threshold) = "
-                             f"{_settings(reports[0])}, but {first[0]} with {first[1]}; evaluate every model and "
-                             f"height alike")
-        if model in by_height.setdefault(height, {}):
-            raise ValueError(f"groups: {where} is given twice; give each (model, height) once")
-        by_height[height][model] = reports
-    for h, models in by_height.items():
-        names = list(models)
-        firsts = [models[m][0] for m in names]
-        _check_same(firsts, [_name(f"{m} at {h:g} m", 0, models[m][0]) for m in names])
-    return dict(sorted(by_height.items()))
-
-
-def _leader(name: str, items: dict, cell: tuple[str, str], metric: str, other: str) -> dict:
-    """Ranking of `items` ({key: (reports, seed_combined)}) by the seed mean of `metric` in `cell` (ties:
-    `other`), with the lead of the first over the second."""
+def _ranking(key: str, items: Mapping, cell: tuple[str, str], metric: str, other: str) -> tuple[dict, ...]:
+    """`items` ({model or height: (reports of each seed, SeedCombined)}) ranked by the seed mean of `metric` in
+    `cell`, ties broken on `other`: ({key: name, "mean", "ci95", "num_seeds"}, ...), best first."""
     r, lv = cell
 
     def mean(k, m):
-        return items[k][1]["results"][r][lv][m]["mean"]
+        return items[k][1].cell(r, lv, m).mean
 
     ranked = sorted((k for k in items if mean(k, metric) is not None),
                     key=lambda k: (-mean(k, metric), -(mean(k, other) or 0.0)))
-    entry = {"range": r, "level": lv,
-             "ranking": [{name: k, "mean": mean(k, metric), "ci95": items[k][1]["results"][r][lv][metric]["ci95"],
-                          "num_seeds": items[k][1]["num_seeds"]} for k in ranked],
-             "best": ranked[0] if ranked else None, "runner_up": ranked[1] if len(ranked) > 1 else None, "lead": None}
-    if len(ranked) > 1:
-        (ra, ca), (rb, cb) = items[ranked[0]], items[ranked[1]]
-        entry["lead"] = _lead(ra, rb, ca, cb, r, lv, metric, ca["confidence"])
-    return entry
+    return tuple({key: k, "mean": mean(k, metric), "ci95": items[k][1].cell(r, lv, metric).ci95,
+                  "num_seeds": items[k][1].num_seeds} for k in ranked)
 
 
-WHAT = (("recall", RECALL_CELL, "ap_r40"), ("ap_r40", AP_CELL, "recall"))
+def _leader(key: str, items: Mapping, cell: tuple[str, str], metric: str, other: str) -> Leader:
+    """`_ranking` with the lead of the first over the second."""
+    ranking = _ranking(key, items, cell, metric, other)
+    lead = None
+    if len(ranking) > 1:
+        (ra, ca), (rb, cb) = items[ranking[0][key]], items[ranking[1][key]]
+        lead = _lead(ra, rb, ca, cb, *cell, metric)
+    return Leader(key=key, range=cell[0], level=cell[1], ranking=ranking, lead=lead)
+
+
+# --------------------------------------------------------------------------------------------
+# a study's seeds: every figure computed once
+# --------------------------------------------------------------------------------------------
+
+def combined_groups(groups: Mapping, pool: bool = True) -> dict[float, dict[str, tuple[list[dict], SeedCombined]]]:
+    """{height: {model: (reports, SeedCombined)}} of {(model, height): [report of each seed]} (checked by
+    detbench.studies.seed_checks), with the seed spread pooled over each model's heights when `pool`."""
+    by_height = checked_groups(groups)
+    combs = {(m, h): combine_seeds(reps, f"{m} at {h:g} m") for h, models in by_height.items()
+             for m, reps in models.items()}
+    if pool:
+        combs = pooled(combs)
+    return {h: {m: (reps, combs[(m, h)]) for m, reps in models.items()} for h, models in by_height.items()}
+
+
+def _height_leaders(combined: Mapping) -> dict:
+    """{height: {"models": {model: seed_combined}, "recall": leader, "ap_r40": leader}} (`seed_summary`)."""
+    return {h: {"models": {m: c.to_dict() for m, (_, c) in items.items()},
+                **{metric: _leader("model", items, cell, metric, other).to_dict() for metric, cell, other in WHAT}}
+            for h, items in combined.items()}
+
+
+def _model_leaders(combined: Mapping) -> dict:
+    """{model: {"recall": leader, "ap_r40": leader}} over its heights (`seed_height_summary`)."""
+    by_model: dict[str, dict[float, tuple]] = {}
+    for h, items in combined.items():
+        for m, pair in items.items():
+            by_model.setdefault(m, {})[h] = pair
+    return {m: {metric: _leader("height", items, cell, metric, other).to_dict() for metric, cell, other in WHAT}
+            for m, items in by_model.items() if len(items) > 1}
+
+
+def _pairs(combined: Mapping) -> dict:
+    """{height: {range: {metric: {"ranking", "pairs"}}}} (`pairwise_leads`)."""
+    out: dict[float, dict] = {}
+    for h, items in combined.items():
+        by_range: dict[str, dict] = {}
+        for r in RANGE_NAMES:
+            for metric in METRICS:
+                # ranked as `seed_summary` ranks (ties broken on the other metric)
+                ranking = [dict(e) for e in _ranking("model", items, (r, "all"), metric,
+                                                     "ap_r40" if metric == "recall" else "recall")]
+                pairs = []
+                for a, b in combinations([e["model"] for e in ranking], 2):
+                    lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], r, "all", metric)
+                    if lead is not None:
+                        pairs.append({"model": a, "over": b, **lead.to_dict()})
+                by_range.setdefault(r, {})[metric] = {"ranking": ranking, "pairs": pairs}
+        out[h] = by_range
+    return out
+
+
+def _table(combined: Mapping, train_minutes: Mapping | None) -> list[dict]:
+    """The detector table's rows (`detector_table`), per model and then height."""
+    by_model: dict[str, list[tuple[float, SeedCombined]]] = {}
+    for h, items in combined.items():
+        for m, (_, comb) in items.items():
+            by_model.setdefault(m, []).append((h, comb))
+    rows = []
+    for m, cells in by_model.items():
+        for h, comb in sorted(cells, key=lambda x: x[0]):
+            recall = {(r, lv): comb.cell(r, lv, "recall").mean for r in RANGE_NAMES for lv in LEVELS}
+            ap, rs = comb.cell("small", "all", "ap_r40"), comb.cell("small", "all", "recall")
+            paper = paper_recall(m, h)
+            rows.append({"model": m, "height": h, "num_seeds": comb.num_seeds,
+                         "ap_r40_small": {"mean": ap.mean, "ci95": ap.ci95},
+                         "recall_small": {"mean": rs.mean, "ci95": rs.ci95},
+                         "recall_moderate": recall[("moderate", "all")], "recall_large": recall[("large", "all")],
+                         "recall_large_top3": recall[("large", "top3")],
+                         "recall_large_top6": recall[("large", "top6")],
+                         "paper_recall": list(paper) if paper else None,
+                         "train_minutes": (train_minutes or {}).get((m, h))})
+    return rows
+
+
+def seed_statistics(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> dict:
+    """Everything a study reports of its training seeds, computed once from {(model, height): [eval report of
+    each seed]}: {"by_height": `seed_summary`'s layout, "by_model": `seed_height_summary`'s, "pairs":
+    `pairwise_leads`'s, "table": the detector table's rows [{"model", "height", "num_seeds", "ap_r40_small":
+    {"mean", "ci95"}, "recall_small": {"mean", "ci95"}, "recall_moderate", "recall_large", "recall_large_top3",
+    "recall_large_top6" (seed means), "paper_recall" (Table VII: small / moderate / large, or None),
+    "train_minutes" (from `train_minutes`: {(model, height): minutes per training}, or None)}]}. Heights as keys
+    in metres."""
+    combined = combined_groups(groups, pool)
+    return {"by_height": _height_leaders(combined), "by_model": _model_leaders(combined), "pairs": _pairs(combined),
+            "table": _table(combined, train_minutes)}
 
 
 def seed_summary(groups: Mapping, pool: bool = True) -> dict:
@@ -535,13 +464,9 @@ def seed_summary(groups: Mapping, pool: bool = True) -> dict:
     "seed_half_width", "ci95", "ahead", "verdict"} or None}. "ahead" is True only when the lead's
     interval (scene bootstrap plus both models' seed spread) excludes 0; verdict "ahead",
     "not resolved", or "no interval" (no scene bootstrap). Fractions in [0, 1]. `pool`: each
-    model's seed spread pooled over its heights (`pool_seed_spread`).
+    model's seed spread pooled over its heights (`pooled`).
     """
-    out = {}
-    for h, items in _combined_groups(groups, pool).items():
-        out[h] = {"models": {m: c for m, (_, c) in items.items()},
-                  **{metric: _leader("model", items, cell, metric, other) for metric, cell, other in WHAT}}
-    return out
+    return _height_leaders(combined_groups(groups, pool))
 
 
 def seed_height_summary(groups: Mapping, pool: bool = True) -> dict:
@@ -555,12 +480,7 @@ def seed_height_summary(groups: Mapping, pool: bool = True) -> dict:
     "ap_r40": lead}} laid out as in `seed_summary`, with "height" (metres) in place of "model".
     `pool` as in `seed_summary`; the two heights then share one seed estimate, so its df is counted once.
     """
-    by_model: dict[str, dict[float, tuple]] = {}
-    for h, items in _combined_groups(groups, pool).items():
-        for m, pair in items.items():
-            by_model.setdefault(m, {})[h] = pair
-    return {m: {metric: _leader("height", items, cell, metric, other) for metric, cell, other in WHAT}
-            for m, items in by_model.items() if len(items) > 1}
+    return _model_leaders(combined_groups(groups, pool))
 
 
 def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
@@ -571,191 +491,10 @@ def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
     the better-ranked model first, with lead as in `seed_summary` ("diff", "ci95", "ahead", "verdict",
     ...). A pair counts as resolved ("ahead") only where the 95 % interval of the lead, scenes and both
     models' seed spread together, excludes 0. Fractions in [0, 1], leads in [-1, 1]."""
-    out: dict[float, dict] = {}
-    for h, items in _combined_groups(groups, pool).items():
-        by_range: dict[str, dict] = {}
-        for r in RANGE_NAMES:
-            for metric in METRICS:
-                # ranked as `seed_summary` ranks (ties broken on the other metric)
-                ranking = _leader("model", items, (r, "all"), metric,
-                                  "ap_r40" if metric == "recall" else "recall")["ranking"]
-                pairs = []
-                for a, b in combinations([e["model"] for e in ranking], 2):
-                    lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], r, "all", metric,
-                                 items[a][1]["confidence"])
-                    if lead is not None:
-                        pairs.append({"model": a, "over": b, **lead})
-                by_range.setdefault(r, {})[metric] = {"ranking": ranking, "pairs": pairs}
-        out[h] = by_range
-    return out
+    return _pairs(combined_groups(groups, pool))
 
 
-def pairwise_markdown(leads: Mapping) -> list[str]:
-    """study.md's table of `pairwise_leads`: per height, range and metric the ranking and the resolved pairs."""
-    lines = ["Every pair of models at each height (All vehicles): the ranking by seed mean, then each lead whose "
-             "95 % interval (test scenes and both models' seed spread) excludes 0; a pair not listed is not "
-             "resolved. Leads are differences of fractions.", "",
-             "| Height | Range | Metric | Ranking (seed mean) | Resolved leads [95 %] |", "|---|---|---|---|---|"]
-    for h, by_range in leads.items():
-        for r, by_metric in by_range.items():
-            for metric, entry in by_metric.items():
-                ranking = " > ".join(f"{e['model']} {_f(e['mean'], 2)}" for e in entry["ranking"]) or "-"
-                resolved = "; ".join(f"{p['model']} over {p['over']} {_f(p['diff'], 2, signed=True)} "
-                                     f"{_ci2(p['ci95'], signed=True)}" for p in entry["pairs"] if p["ahead"]) or "none"
-                lines.append(f"| {h:g} m | {r} | {METRIC_WORDS[metric]} | {ranking} | {resolved} |")
-    return lines
-
-
-def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> list[str]:
-    """The one-table answer to "which detector": per model and height the seed mean of AP@R40 (small range)
-    and of recall (small with its interval, moderate, large), All vehicles, with intervals over test scenes
-    and seeds; the recall of the Top3 and Top6 vehicles of the large range (the importance levels); the
-    paper's Table VII recall for the same cells and the mean training minutes.
-
-    groups as in `seed_summary`; train_minutes: {(model, height): minutes per training} or None."""
-    lines = ["| Detector | Height | Seeds | AP@R40 small [95 %] | Recall small [95 %] / moderate / large | "
-             "Recall large, Top3 / Top6 | The paper's recall (Table VII) | Training min |",
-             "|---|---|---:|---|---|---|---|---:|"]
-    by_model: dict[str, list[tuple[float, dict]]] = {}
-    for h, items in _combined_groups(groups, pool).items():
-        for m, (_, comb) in items.items():
-            by_model.setdefault(m, []).append((h, comb))
-    for m, cells in by_model.items():
-        for h, comb in sorted(cells, key=lambda x: x[0]):
-            res = comb["results"]
-            ap, rs = res["small"]["all"]["ap_r40"], res["small"]["all"]["recall"]
-            paper = paper_recall(m, h)
-            minutes = (train_minutes or {}).get((m, h))
-            lines.append(
-                f"| {m} | {h:g} m | {comb['num_seeds']} | {_with_ci(ap)} | "
-                f"{_with_ci(rs)} / {_f(res['moderate']['all']['recall']['mean'], 2)} / "
-                f"{_f(res['large']['all']['recall']['mean'], 2)} | "
-                f"{_f(res['large']['top3']['recall']['mean'], 2)} / {_f(res['large']['top6']['recall']['mean'], 2)} | "
-                f"{' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} | "
-                f"{'-' if minutes is None else f'{minutes:.1f}'} |")
-    return lines
-
-
-# --------------------------------------------------------------------------------------------
-# Markdown for study.md
-# --------------------------------------------------------------------------------------------
-
-def _f(v, digits: int = 3, signed: bool = False) -> str:
-    if v is None:
-        return "-"
-    return f"{v:+.{digits}f}" if signed else f"{v:.{digits}f}"
-
-
-def _ci(ci, signed: bool = False) -> str:
-    if not ci:
-        return "(no interval)"
-    return f"[{_f(ci[0], signed=signed)}, {_f(ci[1], signed=signed)}]"
-
-
-def _ci2(ci, signed: bool = False) -> str:
-    """An interval to two decimals, as the README's tables give it."""
-    if not ci:
-        return "(no interval)"
-    return f"[{_f(ci[0], 2, signed)}, {_f(ci[1], 2, signed)}]"
-
-
-def _with_ci(cell: dict) -> str:
-    """A cell's seed mean with its interval, to two decimals; "-" where nothing is evaluated."""
-    return "-" if cell["mean"] is None else f"{_f(cell['mean'], 2)} {_ci2(cell['ci95'])}"
-
-
-def _seeds_text(seeds: Sequence) -> str:
-    return ", ".join(str(s) for s in seeds)
-
-
-def _lead_sentence(prefix: str, key: str, metric: str, entry: dict) -> str:
-    """One sentence on a ranking of models (key "model") or heights (key "height")."""
-    r, lv = entry["range"], entry["level"]
-    what = f"{METRIC_WORDS[metric]} ({r} range, {'All' if lv == 'all' else lv.capitalize()} vehicles)"
-
-    def name(e: dict) -> str:
-        return f"{e[key]:g} m" if key == "height" else str(e[key])
-
-    if not entry["ranking"]:
-        return f"{prefix}, {what}: nothing is evaluated in that range."
-    best = entry["ranking"][0]
-    if entry["runner_up"] is None:
-        return f"{prefix}, {what}: only {name(best)} has a figure, {_f(best['mean'])} {_ci(best['ci95'])}."
-    lead = entry["lead"]
-    runner = entry["ranking"][1]
-    head = (f"{prefix}, {what}: {name(best)} {_f(best['mean'])} against {name(runner)} {_f(runner['mean'])}, "
-            f"lead {_f(lead['diff'], signed=True)} {_ci(lead['ci95'], signed=True)}")
-    terms = f"scene term {_ci(lead['scene_ci95'], signed=True)}"
-    if lead["seed_half_width"] is not None:
-        terms += f", seed term +-{_f(lead['seed_half_width'])}"
-    else:
-        terms += ", seed spread not measured (one seed each)"
-    if lead["verdict"] == "ahead":
-        return f"{head} ({terms}): **{name(best)} is ahead**."
-    if lead["verdict"] == "not resolved":
-        return f"{head} ({terms}): not resolved, the interval includes 0."
-    return f"{head}: no interval (evaluate with --bootstrap), so none is called ahead."
-
-
-def seed_markdown(groups: Mapping, pool: bool = True) -> list[str]:
-    """Markdown lines for study.md: per height a table of every model's seed mean per range (All
-    vehicles) for recall and AP@R40 with the interval of scenes and seeds, the seed spread and the
-    scene-only interval beside it, then the sentences of `seed_summary` and, for models tested at
-    two or more heights, of `seed_height_summary`."""
-    summary = seed_summary(groups, pool)
-    seeds_used = sorted({s for h in summary.values() for c in h["models"].values() for s in c["seeds"]},
-                        key=lambda s: (not isinstance(s, int), s if isinstance(s, int) else 0, str(s)))
-    counts = sorted({c["num_seeds"] for h in summary.values() for c in h["models"].values()})
-    seeds_text = ", ".join(str(s) for s in seeds_used)
-    lines = [
-        f"Training seeds: {seeds_text} ({' or '.join(str(n) for n in counts)} per model and height); "
-        "every seed is tested on the same test split. Recall and AP@R40 are fractions in [0, 1], All vehicles; "
-        "each figure is the mean over seeds with its 95 % interval over test scenes AND seeds; beside it the seed "
-        "spread (sd: standard deviation between seeds; +-: its Student-t half-width on the mean) and the "
-        "scene-only interval (the scene bootstrap of the seed mean), so one sees which term dominates.",
-        "",
-    ]
-    if counts == [1]:
-        lines += ["With one seed per model the seed spread is not measured: the intervals are the scene bootstrap "
-                  "alone, as in a single-seed study.", ""]
-    pooled = any(c.get("seed_spread_pooled_over_heights") for h in summary.values() for c in h["models"].values())
-    if pooled:
-        lines += ["The seed spread is pooled over each model's heights (its training randomness taken as one quantity "
-                  "per range and metric, estimated from every height: sd is the pooled one, with its degrees of "
-                  "freedom in the t factor; each height's own sd in brackets), because 2 or 3 seeds alone give a t "
-                  "factor of 12.7 or 4.3 on an sd that rests on one or two differences.", ""]
-    for h, cell in summary.items():
-        lines += [f"**{h:g} m**", "",
-                  "| Model | Seeds | Range | Recall (95 %, scenes + seeds) | Recall seed sd / +- | Recall scene-only "
-                  "95 % | AP@R40 (95 %, scenes + seeds) | AP@R40 seed sd / +- | AP@R40 scene-only 95 % |",
-                  "|---|---|---|---|---|---|---|---|---|"]
-        for m, comb in cell["models"].items():
-            for r in RANGE_NAMES:
-                row = [m, _seeds_text(comb["seeds"]), r]
-                for metric in METRICS:
-                    c = comb["results"][r]["all"][metric]
-                    row.append(f"{_f(c['mean'])} {_ci(c['ci95'])}" if c["mean"] is not None else "-")
-                    own = f" ({_f(c['sd_own'])})" if c.get("seed_pool") is not None else ""
-                    row.append("-" if c["sd"] is None else f"{_f(c['sd'])}{own} / +-{_f(c['seed_half_width'])}")
-                    row.append(_ci(c["scene_ci95"]) if c["mean"] is not None else "-")
-                lines.append("| " + " | ".join(row) + " |")
-        lines.append("")
-        for metric in METRICS:
-            lines.append(_lead_sentence(f"At {h:g} m", "model", metric, cell[metric]))
-        lines.append("")
-    by_model = seed_height_summary(groups, pool)
-    if by_model:
-        lines += ["**Heights, per model**", ""]
-        for m, cell in by_model.items():
-            lines += [_lead_sentence(f"For {m}", "height", metric, cell[metric]) for metric in METRICS]
-        lines.append("")
-    lines.append("A model (or height) is called ahead only where the 95 % interval of its lead excludes 0: the "
-                 "scene term (paired over the same test scenes for recall; for AP@R40 the two scene intervals in "
-                 "quadrature) plus both sides' seed spread with a Student-t factor.")
-    return lines
-
-
-__all__ = ["seed_combined", "pool_seed_spread", "seed_summary", "seed_height_summary", "seed_markdown",
-           "pairwise_leads", "pairwise_markdown", "detector_table",
-           "student_t_quantile", "METRICS",
-           "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "RECALL_CELL", "AP_CELL"]
+__all__ = ["AP_CELL", "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "Lead", "Leader", "METRICS", "MetricCell",
+           "RECALL_CELL", "SeedCombined", "SeedPool", "combine_seeds", "combined_groups", "pairwise_leads",
+           "pool_seed_spread", "pooled", "seed_combined", "seed_height_summary", "seed_statistics", "seed_summary",
+           "student_t_quantile"]

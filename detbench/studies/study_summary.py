@@ -16,7 +16,7 @@ sampled scenes support; one that spans 0 is not.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -176,13 +176,18 @@ def detector_summary(reports: Sequence[dict], range_name: str = "large", level: 
 
 
 def detector_summary_lines(reports: Sequence[dict], range_name: str = "large", level: str = "all") -> list[str]:
-    s = detector_summary(reports, range_name, level)
+    """`detector_summary_markdown` of the reports."""
+    return detector_summary_markdown(detector_summary(reports, range_name, level))
+
+
+def detector_summary_markdown(summary: Mapping) -> list[str]:
+    """The table of `detector_summary` (heights as keys in metres or as their text, as study.json holds them)."""
     lines = ["| Height | Finds the most LiDAR-detected vehicles | Recall (95 % interval) | AP@R40 (95 % interval) "
              "| Lead in recall over the next model (paired) | Every model: recall / AP@R40 |",
              "|---|---|---|---|---|---|"]
-    for h, c in s.items():
+    for h, c in summary.items():
         if not c["ranking"]:
-            lines.append(f"| {h:g} m | - | - | - | - | - |")
+            lines.append(f"| {float(h):g} m | - | - | - | - | - |")
             continue
         b = c["ranking"][0]
         lead = "-"
@@ -192,13 +197,13 @@ def detector_summary_lines(reports: Sequence[dict], range_name: str = "large", l
         elif c["runner_up"] is not None:
             lead = f"over {c['runner_up']} (no paired interval: evaluate with --bootstrap)"
         every = "; ".join(f"{e['model']} {_f(e['recall'], 2)} / {_f(e['ap_r40'], 2)}" for e in c["ranking"])
-        lines.append(f"| {h:g} m | {b['model']} | {_f(b['recall'])} {_ci(b['recall_ci95'])} | "
+        lines.append(f"| {float(h):g} m | {b['model']} | {_f(b['recall'])} {_ci(b['recall_ci95'])} | "
                      f"{_f(b['ap_r40'])} {_ci(b['ap_r40_ci95'])} | {lead} | {every} |")
     return lines
 
 
 # Below this AP@R40 (small range, all vehicles) at every height, a detector is reported as not
-# having learned: a tenth of the cpu-preset figures of the models that do learn (0.42-0.68).
+# having learned: well below what the detectors that learn reach at the cpu preset (docs/results.md).
 NOT_LEARNED_AP = 0.1
 
 
@@ -217,7 +222,11 @@ def unlearned_models(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP,
 
 def unlearned_lines(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP) -> list[str]:
     """A warning paragraph naming the models that have not learned (empty when every model has)."""
-    bad = unlearned_models(reports, threshold)
+    return unlearned_markdown(unlearned_models(reports, threshold), threshold)
+
+
+def unlearned_markdown(bad: Mapping[str, Sequence[float]], threshold: float = NOT_LEARNED_AP) -> list[str]:
+    """The paragraph of `unlearned_lines` from `unlearned_models`'s result."""
     if not bad:
         return []
     parts = [f"{m} (AP@R40 small {min(v):.3f}-{max(v):.3f})" for m, v in bad.items()]
@@ -227,4 +236,5 @@ def unlearned_lines(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP) 
 
 
 __all__ = ["height_summary", "height_summary_lines", "paired_recall_difference", "detector_summary",
-           "detector_summary_lines", "NOT_LEARNED_AP", "unlearned_models", "unlearned_lines"]
+           "detector_summary_lines", "detector_summary_markdown", "NOT_LEARNED_AP", "unlearned_models",
+           "unlearned_lines", "unlearned_markdown"]

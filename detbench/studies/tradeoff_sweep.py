@@ -3,9 +3,11 @@
 Tasks (the preset's points, the inference-only knobs, the trained knobs, the learning curves,
 the joint points; cheapest first within a tier) are planned by estimated cost and re-planned
 after each task with the costs measured so far (detbench.studies.tradeoff). A training run is
-`tools/train.py` in its own process; a measurement is `python -m detbench.studies.tradeoff_worker`
-(detbench.studies.runner runs both, logs in OUT/logs/). A finished point or run in OUT is
-reused, an interrupted run continues. OUT holds tradeoff.json, tradeoff.md, tradeoff.png,
+`tools/train.py` in its own process, built as the study builds it (detbench.studies.commands); a
+measurement is `python -m detbench.studies.tradeoff_worker`. The study's local executor
+(detbench.studies.executor) runs each task alone, its log in OUT/logs/, stopped at the budget's
+end (a training keeps its checkpoint). A finished point or run in OUT is reused, an interrupted
+run continues. OUT holds tradeoff.json, tradeoff.md, tradeoff.png,
 learning_curve.png, points/, runs/, curve/ and logs/.
 """
 from __future__ import annotations
@@ -16,7 +18,6 @@ import math
 import os
 import platform
 import signal
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,8 +26,10 @@ from detbench.config import CONFIG_DIR, ConfigError
 from detbench.data.layout import read_info
 from detbench.eval.run import data_source
 from detbench.data.regions import RANGE_NAMES
+from detbench.studies.commands import TrainSpec, train_command, train_finished, train_resumes, worker_command
+from detbench.studies.executor import CommandResult, LocalExecutor, log_tail, run_to_end
+from detbench.studies.jobs import Job
 from detbench.studies.registry import ModelRegistry
-from detbench.studies.runner import CommandResult, log_tail, run_command
 from detbench.studies.tradeoff import (
     PRIOR_SECONDS, CostModel, Task, mark_pareto, plan_within_budget, plot_learning_curves, plot_tradeoff,
     train_seconds_at_step, tradeoff_markdown, world_label,
@@ -72,6 +75,7 @@ class Sweep:
     costs: CostModel
     t0: float
     deadline: float | None
+    executor: LocalExecutor | None = None  # runs each task alone (None: a new one on the first task)
     done: set = field(default_factory=set)
     failed: dict = field(default_factory=dict)  # task id -> error text
 
@@ -123,11 +127,6 @@ def _train_overrides(sw: Sweep, model: str, train_id: str, point_over: dict) -> 
     return [f"{k}={json.dumps(v)}" for k, v in sets.items()]
 
 
-def _train_done(run: Path) -> bool:
-    s = run / "train_summary.json"
-    return s.is_file() and not read_json(s).get("interrupted", False)
-
-
 def _point_key(sw: Sweep, p: Point) -> dict:
     """What a point's stored result must match to be reused on a rerun."""
     return {"preset": sw.opts.preset, "height": sw.opts.height, "data": str(sw.root), "device": sw.device,
@@ -142,21 +141,30 @@ def _point_done(sw: Sweep, p: Point) -> bool:
 
 def _curve_done(sw: Sweep, model: str) -> bool:
     run = _run_dir(sw, model, _curve_train_id(sw, model))
-    if not _train_done(run):
+    if not train_finished(run):
         return False
     ckpts = sorted((run / "checkpoints").glob("epoch_*.pt"))
     return bool(ckpts) and all((_curve_dir(sw, model) / f"{c.stem}.json").is_file() for c in ckpts)
 
 
+def _run(sw: Sweep, task: str, kind: str, cmd: list[str], log: Path, stop_signal: int) -> CommandResult:
+    """Run one task alone on the sweep's executor, stopped with `stop_signal` at the budget's end."""
+    if sw.executor is None:
+        # one task at a time, each with the thread counts it sets itself (no study job's one-thread setting)
+        sw.executor = LocalExecutor(1, cwd=sw.repo, stream=False, env={}, append_logs=True)
+    return run_to_end(sw.executor, Job(task, kind, task, log=log), cmd, deadline=sw.deadline, stop_signal=stop_signal)
+
+
 def do_train(sw: Sweep, model: str, train_id: str, over: dict, factor: float) -> None:
     run = _run_dir(sw, model, train_id)
-    resume = ["--resume"] if (run / "checkpoints").is_dir() else []
-    cmd = [sys.executable, str(sw.repo / "tools" / "train.py"), "--model", model, "--height", str(sw.opts.height),
-           "--preset", sw.opts.preset, "--data", str(sw.root), "--device", sw.device, "--out", str(run),
-           "--no-eval", "--no-progress", *resume]
-    for s in _train_overrides(sw, model, train_id, over):
-        cmd += ["--set", s]
-    res = run_command(cmd, cwd=sw.repo, log=sw.out / "logs" / f"train_{model}_{train_id}.log", deadline=sw.deadline)
+    resume = train_resumes(run)
+    cmd = train_command(TrainSpec(model=model, height=sw.opts.height, preset=sw.opts.preset, data=sw.root,
+                                  device=sw.device, out=run,
+                                  overrides=tuple(_train_overrides(sw, model, train_id, over))))
+    if cmd is None:  # finished since the plan was made
+        return
+    res = _run(sw, f"train {model} {train_id}", "train", cmd, sw.out / "logs" / f"train_{model}_{train_id}.log",
+               signal.SIGTERM)
     rec_path = run / "tradeoff_train.json"
     rec = read_json(rec_path) if rec_path.is_file() else {"overrides": over, "wall_s": 0.0, "cpu_s": 0.0,
                                                            "invocations": 0}
@@ -167,7 +175,7 @@ def do_train(sw: Sweep, model: str, train_id: str, over: dict, factor: float) ->
     if res.timed_out:
         raise TimeoutError(f"stopped at the budget's end after {res.wall_s:.0f} s (its checkpoint is kept; "
                            f"run again with a larger --budget to continue it)")
-    if res.returncode != 0 or not _train_done(run):
+    if res.returncode != 0 or not train_finished(run):
         raise RuntimeError(f"training failed (exit {res.returncode}); log {sw.out / 'logs'}:\n"
                            + log_tail(sw.out / "logs" / f"train_{model}_{train_id}.log"))
     if not resume:  # a resumed run's time is partial: not a cost sample
@@ -179,8 +187,8 @@ def _ckpt_of(sw: Sweep, model: str, train_id: str) -> str:
 
 
 def _worker(sw: Sweep, spec: dict, log: Path) -> CommandResult:
-    cmd = [sys.executable, "-m", "detbench.studies.tradeoff_worker", json.dumps({**spec, "registry": sw.registry})]
-    res = run_command(cmd, cwd=sw.repo, log=log, deadline=sw.deadline, stop_signal=signal.SIGKILL)
+    # a measurement keeps nothing worth a grace period: killed at the budget's end
+    res = _run(sw, log.stem, "measure", worker_command({**spec, "registry": sw.registry}), log, signal.SIGKILL)
     if res.timed_out:
         raise TimeoutError(f"stopped at the budget's end after {res.wall_s:.0f} s")
     if res.returncode != 0:
@@ -217,7 +225,7 @@ def build_tasks(sw: Sweep) -> tuple[list[Task], dict]:
     def train_task(model, train_id, over, factor) -> str:
         tid = f"train {model} {train_id}"
         if (model, train_id) not in trains:
-            done = _train_done(_run_dir(sw, model, train_id))
+            done = train_finished(_run_dir(sw, model, train_id))
             trains[(model, train_id)] = Task(tid, 0.0 if done else sw.costs.estimate("train", model, factor))
             action[tid] = ("train", (model, train_id, over, factor))
             if done:

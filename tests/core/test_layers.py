@@ -1,6 +1,7 @@
 """The import layering of docs/architecture.md, checked on the source (every import, also inside functions),
 and its rule that models/stages/__init__.py exports every stage."""
 import ast
+import re
 from pathlib import Path
 
 from tests.helpers import ROOT
@@ -56,3 +57,31 @@ def test_every_stage_module_is_exported():
     exported = {n.module for n in tree.body if isinstance(n, ast.ImportFrom) and n.level == 1}
     modules = {p.stem for p in stages.glob("*.py")} - {"__init__", "losses"}
     assert modules <= exported, f"not exported by models/stages/__init__.py: {sorted(modules - exported)}"
+
+
+def _code_strings(path: Path) -> list[tuple[int, str]]:
+    """(line, text) of the string constants of a module that are no docstring."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    docs = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.body and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+    return [(n.lineno, n.value) for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs]
+
+
+def test_detbench_runs_tools_by_path_from_one_module_only():
+    """The imports cannot show that detbench runs a tool of tools/ (a study's job is the command a user types,
+    and the tools import the detector registry, which detbench does not): a string naming a tool by path
+    ("tools/train.py", "tools" joined with a file name, "tools.train") may stand only in
+    detbench/studies/commands.py, and every tool named there exists."""
+    tool_path = re.compile(r"^tools(/\w+\.py)?$|^tools\.\w+$")
+    allowed = ROOT / "detbench" / "studies" / "commands.py"
+    bad, named = [], []
+    for path in sorted((ROOT / "detbench").rglob("*.py")):
+        for line, text in _code_strings(path):
+            if tool_path.match(text):
+                (named if path == allowed else bad).append(f"{path.relative_to(ROOT)}:{line}: {text!r}")
+                if path == allowed:
+                    assert (ROOT / text).is_file(), f"{path.relative_to(ROOT)}:{line}: {text} does not exist"
+    assert not bad, "detbench names a tool to run outside detbench/studies/commands.py:\n" + "\n".join(bad)
+    assert named, "detbench/studies/commands.py names no tool: is this test still looking at the right module?"

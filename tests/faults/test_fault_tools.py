@@ -37,14 +37,15 @@ def test_the_ray_executor_without_ray_names_the_install_command(tool, tmp_path, 
     """--executor ray without Ray installed is refused naming the install command, and no study folder is made."""
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     code, err = tool("study", "--executor", "ray", "--out", tmp_path / "s")
-    assert code == 2 and "pip install .[cluster]" in err and not (tmp_path / "s").exists()
+    assert code == 2 and "pip install -e '.[cluster]'" in err and not (tmp_path / "s").exists()
 
 
 @pytest.mark.parametrize("status, expected", [(2, 2), (1, 1), (3, 1)])
 def test_a_failed_study_job_keeps_the_users_error_apart_from_a_bug(status, expected, tmp_path):
     """A failed job's exit status reaches the study's: 2 (the user's error) stays 2, any other is 1 (a bug),
     whose message names the job and says to run the same command again."""
-    from detbench.studies.jobs import Job, LocalExecutor, run_graph
+    from detbench.studies.executor import LocalExecutor
+    from detbench.studies.jobs import Job, run_graph
     from detbench.utils.cli import run_main
 
     def main(_argv):

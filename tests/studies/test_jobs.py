@@ -1,6 +1,7 @@
 """The study's job graph (detbench.studies.jobs): dependencies, jobs at once, the time left, a failed job, Ctrl-C."""
 from __future__ import annotations
 
+import io
 import os
 import signal
 import subprocess
@@ -11,9 +12,9 @@ from pathlib import Path
 import pytest
 
 import detbench.studies.jobs as jobs_mod
-from detbench.studies.jobs import (
-    GraphProgress, Job, LocalExecutor, busy_cores, check_graph, free_cpus, run_graph,
-)
+from detbench.studies.cpu_load import CpuSample, MachineLoad, cgroup_cpu_quota, usable_cores
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import CriticalPathScheduler, Job, check_graph, run_graph
 from detbench.utils.cli import UserError
 from tests.helpers import ROOT
 
@@ -59,7 +60,6 @@ def test_the_graph_refuses_unknown_dependencies_and_cycles():
         check_graph([job("a", noop, deps=["b"]), job("b", noop, deps=["a"])])
     with pytest.raises(ValueError, match="repeat"):
         check_graph([job("a", noop), job("a", noop)])
-    assert 1 <= free_cpus() <= (os.cpu_count() or 1) and 0.0 <= busy_cores(0.1) <= (os.cpu_count() or 1) + 0.01
 
 
 def test_time_left_is_the_longest_remaining_path_over_the_workers():
@@ -68,12 +68,12 @@ def test_time_left_is_the_longest_remaining_path_over_the_workers():
     jobs = [job("train_a", [], model="a"), job("train_b", [], model="b"),
             job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
             job("eval_b", [], deps=["train_b"], kind="eval", model="b")]
-    prog = GraphProgress(jobs, slots=2)
+    prog = CriticalPathScheduler(jobs, slots=2)
     assert prog.left_s() == (None, True)  # nothing measured: unknown
     prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0], ("train", "b"): [100.0], ("eval", "b"): [10.0]}
     assert prog.left_s() == (pytest.approx(110.0), False)
-    assert GraphProgress(jobs, slots=1).left_s() == (None, True)
-    one = GraphProgress(jobs, slots=1)
+    assert CriticalPathScheduler(jobs, slots=1).left_s() == (None, True)
+    one = CriticalPathScheduler(jobs, slots=1)
     one.measured = prog.measured
     assert one.left_s() == (pytest.approx(220.0), False)
     # a running job counts what it has left; a finished one nothing
@@ -85,15 +85,15 @@ def test_time_left_is_the_longest_remaining_path_over_the_workers():
     assert prog.left_s(now=4.0) == (pytest.approx(110.0), True)  # b's training borrows a's: a guess
     # trainings measured but no evaluation yet: each evaluation guessed at EVAL_SHARE of its model's training,
     # a cross-height evaluation at that of an evaluation, a model with no training measured borrowing another's
-    share = GraphProgress.EVAL_SHARE
+    share = CriticalPathScheduler.EVAL_SHARE
     chain = [job("train_a", [], model="a"), job("train_b", [], model="b"),
              job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
              job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a"),
              job("eval_b", [], deps=["train_b"], kind="eval", model="b")]
-    early = GraphProgress(chain, slots=1)
+    early = CriticalPathScheduler(chain, slots=1)
     early.measured = {("train", "a"): [200.0]}
     assert early.left_s() == (pytest.approx(200.0 + 200.0 + 3 * share * 200.0), True)  # one worker: the work
-    wide = GraphProgress(chain, slots=4)
+    wide = CriticalPathScheduler(chain, slots=4)
     wide.measured = {("train", "a"): [200.0], ("train", "b"): [40.0]}
     assert wide.left_s() == (pytest.approx(200.0 + share * 200.0), True)  # four workers: a's chain, not the work
 
@@ -214,7 +214,8 @@ def as_in_a_terminal() -> None:
 DRIVER = """
 import sys
 from pathlib import Path
-from detbench.studies.jobs import Job, LocalExecutor, run_graph
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import Job, run_graph
 d = Path(sys.argv[1])
 training = sys.argv[2]
 run_graph([Job("train_m", "train", "train m", lambda: [sys.executable, "-c", training, str(d)], model="m")],
@@ -259,7 +260,8 @@ def test_ctrl_c_in_a_terminal_reaches_driver_and_training_and_the_checkpoint_is_
 TOOL_DRIVER = """
 import sys
 from pathlib import Path
-from detbench.studies.jobs import Job, LocalExecutor, run_graph
+from detbench.studies.executor import LocalExecutor
+from detbench.studies.jobs import Job, run_graph
 from detbench.utils.cli import run_main
 d = Path(sys.argv[1])
 training = sys.argv[2]
@@ -289,7 +291,7 @@ def test_ctrl_c_or_sigterm_ends_a_tool_with_one_line_and_status_130(tmp_path, si
 def test_a_cross_height_evaluation_borrows_the_time_of_an_evaluation():
     jobs = [job("train_a", [], model="a"), job("eval_a", [], deps=["train_a"], kind="eval", model="a"),
             job("cross_a", [], deps=["train_a"], kind="cross_eval", model="a")]
-    prog = GraphProgress(jobs, slots=1)
+    prog = CriticalPathScheduler(jobs, slots=1)
     prog.measured = {("train", "a"): [100.0], ("eval", "a"): [10.0]}
     assert prog.left_s() == (pytest.approx(120.0), True)
 
@@ -304,10 +306,74 @@ def test_the_longest_remaining_path_starts_first(tmp_path):
     assert res.ran == ["train_a", "train_b", "eval_a", "eval_b"]
     # measured durations take over from the priors: an evaluation measured longer than a training and its
     # evaluation together goes first; equal paths keep the list order
-    prog = GraphProgress(jobs, 1)
+    prog = CriticalPathScheduler(jobs, 1)
     prog.measured = {("train", "m"): [10.0], ("eval", "m"): [100.0]}
     order = [j.id for j in prog.by_path([jobs[1], jobs[2], jobs[3]])]
     assert order == ["train_b", "eval_a", "eval_b"]  # 10 + 100 > 100; eval_a before eval_b (list order)
     prog.measured = {("train", "m"): [10.0], ("eval", "m"): [10.0]}
     lone = Job("eval_c", "eval", "evaluate c", lambda: None, model="m")
     assert [j.id for j in prog.by_path([lone, jobs[2], jobs[3]])] == ["train_b", "eval_c", "eval_b"]
+
+
+def test_the_default_is_the_cores_this_process_may_use(tmp_path):
+    """One job per core of the affinity mask, capped by a cgroup CPU quota (whole cores, at least one)."""
+    assert usable_cores(quota=None, affinity={0, 1, 2, 3}) == 4
+    assert usable_cores(quota=2.5, affinity={0, 1, 2, 3}) == 2 and usable_cores(quota=0.5, affinity={0, 1}) == 1
+    cpu_max = tmp_path / "cpu.max"
+    cpu_max.write_text("150000 100000\n")
+    assert cgroup_cpu_quota(cpu_max) == 1.5
+    cpu_max.write_text("max 100000\n")
+    assert cgroup_cpu_quota(cpu_max) is None and cgroup_cpu_quota(tmp_path / "none") is None
+    assert 1 <= usable_cores() <= (os.cpu_count() or 1)
+
+
+def test_the_other_load_is_the_busy_time_less_this_studys_own_measured_again_later():
+    """Busy CPU seconds per wall second on the usable cores, less this process tree's: the first estimate over
+    two samples a window apart (one wait, here not slept), later ones once min_interval_s has passed."""
+    samples = iter([CpuSample(0.0, 100.0, 10.0), CpuSample(0.5, 101.0, 10.5),  # 2 cores busy, 1 of them ours
+                    CpuSample(1.0, 102.0, 11.0),  # too soon: the estimate stands
+                    CpuSample(3.0, 103.5, 13.0)])  # 2.5 s after the estimate: 1 core busy, all of it ours
+    waits = []
+    load = MachineLoad(lambda: next(samples), window_s=0.5, min_interval_s=2.0, sleep=waits.append)
+    assert load.other_cores() == pytest.approx(1.0) and waits == [0.5]
+    assert load.other_cores() == pytest.approx(1.0)
+    assert load.other_cores() == pytest.approx(0.0) and waits == [0.5]
+    assert MachineLoad(lambda: None, sleep=waits.append).other_cores() is None  # no /proc: no estimate
+
+
+class ScriptedLoad:
+    """The machine's other load as a test sets it, in cores."""
+
+    def __init__(self, cores: float):
+        self.cores = cores
+
+    def other_cores(self) -> float:
+        return self.cores
+
+
+def _intervals(d: Path) -> list[tuple[float, float]]:
+    return sorted(tuple(map(float, p.read_text().split())) for p in d.glob("*.t"))
+
+
+def test_other_load_holds_slots_back_until_it_leaves_and_the_line_says_why(tmp_path):
+    """Two slots on a machine whose other load keeps one core busy: one job at a time, and the progress line
+    says why; once the load is gone, two at once again."""
+    timed = ("import sys, time, pathlib\nt0 = time.time()\ntime.sleep(0.3)\n"
+             "pathlib.Path(sys.argv[1]).write_text(f'{t0} {time.time()}')")
+    load = ScriptedLoad(1.0)
+    out = io.StringIO()
+    jobs = [job(f"train_{k}", py(timed, tmp_path / "busy" / f"{k}.t")) for k in "abc"]
+    (tmp_path / "busy").mkdir()
+    run_graph(jobs, LocalExecutor(2, stream=False, load=load), tmp_path / "logs", poll_s=0.02,
+              scheduler=CriticalPathScheduler(jobs, 2, stream=out))
+    spans = _intervals(tmp_path / "busy")
+    assert len(spans) == 3 and all(b[0] >= a[1] for a, b in zip(spans, spans[1:])), spans  # never two at once
+    assert "1 of 2 slots: the machine's other load uses 1 core" in out.getvalue()
+    load.cores = 0.0
+    (tmp_path / "free").mkdir()
+    both = [job(f"train_{k}", py(timed, tmp_path / "free" / f"{k}.t")) for k in "ab"]
+    out = io.StringIO()
+    run_graph(both, LocalExecutor(2, stream=False, load=load), tmp_path / "logs", poll_s=0.02,
+              scheduler=CriticalPathScheduler(both, 2, stream=out))
+    (a0, a1), (b0, b1) = _intervals(tmp_path / "free")
+    assert b0 < a1 and "slots:" not in out.getvalue()  # they ran together

@@ -15,11 +15,11 @@ import pytest
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.evaluate import EvalFrame, evaluate
+from detbench.studies.seed_markdown import detector_table, pairwise_markdown, seed_markdown
 from detbench.studies.seeds import (
-    detector_table, pairwise_leads, pairwise_markdown,
-    LEAD_REPLICATES, METRICS, pool_seed_spread, seed_combined, seed_height_summary, seed_markdown, seed_summary,
-    student_t_quantile,
+    LEAD_REPLICATES, METRICS, pairwise_leads, pool_seed_spread, seed_combined, seed_height_summary, seed_summary,
 )
+from detbench.studies.student_t import student_t_quantile
 from detbench.studies.study_summary import paired_recall_difference
 
 REPLICATES = 200
@@ -324,8 +324,9 @@ def test_the_seed_spread_is_pooled_over_a_models_heights():
     groups = {("second", 1.8): _seeds("second", (0.9, 0.8)), ("second", 1.0): _seeds("second", (0.7, 0.72), **mid),
               ("second", 0.5): _seeds("second", (0.5, 0.6), **low)}
     own = {h: seed_combined(groups[("second", h)]) for h in (1.8, 1.0, 0.5)}
-    pooled = {h: copy.deepcopy(c) for h, c in own.items()}
-    pool_seed_spread({("second", h): c for h, c in pooled.items()})
+    before = copy.deepcopy(own)
+    pooled = {h: c for (_, h), c in pool_seed_spread({("second", h): c for h, c in own.items()}).items()}
+    assert own == before  # the cells it pooled are left as they are
     for r in RANGE_NAMES:
         for metric in METRICS:
             sds = [own[h]["results"][r]["all"][metric]["sd"] for h in own]

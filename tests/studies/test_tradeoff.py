@@ -10,7 +10,8 @@ import pytest
 
 from detbench.config import ConfigError
 
-from detbench.studies.runner import run_command
+from detbench.studies.executor import LocalExecutor, run_to_end
+from detbench.studies.jobs import Job
 from detbench.studies.tradeoff import (
     CostModel, Task, mark_pareto, pareto_flags, plan_within_budget, plot_learning_curves, plot_tradeoff,
     train_seconds_at_step, tradeoff_markdown, world_label,
@@ -267,13 +268,25 @@ def test_scale_widths():
         scale_widths("unknown", mc, 0.5)
 
 
-def test_run_command_stops_a_task_at_its_deadline(tmp_path):
+def test_a_task_is_stopped_at_its_deadline_and_its_cpu_time_is_its_own(tmp_path):
+    """The sweep's tasks on the study's executor: a task still running at the deadline gets the stop signal
+    (a training's SIGTERM: it writes its checkpoint and exits), the log grows over reruns, and a task's CPU
+    time is its own (a busy loop of about 0.3 s)."""
+    ex = LocalExecutor(1, stream=False, env={}, append_logs=True)
+    log = tmp_path / "log.txt"
+    stopping = ("import signal, sys, time, pathlib\n"
+                "def stop(*_):\n    pathlib.Path(sys.argv[1]).write_text('checkpoint')\n    sys.exit(130)\n"
+                "signal.signal(signal.SIGTERM, stop)\nprint('started', flush=True)\ntime.sleep(60)\n")
     t0 = time.perf_counter()
-    res = run_command([sys.executable, "-c", "import time; time.sleep(60)"], log=tmp_path / "log.txt",
-                      deadline=time.perf_counter() + 1.0)
-    assert res.timed_out and res.returncode != 0 and time.perf_counter() - t0 < 30
-    res = run_command([sys.executable, "-c", "print('hi')"], log=tmp_path / "log.txt", deadline=None)
-    assert not res.timed_out and res.returncode == 0 and "hi" in (tmp_path / "log.txt").read_text()
+    res = run_to_end(ex, Job("train", "train", "train", log=log),
+                     [sys.executable, "-c", stopping, str(tmp_path / "ckpt")], deadline=time.perf_counter() + 2.0)
+    assert res.timed_out and res.returncode == 130 and time.perf_counter() - t0 < 30
+    assert (tmp_path / "ckpt").read_text() == "checkpoint" and not ex.running
+    busy = "import time\nt = time.process_time()\nwhile time.process_time() - t < 0.3: pass\nprint('hi')"
+    res = run_to_end(ex, Job("measure", "measure", "measure", log=log), [sys.executable, "-c", busy])
+    assert not res.timed_out and res.returncode == 0 and res.wall_s >= res.cpu_s >= 0.3
+    text = log.read_text()
+    assert "started" in text and "hi" in text and text.count("$ ") == 2
 
 
 # ---- end to end (reduced) ------------------------------------------------------------------------------
