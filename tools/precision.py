@@ -67,7 +67,9 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     import models
     from detbench.data.errors import DatasetError
+    from detbench.config import ConfigError, get
     from detbench.train.checkpoint import CheckpointError
+    from detbench.train.run_config import check_score_thresholds
     from detbench.train.run_layout import precision_dir_name, run_dir_of_checkpoint
 
     if args.frames < 0 or args.batch_size < 1:
@@ -83,7 +85,10 @@ def main(argv=None) -> int:
     device = torch_device(args.device)
     try:
         model, ck = models.load_from_checkpoint(args.ckpt, device)
-    except CheckpointError as e:
+        check_score_thresholds(args.score_threshold, get(ck["config"], "model.post.score_threshold"),
+                               eval_key="--score-threshold", where=f"--ckpt {args.ckpt}: ",
+                               lower_model="train it with --set model.post.score_threshold={value:g}")
+    except (CheckpointError, ConfigError) as e:
         raise UserError(str(e)) from None
     height = float(args.height if args.height is not None else ck["data"].get("height", float("nan")))
     root = args.data or Path(ck["data"]["source"])

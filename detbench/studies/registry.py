@@ -25,6 +25,10 @@ class ModelRegistry(Protocol):
     def build_model(self, name: str, model_cfg: dict) -> Any:
         """The detector `name` built from its config."""
 
+    def upgrade_stored_model_config(self, name: str, model_cfg: dict) -> dict:
+        """A checkpoint's stored `model:` section in today's keys (one stored by an earlier version lacks keys
+        that had values in code then)."""
+
 
 def import_registry(module: str) -> ModelRegistry:
     """The registry module named `module` (in a child process started by a study)."""

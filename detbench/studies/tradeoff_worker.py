@@ -8,7 +8,6 @@ curve spec names a training run whose checkpoints are evaluated one file each.
 """
 from __future__ import annotations
 
-import copy
 import dataclasses
 import json
 import sys
@@ -76,12 +75,13 @@ def _autocast(device, precision: str | None):
 
 
 def load_for_inference(registry: ModelRegistry, ckpt_path: str, device, model_overrides: dict):
-    """(model in eval mode, checkpoint dict, model config): the checkpoint's model rebuilt with
-    `model_overrides` (dotted keys under `model:` that change inference only, e.g. the test proposals)."""
+    """(model in eval mode, checkpoint dict, model config): the checkpoint's model, its stored config in
+    today's keys, rebuilt with `model_overrides` (dotted keys under `model:` that change inference only, e.g.
+    the test proposals)."""
     from detbench.train.checkpoint import load_checkpoint, load_model_weights
 
     ck = load_checkpoint(ckpt_path)
-    cfg = copy.deepcopy(ck["config"]["model"])
+    cfg = registry.upgrade_stored_model_config(ck["model_name"], ck["config"]["model"])
     for key, value in (model_overrides or {}).items():
         set_dotted(cfg, key, value)
     model = registry.build_model(ck["model_name"], cfg)

@@ -19,13 +19,14 @@ import numpy as np
 from matplotlib.figure import Figure
 from torch import nn
 
-from detbench.config import shipped_default
+from detbench.config import ConfigError, get, shipped_default
 from detbench.data.dataset import Height3Dataset
 from detbench.data.errors import DatasetError
 from detbench.data.frame import height_key
 from detbench.data.road import RoadConfig
 from detbench.train.inference import checkpoint_predictions, frame_sample
 from detbench.train.logger import bev_figure
+from detbench.train.run_config import check_score_thresholds
 from detbench.train.run_layout import demo_dir_name, run_dir_of_checkpoint
 from detbench.utils.cli import UserError
 from detbench.utils.atomic import atomic_save, atomic_write_json
@@ -83,6 +84,12 @@ def demo_frame(model: nn.Module, ck: dict, dataset: Height3Dataset, frame: str, 
     score_threshold = float(shipped_default("eval.score_threshold", score_threshold))
     if not (math.isfinite(score_threshold) and 0 <= score_threshold <= 1):
         raise UserError(f"--score-threshold {score_threshold:g}: must be a score in [0, 1]")
+    try:
+        check_score_thresholds(score_threshold, get(ck["config"], "model.post.score_threshold"),
+                               eval_key="--score-threshold", where=f"--ckpt {checkpoint}: ",
+                               lower_model="train it with --set model.post.score_threshold={value:g}")
+    except ConfigError as e:
+        raise UserError(str(e)) from None
     fid = select_frame(dataset, frame)
     try:
         f = dataset.load(fid)

@@ -33,3 +33,13 @@ def test_eval_refuses_a_threshold_below_the_checkpoints_model_and_takes_the_defa
     code, err = tool("eval", "--ckpt", ckpt, "--out", tmp_path / "default", "--no-progress", "--no-extras",
                      "--bootstrap", "0")
     assert code == 0 and (tmp_path / "default" / "report.json").is_file(), err[-2000:]
+
+
+def test_precision_refuses_a_threshold_below_the_checkpoints_model(trained_run, tool, tmp_path):
+    """tools/precision.py drops detections below --score-threshold after the model dropped those below its own
+    model.post.score_threshold: a lower value is refused in one line before any frame is read."""
+    ckpt = trained_run / "checkpoints" / "epoch_002.pt"
+    code, err = tool("precision", "--ckpt", ckpt, "--score-threshold", "0.05", "--out", tmp_path / "low",
+                     "--no-progress")
+    _one_line(code, err, f"--ckpt {ckpt}: --score-threshold 0.05 is below model.post.score_threshold 0.1")
+    assert not (tmp_path / "low").exists()

@@ -31,7 +31,7 @@ def test_demo_draws_what_eval_evaluates(smoke_run, smoke_data, tmp_path, capsys)
 
     run = Path(shutil.copytree(smoke_run, tmp_path / "run"))
     last = Height3Dataset(smoke_data, 1.8, "test").frame_ids[-1]
-    assert run_main(tools.demo.main, ["--ckpt", str(run), "--frame", "-1", "--score-threshold", "0.05"]) == 0
+    assert run_main(tools.demo.main, ["--ckpt", str(run), "--frame", "-1", "--score-threshold", "0.3"]) == 0
     printed = capsys.readouterr().out
     out = run / "demo_h1.8_test"
     png, js = out / f"{last}.png", out / f"{last}.json"
@@ -46,14 +46,14 @@ def test_demo_draws_what_eval_evaluates(smoke_run, smoke_data, tmp_path, capsys)
                                       "--bootstrap", "0"]) == 0
     parsed = parse_prediction_file(tmp_path / "eval" / "pred" / f"{last}.txt")
     boxes, scores = parsed.boxes, parsed.scores
-    keep = scores >= 0.05
+    keep = scores >= 0.3
     assert len(rec["predictions"]) == int(keep.sum())
     assert rec["predictions_below_threshold"] == int((~keep).sum())
     if keep.any():
         np.testing.assert_allclose([p["box"] for p in rec["predictions"]], boxes[keep], atol=1e-3)
         np.testing.assert_allclose([p["score"] for p in rec["predictions"]], scores[keep], atol=1e-3)
     assert run_main(tools.demo.main, ["--ckpt", str(run / "checkpoints" / "epoch_001.pt"), "--frame", last,
-                                      "--score-threshold", "0.05", "--out", str(tmp_path / "by_id")]) == 0
+                                      "--score-threshold", "0.3", "--out", str(tmp_path / "by_id")]) == 0
     assert json.loads((tmp_path / "by_id" / f"{last}.json").read_text()) == rec
     check_claimable(run, RUN_FOLDER)  # a demo folder inside a run is the run's own entry
 
@@ -62,6 +62,7 @@ def test_demo_errors_are_one_line(smoke_run, tmp_path, capsys):
     for argv, words in ((["--frame", "9"], "--frame 9: neither a frame id of the test split at 1.8 m"),
                         (["--frame", "nope"], "nor an index in 0..2"),
                         (["--score-threshold", "1.5"], "--score-threshold 1.5: must be a score in [0, 1]"),
+                        (["--score-threshold", "0.05"], "--score-threshold 0.05 is below model.post.score_threshold"),
                         (["--stage", "proposals"], "second is a one-stage detector")):
         rc = run_main(tools.demo.main, ["--ckpt", str(smoke_run), "--out", str(tmp_path / "o"), *argv])
         err = capsys.readouterr().err
