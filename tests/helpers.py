@@ -197,7 +197,7 @@ class TinyDetector(nn.Module):
         self.interrupt_at, self.crash_at, self.train_calls = interrupt_at, crash_at, 0
 
     def forward(self, batch: Batch) -> TinyOut:
-        if self.training:
+        if self.training and torch.is_grad_enabled():  # a training step (not the BatchNorm statistics' passes)
             self.train_calls += 1
             if self.train_calls == self.interrupt_at:
                 os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of a step

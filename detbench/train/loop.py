@@ -43,6 +43,7 @@ from pathlib import Path
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import DataLoader
@@ -56,6 +57,7 @@ from detbench.train.dataset import EpochBatches
 from detbench.train.distributed import DistInfo, any_rank, barrier, reduce_mean, sync_buffers, wrap_model
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
+from detbench.train.precise_bn import recompute_bn_statistics
 from detbench.train.rng import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
 from detbench.train.stop_request import StopRequest
 from detbench.train.train_config import RESUME_IGNORE_KEYS, TrainConfig
@@ -174,7 +176,11 @@ class _Run:
     nonfinite_streak: int = 0  # skipped non-finite steps in a row (across epochs)
 
     def save(self, state: TrainState) -> Path | None:
-        """Write a checkpoint of `state` (rank 0; every rank takes part). Returns its path on rank 0."""
+        """Write a checkpoint of `state` (rank 0; every rank takes part), its BatchNorm statistics first
+        recomputed for its weights (`train.precise_bn_batches`). Returns its path on rank 0."""
+        if self.cfg.precise_bn_batches > 0:
+            recompute_bn_statistics(self.core, _precise_bn_batches(self, state), _forward_batch)
+            sync_buffers(self.core, self.info)
         rng_ranks = _gather_rng(self.info)  # every rank resumes its own generators
         path = None
         if self.info.is_main:
@@ -182,6 +188,22 @@ class _Run:
                                    scaler=self.scaler, rng=rng_ranks, **self.checkpoint_meta)
         barrier(self.info)
         return path
+
+
+def _precise_bn_batches(run: _Run, state: TrainState):
+    """`train.precise_bn_batches` batches of augmented training samples for the BatchNorm statistics of the
+    checkpoint of `state`: frames drawn by a generator seeded from the run's seed, this rank and the step (the
+    training's own random streams are not touched), so a resumed run recomputes the same statistics."""
+    cfg, n = run.cfg, len(run.train_set)
+    rng = np.random.default_rng([cfg.seed, run.info.rank, state.global_step, 7919])
+    order = rng.permutation(n)
+    for k in range(cfg.precise_bn_batches):
+        idx = [int(order[(k * cfg.batch_size + j) % n]) for j in range(cfg.batch_size)]
+        yield collate([run.train_set[(state.epoch, i)] for i in idx]).to(run.info.device)
+
+
+def _forward_batch(model: nn.Module, batch) -> None:
+    model(batch)
 
 
 def _gather_rng(info: DistInfo) -> list[dict]:

@@ -50,6 +50,7 @@ class TrainConfig:
     tensorboard: bool
     bev_image: bool
     max_nonfinite_steps: int  # skipped non-finite steps in a row that stop the run
+    precise_bn_batches: int  # training batches that recompute the BatchNorm statistics of each checkpoint (0: off)
 
     @classmethod
     def from_dict(cls, d: Mapping | None, where: str = "train") -> TrainConfig:
@@ -67,6 +68,7 @@ class TrainConfig:
                   ("eval_every", cfg.eval_every >= 1, ">= 1"), ("log_every", cfg.log_every >= 1, ">= 1"),
                   ("checkpoint_every_steps", cfg.checkpoint_every_steps >= 0, ">= 0"),
                   ("max_nonfinite_steps", cfg.max_nonfinite_steps >= 1, ">= 1"),
+                  ("precise_bn_batches", cfg.precise_bn_batches >= 0, ">= 0 (0: off)"),
                   ("div_factor", cfg.div_factor >= 1, ">= 1 (the schedule starts at lr / div_factor)"),
                   ("final_div_factor", cfg.final_div_factor >= 1,
                    ">= 1 (the schedule ends at lr / div_factor / final_div_factor)"),
