@@ -8,13 +8,18 @@ models' trained checkpoints are used, timed on the test frames of the dataset th
 each model's AP@R40 / recall is joined to its cost, like the paper's Table III next to its accuracy.
 --train-steps N also times N training steps (forward, loss, backward, AdamW step) on batches of
 --train-batch frames. --load N measures everything again beside N busy-loop processes (started
-for it, stopped after) and reports idle and loaded figures side by side.
+for it, stopped after) and reports idle and loaded figures side by side. --profile adds where the
+time goes: the data pipeline per training sample, a training step and an inference split by stage
+and by kind of torch op (dense convolution, matrix products, gathers and scatters, rule books,
+normalisation, element-wise, optimiser, and the time outside torch ops), with the achieved GFLOP/s
+and GB/s beside this machine's single-thread limits (detbench.benchmarks.profile).
 
 Examples:
   python tools/benchmark.py                         # every model, its cpu-preset size, CPU
   python tools/benchmark.py --preset paper --device cuda
   python tools/benchmark.py --study runs/study_cpu --height 1.8
   python tools/benchmark.py --models second --train-steps 3 --load 1   # idle vs one busy process
+  python tools/benchmark.py --preset cpu --height 1.8 --profile       # where each detector's time goes
 
 Writes OUT/benchmark.json and OUT/benchmark.md (default OUT = runs/benchmark).
 Units: milliseconds per frame, MB = 10^6 bytes (checkpoint), MiB = 2^20 bytes (memory).
@@ -37,6 +42,7 @@ import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before
 import models
 from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,
                                             peak_rss_mib)
+from detbench.benchmarks.profile import profile_markdown
 from detbench.data.road import RoadConfig
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
@@ -68,6 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="frames per training step (default 2, the cpu preset's batch size)")
     ap.add_argument("--load", type=int, default=0, metavar="N",
                     help="measure each model again beside N busy-loop processes (default 0: idle only)")
+    ap.add_argument("--profile", action="store_true",
+                    help="also profile the data pipeline, one training step and one inference by stage and by kind "
+                         "of op (a few seconds per model more); the training frames come from the same dataset")
     ap.add_argument("--out", default="runs/benchmark", help="output folder (default runs/benchmark)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: one model in a child process
     return ap
@@ -107,7 +116,27 @@ def worker(args) -> dict:
     res = measure_detector(model, name, test, cfg_model["point_cloud_range"], device, frames=args.frames,
                            warmup=args.warmup, checkpoint=ckpt, rss_before_model=rss0,
                            train_steps=args.train_steps, train_batch=args.train_batch, road=road)
+    if args.profile and device.type == "cpu":
+        res["profile"] = profile(model, ck["config"] if ckpt else cfg, data_root, args, road)
     return {**res, "frames_from": str(data_root)}
+
+
+def profile(model, run_cfg: dict, data_root, args, road) -> dict:
+    """detbench.benchmarks.profile on a copy of `model` (the profile trains it), with the run config's
+    augmentation on the training split of `data_root` at --height."""
+    import copy
+
+    from detbench.benchmarks.profile import profile_detector
+    from detbench.data import Height3Dataset
+    from detbench.data.augment import AugmentConfig
+    from detbench.train.dataset import TrainingSet
+
+    pcr = run_cfg["model"]["point_cloud_range"]
+    augment = AugmentConfig.from_dict(run_cfg["augment"])
+    train_set = TrainingSet.from_dataset(data_root, args.height, pcr, augment=augment, road=road, progress=False)
+    return profile_detector(copy.deepcopy(model), train_set, Height3Dataset(data_root, args.height, "test"), pcr,
+                            road=road, steps=max(2, min(args.train_steps or 4, 8)), frames=min(args.frames, 8),
+                            batch_size=args.train_batch)
 
 
 def frames_source(data: str | None, ck: dict | None) -> str | None:
@@ -173,7 +202,8 @@ def main(argv=None) -> int:
             if args.data:
                 cmd += ["--data", args.data]
             if args.train_steps > 0:
-                cmd += ["--train-steps", str(args.train_steps), "--train-batch", str(args.train_batch)]
+                cmd += ["--train-steps", str(args.train_steps)]
+            cmd += ["--train-batch", str(args.train_batch)] + (["--profile"] if args.profile else [])
 
             def run_worker(cmd=cmd, name=name, dev=dev):
                 proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -203,7 +233,8 @@ def main(argv=None) -> int:
             "frames_from": sorted({r["frames_from"] for r in results})}
     out = Path(args.out)
     atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
-    atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results))
+    atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results)
+                      + ("\n" + "\n".join(profile_markdown(results)) if args.profile else ""))
     print(f"wrote {out / 'benchmark.json'}, {out / 'benchmark.md'}")
     return 0
 
