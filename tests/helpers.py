@@ -206,7 +206,7 @@ class TinyDetector(nn.Module):
         p = batch.points
         feats = self.mlp(p[:, 1:5] / torch.tensor([80.0, 20.0, 2.0, 1.0], device=p.device))
         idx = p[:, 0].long()
-        pooled = torch.zeros(batch.batch_size, feats.shape[1], device=p.device).index_add_(0, idx, feats)
+        pooled = feats.new_zeros((batch.batch_size, feats.shape[1])).index_add_(0, idx, feats)  # autocast: half
         pooled = pooled / torch.bincount(idx, minlength=batch.batch_size).clamp(min=1)[:, None]
         out = self.head(self.norm(pooled))
         return TinyOut(out[:, :7], out[:, 7])

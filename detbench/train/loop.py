@@ -29,9 +29,12 @@ its frame ids, counted in TensorBoard (train/nonfinite_steps) and listed in the 
 history.json record (`nonfinite_steps`). `max_nonfinite_steps` such steps in a row stop the run
 with `NonFiniteTrainingError` naming the frames and the newest checkpoint, which holds the
 weights of the last good step (skipped steps never change the weights). Under mixed precision
-(CUDA) an overflow of the *scaled* gradients is the GradScaler's business (it skips the step and
-lowers the scale, as designed); it counts as non-finite only once the scale is <= 1, i.e. when
-the unscaled gradient itself overflows.
+(CUDA) an overflow of the *scaled* gradients is the GradScaler's business: the step changes nothing
+(no update, BatchNorm statistics put back) and the scale is halved, as designed. Such a step is no
+update either: it is left out of the epoch's averaged losses, counted in history.json
+(`scaler_skipped_steps`) beside the scale at the epoch's end (`loss_scale`, also TensorBoard's
+train/loss_scale), so a scale that keeps falling shows; it counts as non-finite only once the scale
+is <= 1, i.e. when the unscaled gradient itself overflows.
 """
 from __future__ import annotations
 
@@ -281,6 +284,7 @@ class _EpochRun:
     n_steps: int = 0  # steps that updated the model
     n_frames: int = 0
     n_skipped: int = 0  # steps skipped for a non-finite loss or gradient
+    n_scaler_skipped: int = 0  # steps the GradScaler skipped (scaled gradients overflowed; mixed precision)
     skipped: list[dict] = field(default_factory=list)  # the first NONFINITE_RECORDS_PER_EPOCH of them
     interrupted: bool = False  # stopped mid-epoch (a checkpoint of the last step is written)
 
@@ -290,8 +294,9 @@ class _StepResult:
     loss: float  # the step's loss (NaN or inf for a skipped step)
     parts: dict
     lr: float  # the rate this step used
-    skipped: str | None  # None: the model was updated; else what was not finite: "loss" or "gradient"
+    skipped: str | None  # what was not finite: "loss" or "gradient" (None: finite, see scaler_skipped)
     stop_requested: bool  # Ctrl-C / SIGTERM on any rank
+    scaler_skipped: bool = False  # the scaled gradients overflowed: the GradScaler skipped the update
 
 
 def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _EpochRun:
@@ -313,6 +318,10 @@ def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _E
             ep.n_frames += batch.batch_size
             if res.skipped is not None:
                 _nonfinite_step(run, ep, epoch, batch, res)
+            elif res.scaler_skipped:  # no update: not in the epoch's losses, counted apart
+                ep.n_scaler_skipped += 1
+                if info.is_main:
+                    run.logger.scalars({"loss_scale": run.scaler.get_scale()}, run.state.global_step, prefix="train/")
             else:
                 run.nonfinite_streak = 0
                 ep.n_steps += 1
@@ -341,7 +350,8 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
 
     Mixed precision: the forward pass runs under float16 autocast while the parameters and the
     optimizer state stay float32 (the master copy); the loss is scaled before backward and the
-    gradients unscaled (in float32) before clipping and the update. A skipped step leaves the
+    gradients unscaled (in float32) before clipping and the update. A skipped step (a non-finite
+    loss or gradient, or scaled gradients that overflowed, which the GradScaler skips) leaves the
     weights, the optimizer state and the BatchNorm statistics as they were.
     """
     saved = _float_buffers(run.core)
@@ -356,31 +366,32 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     grads = _grads(run.core)
     norm = _grad_norm(grads)
     grads_finite = bool(torch.isfinite(norm))
+    scaler_owns = run.use_amp and run.scaler.get_scale() > 1.0  # an overflow of scaled gradients is the scaler's
     if not math.isfinite(loss_value):
         cause = "loss"
-    elif not grads_finite and not (run.use_amp and run.scaler.get_scale() > 1.0):
-        cause = "gradient"  # (an overflow of the scaled gradients is the scaler's: it skips and lowers the scale)
+    elif not grads_finite and not scaler_owns:
+        cause = "gradient"
     else:
         cause = None
-    stop_requested, bad = any_rank([stop.requested, cause is not None], run.info)
+    overflow = cause is None and not grads_finite  # the scaler skips this step and halves its scale
+    stop_requested, bad, overflow = any_rank([stop.requested, cause is not None, overflow], run.info)
     lr = run.optimizer.param_groups[0]["lr"]
-    if bad:
-        cause = cause or "loss or gradient on another process"
+    if bad or overflow:
         for buf, copy in saved:
             buf.copy_(copy)
         if run.use_amp:
-            run.scaler.update()  # lowers the scale when the (unscaled) gradients overflowed
+            run.scaler.update()  # halves the scale when the scaled gradients overflowed
         with warnings.catch_warnings():  # "scheduler.step() before optimizer.step()" when the first step is skipped
             warnings.simplefilter("ignore", UserWarning)
             run.scheduler.step()
-        return _StepResult(loss_value, parts, lr, cause, stop_requested)
+        if bad:
+            return _StepResult(loss_value, parts, lr, cause or "loss or gradient on another process", stop_requested)
+        return _StepResult(loss_value, parts, lr, None, stop_requested, scaler_skipped=True)
     if run.cfg.grad_clip > 0:
         _clip_(grads, norm, run.cfg.grad_clip)
     run.scaler.step(run.optimizer)  # plain optimizer.step() without mixed precision
     run.scaler.update()
-    with warnings.catch_warnings():  # the scaler may skip an overflowing step, as designed
-        warnings.simplefilter("ignore", UserWarning)
-        run.scheduler.step()
+    run.scheduler.step()
     return _StepResult(loss_value, parts, lr, None, stop_requested)
 
 
@@ -457,6 +468,8 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
               "frames": frames_all, "losses": losses, "metrics": {}, "checkpoint": run.ckpts.name_for(run.state)}
     if ep.n_skipped:  # steps skipped for a non-finite loss or gradient (this rank's, listed with their frames)
         record.update(skipped_steps=ep.n_skipped, nonfinite_steps=ep.skipped)
+    if run.use_amp:  # the steps the GradScaler skipped and where its scale ended: a collapsing scale shows
+        record.update(scaler_skipped_steps=ep.n_scaler_skipped, loss_scale=run.scaler.get_scale())
     run.logger.add_epoch(record)
     run.last_ckpt = run.save(run.state) or run.last_ckpt
     if info.is_main:
