@@ -34,10 +34,14 @@ weights of the last good step (skipped steps never change the weights). Under mi
 update either: it is left out of the epoch's averaged losses, counted in history.json
 (`scaler_skipped_steps`) beside the scale at the epoch's end (`loss_scale`, also TensorBoard's
 train/loss_scale), so a scale that keeps falling shows; it counts as non-finite only once the scale
-is <= 1, i.e. when the unscaled gradient itself overflows.
+is <= 1, i.e. when the unscaled gradient itself overflows. A non-finite step that is the model's
+(a NaN loss, or under mixed precision a NaN / inf in the forward pass's outputs, cause "output",
+which a loss that zeroes non-finite differences would hide) keeps the scale: halving it cannot
+help, and occasional NaN steps would otherwise drive it down unseen.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -358,6 +362,7 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     with torch.autocast(device_type=run.info.device.type, dtype=torch.float16, enabled=run.use_amp):
         outputs = run.ddp_model(batch)
         loss, parts = run.core.loss(outputs, batch)
+    outputs_finite = not run.use_amp or _all_finite(outputs)
     run.optimizer.zero_grad(set_to_none=True)
     run.scaler.scale(loss).backward()  # every rank runs backward (DDP's all-reduce), finite or not
     loss_value = float(loss.detach())
@@ -369,6 +374,8 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     scaler_owns = run.use_amp and run.scaler.get_scale() > 1.0  # an overflow of scaled gradients is the scaler's
     if not math.isfinite(loss_value):
         cause = "loss"
+    elif not outputs_finite:  # a float16 overflow in the forward pass that the loss does not show
+        cause = "output"
     elif not grads_finite and not scaler_owns:
         cause = "gradient"
     else:
@@ -379,8 +386,8 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     if bad or overflow:
         for buf, copy in saved:
             buf.copy_(copy)
-        if run.use_amp:
-            run.scaler.update()  # halves the scale when the scaled gradients overflowed
+        if run.use_amp:  # halves the scale for an overflow of the scaled gradients, keeps it for the model's fault
+            run.scaler.update(None if overflow and not bad else run.scaler.get_scale())
         with warnings.catch_warnings():  # "scheduler.step() before optimizer.step()" when the first step is skipped
             warnings.simplefilter("ignore", UserWarning)
             run.scheduler.step()
@@ -426,6 +433,29 @@ def _nonfinite_step(run: _Run, ep: _EpochRun, epoch: int, batch: Batch, res: _St
 def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
     """Mixed precision runs on CUDA only (CPU float16 kernels are slow and bfloat16 training is not tested)."""
     return cfg.amp and device.type == "cuda"
+
+
+def _all_finite(outputs: Any) -> bool:
+    """Every floating-point tensor in a model's outputs (named tuples, dataclasses, dicts, sequences) is finite;
+    one host sync."""
+    flags = []
+
+    def walk(o):
+        if isinstance(o, torch.Tensor):
+            if o.is_floating_point():
+                flags.append(torch.isfinite(o).all())
+        elif dataclasses.is_dataclass(o) and not isinstance(o, type):
+            for f in dataclasses.fields(o):
+                walk(getattr(o, f.name))
+        elif isinstance(o, Mapping):
+            for v in o.values():
+                walk(v)
+        elif isinstance(o, (list, tuple)):
+            for v in o:
+                walk(v)
+
+    walk(outputs)
+    return bool(torch.stack(flags).all()) if flags else True
 
 
 def _float_buffers(model: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:

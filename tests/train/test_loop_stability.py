@@ -228,14 +228,21 @@ def test_mixed_precision_training_on_cuda(tmp_path):
 class OverflowingDetector(FaultyDetector):
     """TinyDetector with its loss times 1e-3 (so the GradScaler's first scale, 2 ** 16, leaves its float16
     gradients finite), and times 1e30 at training forward pass k in `overflow`: a finite loss whose scaled
-    gradients overflow float16 (any scale > 1 makes them)."""
+    gradients overflow float16 (any scale > 1 makes them). At pass k in `inf_output` an output box is inf and
+    the loss, as a regression loss that zeroes non-finite differences, stays finite."""
 
-    def __init__(self, overflow=()):
-        super().__init__()
-        self.overflow = set(overflow)
+    def __init__(self, overflow=(), nan_input=(), inf_output=()):
+        super().__init__(nan_input=nan_input)
+        self.overflow, self.inf_output = set(overflow), set(inf_output)
+
+    def forward(self, batch):
+        out = super().forward(batch)
+        if self.training and self.train_calls in self.inf_output:
+            out = out._replace(boxes=out.boxes + torch.tensor(float("inf")).to(out.boxes.dtype))
+        return out
 
     def loss(self, out, batch):
-        total, parts = super().loss(out, batch)
+        total, parts = super().loss(out._replace(boxes=torch.nan_to_num(out.boxes, posinf=0.0)), batch)
         return total * (1e30 if self.train_calls in self.overflow else 1e-3), parts
 
 
@@ -253,3 +260,19 @@ def test_steps_the_grad_scaler_skips_are_no_updates(tmp_path, monkeypatch):
     assert [r["loss_scale"] for r in h] == [2.0 ** 15, 2.0 ** 13]  # halved at each skip from 2 ** 16
     assert all(r["losses"]["loss"] < 0.01 for r in h), [r["losses"] for r in h]  # the 1e30 losses left out
     assert load_checkpoint(res.last_checkpoint)["scaler"]["scale"] == 2.0 ** 13
+
+
+def test_under_mixed_precision_the_models_non_finite_steps_keep_the_scale(tmp_path, monkeypatch):
+    """A NaN loss, or an inf in the forward pass's outputs that the loss hides, is the model's fault: the step is
+    skipped and logged as non-finite ("loss", "output"), and the GradScaler keeps its scale (halving it cannot
+    help); an overflow of the scaled gradients still halves it."""
+    monkeypatch.setattr(loop_mod, "_use_amp", lambda cfg, dev: cfg.amp)
+    seed_everything(0)
+    model = OverflowingDetector(nan_input={2}, inf_output={3}, overflow={6})
+    res = _train(tmp_path, "run", model)
+    w = model.weights_at_call
+    assert _same(w[2], w[3]) and _same(w[3], w[4]) and _same(w[6], w[7])
+    h = res.history
+    assert [r["nonfinite"] for r in h[0]["nonfinite_steps"]] == ["loss", "output"] and "skipped_steps" not in h[1]
+    assert [r["scaler_skipped_steps"] for r in h] == [0, 1]
+    assert [r["loss_scale"] for r in h] == [2.0 ** 16, 2.0 ** 15]
