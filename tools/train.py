@@ -61,6 +61,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--device", default="auto",
                     help="cpu, cuda, cuda:N or auto (cuda when available); under torchrun cuda or auto, each "
                          "process on cuda:LOCAL_RANK (CUDA_VISIBLE_DEVICES chooses the GPUs)")
+    ap.add_argument("--deterministic", action="store_true",
+                    help="ask torch for deterministic kernels on CUDA (slower; an op that has none warns, naming "
+                         "itself); on the CPU a run and its --resume repeat exactly without it")
     ap.add_argument("--out", default=None, help="run folder (default runs/<model>_h<height>_<preset>): new, empty or "
                                                 "a run's; locked while the run trains")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
@@ -106,6 +109,10 @@ def main(argv=None) -> int:
     from detbench.train import run_layout
 
     check_device(args.device)  # before any folder, data or model: a device this machine lacks is one line
+    if args.deterministic:
+        from detbench.train.rng import deterministic_algorithms
+
+        deterministic_algorithms()
     cfg = run_config_from_args(args)
     out = Path(args.out or run_layout.default_train_dir(cfg["model"]["name"], args.height, args.preset))
     with ExitStack() as held:

@@ -63,7 +63,7 @@ from detbench.train.dataset import EpochBatches
 from detbench.train.distributed import DistInfo, any_rank, barrier, reduce_mean, sync_buffers, wrap_model
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
-from detbench.train.rng import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
+from detbench.train.rng import capture_rng_state, rank_seed, restore_rng_state, seed_everything, worker_init_fn
 from detbench.train.stop_request import StopRequest
 from detbench.train.train_config import RESUME_IGNORE_KEYS, TrainConfig
 from detbench.utils.atomic import atomic_write_text, read_json, remove_stale_temporaries
@@ -213,7 +213,7 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     if not resume and ckpts.latest() is not None:
         raise CheckpointError(f"{ckpts.directory} already holds checkpoints of an earlier run ({ckpts.latest().name}); "
                               f"add --resume to continue it, or choose another --out folder (or delete that one)")
-    seed_everything(cfg.seed)
+    seed_everything(rank_seed(cfg.seed, info.rank))  # each rank its own draws; the weights are rank 0's (DDP)
     core = model.to(device)
     sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
                                  seed=cfg.seed, drop_last=False)
