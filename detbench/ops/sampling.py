@@ -10,6 +10,8 @@ OpenPCDet kernel, on purpose: points near the origin are not skipped (pointnet2_
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numba
 import numpy as np
@@ -128,6 +130,22 @@ def _fps_frames_parallel(xs, ys, zs, rows, offsets, firsts, samples, out_offsets
                    out_offsets[f], temp)
 
 
+@contextmanager
+def _one_cpu_thread(device: torch.device) -> Iterator[None]:
+    """torch on one thread for the block when `device` is the CPU (DETBENCH_OPS=torch): a step's operations
+    are too small to share, and waking a second thread for each of them costs more than the step (about 8x
+    on the 2-core test machine under load)."""
+    if device.type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _fps_torch(p: torch.Tensor, counts: np.ndarray, samples: np.ndarray) -> torch.Tensor:
     """Batched over frames (padded to the largest), one step per sample; p (N, 3) float64.
 
@@ -155,15 +173,16 @@ def _fps_torch(p: torch.Tensor, counts: np.ndarray, samples: np.ndarray) -> torc
     dist = torch.empty_like(temp)
     last = torch.zeros(f, dtype=torch.int64, device=dev)
     picks = [last]
-    for _ in range(1, int(k0.max())):
-        centre = pts.gather(2, last.view(1, f, 1).expand(3, f, 1))
-        torch.sub(pts, centre, out=diff)
-        diff.mul_(diff)
-        torch.add(diff[0], diff[1], out=dist)
-        dist.add_(diff[2])
-        torch.minimum(temp, dist, out=temp)
-        last = temp.argmax(dim=1)
-        picks.append(last)
+    with _one_cpu_thread(dev):
+        for _ in range(1, int(k0.max())):
+            centre = pts.gather(2, last.view(1, f, 1).expand(3, f, 1))
+            torch.sub(pts, centre, out=diff)
+            diff.mul_(diff)
+            torch.add(diff[0], diff[1], out=dist)
+            dist.add_(diff[2])
+            torch.minimum(temp, dist, out=temp)
+            last = temp.argmax(dim=1)
+            picks.append(last)
     sel = torch.stack(picks, dim=1)  # (F, steps)
     frames = torch.arange(f, device=dev)
     per = torch.as_tensor(samples[live], device=dev)

@@ -159,8 +159,10 @@ def test_nms_of_9000_to_512_takes_a_few_hundred_tensor_operations():
 def test_fps_takes_seven_tensor_operations_per_sample_on_all_frames_at_once():
     rng = np.random.default_rng(2)
     xyz = torch.from_numpy(rng.uniform([0, -15, -1], [150, 15, 3], (3000, 3)))
+    threads = torch.get_num_threads()
     with forced_backend("torch"), _CountOps() as count:
         got = farthest_point_sample(xyz, [400, 300], [2000, 1000])
+    assert torch.get_num_threads() == threads  # the steps run on one CPU thread, then the count is put back
     assert torch.equal(got, farthest_point_sample(xyz, [400, 300], [2000, 1000]))  # the numba kernel's samples
     assert count.syncs == 0, count.ops
     assert count.total <= 7 * 399 + 40, (count.total, count.ops.most_common(8))
