@@ -1,7 +1,8 @@
-"""The torch path of `nms_bev` and `farthest_point_sample` (the GPU's; DETBENCH_OPS=torch on the CPU) against
-the numba kernels: the same indices in the same order on random and adversarial inputs (score ties, IoU exactly
-at the threshold, duplicates, chains of boxes each suppressing the next, block boundaries), and their cost in
-tensor operations, each a kernel launch on a GPU."""
+"""detbench.ops.backend: DETBENCH_OPS=torch sends CPU tensors down the torch path (the GPU's). The torch paths
+with a loop, `nms_bev` and `farthest_point_sample`, against the numba kernels: the same indices in the same
+order on random and adversarial inputs (score ties, IoU exactly at the threshold, duplicates, chains of boxes
+each suppressing the next, block boundaries), and their cost in tensor operations, each a kernel launch on a
+GPU."""
 from __future__ import annotations
 
 import math
