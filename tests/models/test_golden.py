@@ -22,7 +22,8 @@ and say in the commit why the outputs changed.
 
 `test_torch_path_matches_the_numba_path` runs the same record, plus the gradient of every parameter, once
 with every op on its torch path (the GPU's; `DETBENCH_OPS=torch`, with the numba kernels made to raise) and
-once on the numba path, in float32 and under bfloat16 autocast (the CPU's autocast type), and compares them.
+once on the numba path, in float32 and under bfloat16 and float16 autocast (the CPU's autocast type and the
+one mixed-precision training uses on CUDA), and compares them.
 """
 from __future__ import annotations
 
@@ -190,7 +191,7 @@ def _forbid_numba(monkeypatch) -> list[str]:
 def path_record(name: str, backend: str, precision: str) -> dict:
     """`golden_record` with the ops on `backend` ("auto": numba on the CPU, "torch") under `precision`'s
     autocast ("float32": none), with the total loss's gradient: its sum of absolute values per parameter."""
-    dtype = {"float32": None, "bfloat16": torch.bfloat16}[precision]
+    dtype = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}[precision]
     with forced_backend(backend):
         model = golden_model(name)
         batch = golden_batch()
@@ -208,7 +209,7 @@ def path_record(name: str, backend: str, precision: str) -> dict:
             "grads": grads}
 
 
-@pytest.mark.parametrize("precision", ["float32", "bfloat16"])
+@pytest.mark.parametrize("precision", ["float32", "bfloat16", "float16"])
 @pytest.mark.parametrize("name", sorted(models.REGISTRY))
 def test_torch_path_matches_the_numba_path(name, precision, monkeypatch):
     """Forward, predict, loss and backward of every detector with every op on its torch path (no numba kernel
