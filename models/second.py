@@ -26,7 +26,7 @@ from detbench.data.batch import Batch, Detections
 
 from .stages import (
     AnchorHead, AnchorHeadConfig, AnchorHeadOutput, BEVBackbone, BEVBackboneConfig, HeightCompression, MeanVFE,
-    PostConfig, Section, SparseBackbone8x, SparseBackboneConfig, StageConfig, VoxelGrid,
+    PostConfig, Section, SparseBackbone8x, SparseBackboneConfig, StageConfig, VFEConfig, VoxelGrid,
 )
 
 
@@ -35,6 +35,7 @@ class SECONDConfig(StageConfig):
     """SECOND's `model:` section (configs/second.yaml); CT3D's first stage reads the same keys."""
 
     grid: VoxelGrid  # point_cloud_range and voxel_size
+    vfe: VFEConfig
     backbone3d: SparseBackboneConfig
     backbone2d: BEVBackboneConfig
     head: AnchorHeadConfig
@@ -43,7 +44,8 @@ class SECONDConfig(StageConfig):
     @classmethod
     def read(cls, s: Section) -> SECONDConfig:
         s.skip("name")  # the registry's key, configs/<name>.yaml
-        return cls(grid=VoxelGrid.read(s), backbone3d=s.section("backbone3d", SparseBackboneConfig),
+        return cls(grid=VoxelGrid.read(s), vfe=s.section("vfe", VFEConfig),
+                   backbone3d=s.section("backbone3d", SparseBackboneConfig),
                    backbone2d=s.section("backbone2d", BEVBackboneConfig), head=s.section("head", AnchorHeadConfig),
                    post=s.section("post", PostConfig))
 
@@ -60,7 +62,7 @@ class SECONDStages:
 
     def __init__(self, cfg: SECONDConfig):
         self.grid = cfg.grid
-        self.vfe = MeanVFE(self.grid)
+        self.vfe = MeanVFE(self.grid, cfg.vfe)
         self.backbone3d = SparseBackbone8x(self.vfe.out_channels, self.grid.spatial_shape, cfg.backbone3d)
         # the BEV backbone returns to its input resolution, so the head works at the 3D
         # backbone's stride; the grid must also divide by the 2D blocks' strides

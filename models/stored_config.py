@@ -2,10 +2,11 @@
 
 A checkpoint stores the `model:` section it was trained with. Some keys of today's YAMLs were
 values in code before (the anchor head's loss weights, focal loss and direction bins, the
-post-processing selection, the point head's focal loss) and one block was spelled
-`pre_top_k / post_top_k` in PillarNet's `post:`. `upgrade_stored_model_config` turns such a
-stored section into today's: it renames the old spelling and fills each key that had a value in
-code with exactly that value, so the rebuilt model computes what the checkpoint's model computed.
+post-processing selection, the point head's focal loss, SECOND's voxel features in absolute
+x, y) and one block was spelled `pre_top_k / post_top_k` in PillarNet's `post:`.
+`upgrade_stored_model_config` turns such a stored section into today's: it renames the old
+spelling and fills each key that had a value in code with exactly that value, so the rebuilt
+model computes what the checkpoint's model computed.
 A section that already holds today's keys comes back unchanged.
 """
 from __future__ import annotations
@@ -22,10 +23,13 @@ _ANCHOR_HEAD = {"head.num_anchor_sizes": 1, "head.num_dir_bins": 2, "head.dir_of
                 "head.focal_alpha": 0.25, "head.focal_gamma": 2.0, "head.loss_weights.cls": 1.0,
                 "head.loss_weights.box": 2.0, "head.loss_weights.dir": 0.2, **_POST}
 
+# the voxel features of SECOND's encoder: absolute x, y before `vfe.xy` was a key
+_VFE = {"vfe.xy": "absolute"}
+
 # dotted key -> the value the code used when a stored config has no such key
 CODE_VALUES: dict[str, dict[str, Any]] = {
-    "second": _ANCHOR_HEAD,
-    "ct3d": _ANCHOR_HEAD,
+    "second": {**_VFE, **_ANCHOR_HEAD},
+    "ct3d": {**_VFE, **_ANCHOR_HEAD},
     "pillarnet": {"head.loss_weights.hm": 1.0, "head.loss_weights.reg": 0.25, "head.loss_weights.iou": 1.0,
                   "head.loss_weights.od_iou": 1.0, "post.method": "nms", **_POST, "post.iou_rectifier": 0.68},
     "pointrcnn": {"point_head.focal_alpha": 0.25, "point_head.focal_gamma": 2.0, **_POST},

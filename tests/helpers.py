@@ -121,7 +121,7 @@ def ref_iou(a, b, mode="3d"):
 GRID = VoxelGrid((0.0, -3.2, -0.6, 12.8, 3.2, 4.2), (0.2, 0.2, 0.15))
 TINY = {
     "name": "second", "point_cloud_range": list(GRID.point_cloud_range), "voxel_size": list(GRID.voxel_size),
-    "backbone3d": {"channels": [4, 8, 8, 8], "blocks": [1, 1, 1, 1], "out_channels": 8},
+    "vfe": {"xy": "offset"}, "backbone3d": {"channels": [4, 8, 8, 8], "blocks": [1, 1, 1, 1], "out_channels": 8},
     "backbone2d": {"layer_nums": [1, 1], "layer_strides": [1, 2], "num_filters": [8, 16],
                    "upsample_strides": [1, 2], "num_upsample_filters": [8, 8]},
     "head": {"anchor_sizes": [[4.5, 1.9, 1.6]], "num_anchor_sizes": 1, "rotations": [0.0, math.pi / 2],
@@ -206,7 +206,7 @@ class TinyDetector(nn.Module):
         p = batch.points
         feats = self.mlp(p[:, 1:5] / torch.tensor([80.0, 20.0, 2.0, 1.0], device=p.device))
         idx = p[:, 0].long()
-        pooled = torch.zeros(batch.batch_size, feats.shape[1], device=p.device).index_add_(0, idx, feats)
+        pooled = feats.new_zeros((batch.batch_size, feats.shape[1])).index_add_(0, idx, feats)  # autocast: half
         pooled = pooled / torch.bincount(idx, minlength=batch.batch_size).clamp(min=1)[:, None]
         out = self.head(self.norm(pooled))
         return TinyOut(out[:, :7], out[:, 7])

@@ -7,7 +7,9 @@ or cache loading is excluded), per call on the whole batch of --frames scans:
   - PointRCNN's four MSG set-abstraction levels (4096, 1024, 256, 64 centres; radii 0.1/0.5,
     0.5/1.0, 1.0/2.0, 2.0/4.0 m; 16/32 samples): FPS + ball query + grouping of xyz;
   - the four feature-propagation levels back to --points (three_nn_interpolate, C channels);
-  - RoI point pooling of --rois car-sized RoIs per scan (512 points, 1.0 m extra, C features).
+  - RoI point pooling of --rois car-sized RoIs per scan (512 points, 1.0 m extra, C features);
+  - rotated BEV NMS of --nms-boxes proposals crowded round 40 vehicles to --nms-keep (the two-stage
+    detectors' training budget), numba kernel and torch path (the GPU's), and their ratio.
 The load average of the machine is recorded before and after (the machine may be shared);
 The thread runtimes are detbench's (detbench/runtime.py): GOMP_SPINCOUNT=3000 (a waiting OpenMP thread spins
 briefly, then sleeps), OMP_NUM_THREADS = cores - 1, NUMBA_THREADING_LAYER=omp; a variable set in the
@@ -50,6 +52,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--source", choices=["synthetic", "sim", "auto"], default="synthetic",
                     help="scans: the built-in synthetic 1.8 m scan (default, quick), detbench.sim (slower to "
                          "start), or sim when importable")
+    ap.add_argument("--nms-boxes", type=int, default=D.nms_boxes,
+                    help="proposals entering NMS (default %(default)s; 0 leaves NMS out)")
+    ap.add_argument("--nms-keep", type=int, default=D.nms_keep, help="proposals NMS keeps (default %(default)s)")
     ap.add_argument("--seed", type=int, default=D.seed, help="random seed of the scans and the sampling")
     ap.add_argument("--repeats", type=int, default=D.repeats,
                     help="timed runs per case after one warm-up (default %(default)s)")
@@ -66,6 +71,8 @@ def main(argv=None) -> int:
         v = getattr(args, flag)
         require(v >= 1, f"--{flag} {v}: must be an integer >= 1")
     require(args.rois >= 0, f"--rois {args.rois}: must be an integer >= 0")
+    require(args.nms_boxes >= 0 and args.nms_keep >= 1, f"--nms-boxes {args.nms_boxes} / --nms-keep {args.nms_keep}: "
+                                                        f"need --nms-boxes >= 0 and --nms-keep >= 1")
     require(args.samples <= args.points, f"--samples {args.samples}: more than the {args.points} points per scan "
                                          f"(--points); sample at most as many")
     check_out_dir(args.out)
@@ -74,7 +81,8 @@ def main(argv=None) -> int:
     device = torch_device(args.device)
     scans, source = load_scans(args.frames, args.seed, args.source)
     settings = PointsBenchSettings(points=args.points, samples=args.samples, channels=args.channels, rois=args.rois,
-                                   seed=args.seed, repeats=args.repeats, threads=args.threads,
+                                   nms_boxes=args.nms_boxes, nms_keep=args.nms_keep, seed=args.seed,
+                                   repeats=args.repeats, threads=args.threads,
                                    skip_torch=args.skip_torch)
     results = run_points_bench(scans, source, settings, device)
     out_dir = Path(args.out)

@@ -58,7 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--epochs", type=int, default=None, help="override train.epochs")
     ap.add_argument("--batch-size", type=int, default=None, help="override train.batch_size (frames per process)")
     ap.add_argument("--workers", type=int, default=None, help="override train.workers (DataLoader processes)")
-    ap.add_argument("--device", default="auto", help="cpu, cuda, cuda:N or auto (cuda when available)")
+    ap.add_argument("--device", default="auto",
+                    help="cpu, cuda, cuda:N or auto (cuda when available); under torchrun cuda or auto, each "
+                         "process on cuda:LOCAL_RANK (CUDA_VISIBLE_DEVICES chooses the GPUs)")
+    ap.add_argument("--deterministic", action="store_true",
+                    help="ask torch for deterministic kernels on CUDA (slower; an op that has none warns, naming "
+                         "itself); on the CPU a run and its --resume repeat exactly without it")
     ap.add_argument("--out", default=None, help="run folder (default runs/<model>_h<height>_<preset>): new, empty or "
                                                 "a run's; locked while the run trains")
     ap.add_argument("--resume", action="store_true", help="continue the run in --out from its newest checkpoint")
@@ -86,10 +91,28 @@ def run_config_from_args(args) -> dict:
     return cfg
 
 
+def check_device(name: str) -> None:
+    """UserError naming the device unless this process can train on `--device name`."""
+    from detbench.train.distributed import DeviceError, launch_ranks, resolve_device
+
+    try:
+        _, world, local_rank = launch_ranks()
+        resolve_device(name, local_rank, world)
+    except DeviceError as e:
+        raise UserError(f"--device {e.device}: {e.reason}") from None
+    except ValueError as e:
+        raise UserError(str(e)) from None
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.train import run_layout
 
+    check_device(args.device)  # before any folder, data or model: a device this machine lacks is one line
+    if args.deterministic:
+        from detbench.train.rng import deterministic_algorithms
+
+        deterministic_algorithms()
     cfg = run_config_from_args(args)
     out = Path(args.out or run_layout.default_train_dir(cfg["model"]["name"], args.height, args.preset))
     with ExitStack() as held:
@@ -107,9 +130,13 @@ def train_in(args, cfg: dict, out: Path) -> int:
     from detbench.sim.dataset import default_dataset
     from detbench.train import AugmentConfig, TrainConfig, TrainingSet, cleanup, init_distributed, \
         main_process_first, train
+    from detbench.train.distributed import DeviceError
 
     model_name = cfg["model"]["name"]
-    info = init_distributed(args.device)
+    try:
+        info = init_distributed(args.device)
+    except ValueError as e:  # a device or a torchrun environment this process cannot use: one line
+        raise UserError(f"--device {e.device}: {e.reason}" if isinstance(e, DeviceError) else str(e)) from None
     tcfg = TrainConfig.from_dict(cfg["train"])
     road = RoadConfig.of_run_config(cfg)
     torch.manual_seed(tcfg.seed)

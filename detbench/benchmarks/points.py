@@ -1,6 +1,8 @@
 """The point-operations benchmark (tools/bench_points.py): farthest point sampling, and PointRCNN's
 set abstraction (FPS, ball query, grouping), feature propagation and RoI point pooling on scans of
-a 1.8 m LiDAR; milliseconds per call on the whole batch (median and best after one warm-up)."""
+a 1.8 m LiDAR, and the proposal NMS of the two-stage detectors' training budget (9000 boxes to 512, the numba
+kernel against the torch path, the GPU's, in one run); milliseconds per call on the whole batch (median and best
+after one warm-up)."""
 from __future__ import annotations
 
 import os
@@ -11,12 +13,13 @@ import numba
 import numpy as np
 import torch
 
-from detbench.ops import (ball_query, farthest_point_sample, group_neighbours, roi_point_pool,
+from detbench.ops import (ball_query, farthest_point_sample, group_neighbours, nms_bev, roi_point_pool,
                           three_nn_interpolate)
+from detbench.ops.backend import forced_backend
 from detbench.utils.bench import timed
 
-__all__ = ["FPS_TARGET_MS", "PointsBenchSettings", "car_rois", "points_bench_markdown", "run_points_bench",
-           "sample_scan"]
+__all__ = ["FPS_TARGET_MS", "PointsBenchSettings", "car_rois", "crowded_proposals", "points_bench_markdown",
+           "run_points_bench", "sample_scan"]
 
 # PointRCNN (OpenPCDet pointrcnn.yaml, PointNet2MSG backbone)
 SA_NPOINTS = [4096, 1024, 256, 64]
@@ -32,6 +35,9 @@ class PointsBenchSettings:
     samples: int = 4096  # FPS samples per scan
     channels: int = 128  # feature channels C for propagation and pooling
     rois: int = 100  # RoIs per scan for RoI pooling
+    nms_boxes: int = 9000  # proposals entering NMS (the two-stage detectors' training budget; 0: no NMS rows)
+    nms_keep: int = 512  # proposals NMS keeps
+    nms_threshold: float = 0.8  # BEV IoU
     seed: int = 0  # sampling of the scans, RoIs and features
     repeats: int = 5  # timed runs per case after one warm-up
     threads: int = 2  # numba and torch CPU threads (set by the caller; recorded in the results)
@@ -49,6 +55,30 @@ def car_rois(rng: np.random.Generator, n: int) -> np.ndarray:
     return np.c_[rng.uniform(5.0, 80.0, n), rng.choice([-7.0, -3.5, 0.0, 3.5, 7.0], n) + rng.normal(0, 0.3, n),
                  np.full(n, 0.8), rng.uniform(4.0, 5.0, n), rng.uniform(1.7, 2.0, n), rng.uniform(1.4, 1.8, n),
                  rng.normal(0.0, 0.1, n)].astype(np.float32)
+
+
+def crowded_proposals(rng: np.random.Generator, n: int, vehicles: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A trained first stage's proposals: n boxes (float32) crowded round `vehicles` car_rois, and random scores."""
+    cars = car_rois(rng, vehicles).astype(np.float64)
+    boxes = cars[rng.integers(0, vehicles, n)] + rng.normal(0, 1, (n, 7)) * [0.5, 0.3, 0.1, 0.2, 0.1, 0.1, 0.1]
+    return boxes.astype(np.float32), rng.uniform(0, 1, n).astype(np.float32)
+
+
+def _nms_cases(add, results: dict, s: PointsBenchSettings, device: torch.device, sync) -> None:
+    """NMS of s.nms_boxes proposals to s.nms_keep: the numba kernel, then the torch path; their ratio."""
+    boxes, scores = (torch.from_numpy(a) for a in crowded_proposals(np.random.default_rng(s.seed), s.nms_boxes))
+    name = f"nms_bev {s.nms_boxes} -> {s.nms_keep} proposals, IoU {s.nms_threshold:g}"
+    want = nms_bev(boxes, scores, s.nms_threshold, s.nms_keep)
+    numba_row = add(f"{name} (numba, CPU)", timed(lambda: nms_bev(boxes, scores, s.nms_threshold, s.nms_keep),
+                                                  s.repeats, lambda: None))
+    if s.skip_torch:
+        return
+    with forced_backend("torch"):
+        bd, sd = boxes.to(device), scores.to(device)
+        same = bool(torch.equal(nms_bev(bd, sd, s.nms_threshold, s.nms_keep).cpu(), want))
+        row = add(f"{name} (torch path, {device})", timed(lambda: nms_bev(bd, sd, s.nms_threshold, s.nms_keep),
+                                                           s.repeats, sync), equal_to_numba=same)
+    results["nms_torch_over_numba"] = round(row["ms"] / max(numba_row["ms"], 1e-9), 3)
 
 
 def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSettings,
@@ -139,6 +169,8 @@ def run_points_bench(scans: list[np.ndarray], source: str, s: PointsBenchSetting
             timed(pool, s.repeats, lambda: None), empty_rois=int(out.empty.sum()),
             mean_points_inside=round(float(out.count.float().mean()), 1))
 
+    if s.nms_boxes:
+        _nms_cases(add, results, s, device, sync)
     results["load_average_1_5_15min_after"] = [round(v, 2) for v in os.getloadavg()]
     return results
 
@@ -158,8 +190,10 @@ def points_bench_markdown(r: dict) -> str:
         f"{r['load_average_1_5_15min_after'][0]} (a shared machine slows every row)",
         f"- **FPS {r['points_per_frame']} -> {r['samples']}: {r['fps_ms_per_frame']:.1f} ms per frame** "
         f"(target < {r['fps_target_ms_per_frame']:.0f} ms)",
-        "", "| case | median ms | best ms | details |", "|---|---:|---:|---|",
     ]
+    if "nms_torch_over_numba" in r:
+        lines.append(f"- NMS, torch path / numba kernel (medians of one run): {r['nms_torch_over_numba']:.2f}")
+    lines += ["", "| case | median ms | best ms | details |", "|---|---:|---:|---|"]
     for row in r["cases"]:
         details = ", ".join(f"{k}={v}" for k, v in row.items() if k not in ("case", "ms", "ms_best"))
         lines.append(f"| {row['case'].strip()} | {row['ms']:.2f} | {row['ms_best']:.2f} | {details} |")

@@ -13,6 +13,10 @@ Modules
   - roi_pool: `roi_point_pool` -> `RoIPoints`, `to_canonical`, `from_canonical`.
   - cylinder: `cylinder_query` (CT3D).
 
+Backends: numba kernels for numpy arrays and CPU tensors, vectorised torch for tensors on other
+devices; `DETBENCH_OPS=torch` sends CPU tensors down the torch path too, so the GPU's path runs and is
+tested on the CPU (backend: `use_torch`, `forced_backend`).
+
 Boxes are (x, y, z, dx, dy, dz, heading) in metres and radians (docs/architecture.md, Conventions).
 numpy inputs return numpy arrays; torch inputs return tensors on the inputs' device (the point
 operations take tensors or arrays and always return tensors).

@@ -28,9 +28,10 @@ runs on the device: no Python loop over pairs; pairs whose circumscribed circles
 apart are skipped (one `nonzero`, i.e. one host sync per call), the rest are processed in
 chunks to bound memory; it computes in the output dtype and autograd flows through it
 (the vertex selection is piecewise constant). CPU tensors without grad take the numba
-kernels (float64, then cast), which are much faster on the CPU. Negative sizes are
+kernels (float64, then cast), which are much faster on the CPU; DETBENCH_OPS=torch makes CPU tensors
+take the torch path (detbench.ops.backend). Negative sizes are
 clamped to 0 on the torch paths (no host sync to check them). A NaN or inf box raises the
-numpy path's ValueError for CPU tensors too; on other devices (no host sync) every IoU of
+numpy path's ValueError for CPU tensors too; on the torch path (no host sync) every IoU of
 such a box is NaN, never a silent 0.
 
 Numba-callable kernels for other njit code: `iou3d_pair_nb(a, b)`, `iou_bev_pair_nb(a, b)`,
@@ -45,6 +46,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from detbench.ops.backend import use_torch
 from detbench.ops.box_coder import check_boxes, float_dtype_torch, is_torch
 
 __all__ = [
@@ -394,7 +396,7 @@ def _torch_matrix(a: torch.Tensor, b: torch.Tensor, mode: int) -> torch.Tensor:
 
 def _numba_for_torch(a: torch.Tensor, b: torch.Tensor) -> bool:
     """CPU tensors that need no gradient take the (faster, float64) numba kernels."""
-    return a.device.type == "cpu" and not (a.requires_grad or b.requires_grad)
+    return not use_torch(a.device) and not (a.requires_grad or b.requires_grad)
 
 
 def _cpu_boxes(t: torch.Tensor) -> np.ndarray:
@@ -413,8 +415,9 @@ def _nonfinite_error(func: str, name: str, row: int, box) -> ValueError:
 
 
 def _check_finite_tensor(t: torch.Tensor, func: str, name: str) -> None:
-    """The numpy path's ValueError for a CPU tensor holding a non-finite box (checking costs no sync there)."""
-    if t.device.type != "cpu":
+    """The numpy path's ValueError for a CPU tensor holding a non-finite box (checking costs no sync there);
+    the torch path (CUDA, or DETBENCH_OPS=torch) gives NaN instead, as on the GPU."""
+    if use_torch(t.device):
         return
     bad = ~torch.isfinite(t[:, :7]).all(dim=1)
     if bool(bad.any()):

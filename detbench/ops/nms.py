@@ -4,9 +4,16 @@ Greedy NMS: boxes are visited by decreasing score (ties keep the input order, i.
 stable sort); a box is kept unless a box kept before it overlaps it with BEV IoU strictly
 greater than `iou_threshold`. The BEV IoU is the exact rotated IoU of `detbench.ops.iou`.
 
-numpy inputs (and torch tensors on the CPU) run one numba kernel; torch tensors on other
-devices loop over the kept boxes in Python and compute each IoU row with vectorised torch
-on the device, so the result never leaves the device except for one scalar per kept box.
+numpy inputs (and torch tensors on the CPU) run one numba kernel. Torch tensors on other devices
+(and on the CPU under DETBENCH_OPS=torch, detbench.ops.backend) take the torch path, the same
+greedy result in a few hundred tensor operations for 9000 boxes to 512 and a host sync per block
+and sweep round, never one per kept box: the sorted boxes are taken in blocks of `_NMS_BLOCK`; a
+block's boxes that a box kept in an earlier block suppresses drop out; the IoUs among the rest
+give the block's suppression edges (exact IoU, in float64 as the numba kernel, only for pairs
+whose axis-aligned bounds leave an IoU above the threshold possible), and a masked sweep over
+the edges decides the block (`_greedy_block`); blocks stop once `max_keep` boxes are kept.
+Non-finite boxes make the numba path raise; the torch path (no host sync to check them) keeps
+such a box and lets it suppress nothing, so callers drop them first, as the models do.
 """
 from __future__ import annotations
 
@@ -14,8 +21,9 @@ import numpy as np
 import torch
 from numba import njit
 
+from detbench.ops.backend import use_torch
 from detbench.ops.box_coder import check_boxes, is_torch
-from detbench.ops.iou import MODE_IOU_BEV, _CAP, _box_aux, _pair_at, _torch_pair_values
+from detbench.ops.iou import _CAP, _TORCH_CHUNK_PAIRS, MODE_IOU_BEV, _box_aux, _pair_at, _torch_pair_values
 
 __all__ = ["nms_bev"]
 
@@ -82,25 +90,91 @@ def _nms_numpy(boxes: np.ndarray, scores: np.ndarray, thr: float, mk: int) -> np
     return order[kept].astype(np.int64)
 
 
+# Sorted boxes decided per block on the torch path: a block's IoUs with itself and with the boxes kept before it
+# are computed at once; the greedy stops after the block in which max_keep boxes are kept.
+_NMS_BLOCK = 1024
+
+
+def _bev_extents(b: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """x_min, x_max, y_min, y_max of the boxes' axis-aligned bounding boxes and their BEV areas (sizes clamped at 0)."""
+    dx, dy = b[:, 3].clamp(min=0), b[:, 4].clamp(min=0)
+    c, s = torch.cos(b[:, 6]).abs(), torch.sin(b[:, 6]).abs()
+    ex, ey = 0.5 * (c * dx + s * dy), 0.5 * (s * dx + c * dy)
+    return b[:, 0] - ex, b[:, 0] + ex, b[:, 1] - ey, b[:, 1] + ey, dx * dy
+
+
+def _overlap_edges(a: torch.Tensor, b: torch.Tensor, thr: float, upper: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """(rows of a, rows of b) of the pairs with BEV IoU(a[i], b[j]) > thr, i < j when `upper` (a and b the same
+    block); a (n, 7), b (m, 7) float64.
+
+    Only pairs that can pass get an exact IoU: the overlap U of the boxes' axis-aligned bounding boxes (capped at
+    the smaller area) bounds their intersection from above, so IoU <= U / (area_a + area_b - U); a pair whose
+    bound is below the threshold (with a relative margin of 1e-6 for rounding) cannot be suppressed. The x
+    intervals are compared for all pairs, the rest of the bound only for pairs whose x intervals meet."""
+    axl, axh, ayl, ayh, area_a = _bev_extents(a)
+    bxl, bxh, byl, byh, area_b = _bev_extents(b)
+    near = (axl[:, None] <= bxh[None]) & (axh[:, None] >= bxl[None])
+    if upper:
+        near = near.triu(1)
+    i, j = near.nonzero(as_tuple=True)
+    ix = (torch.minimum(axh[i], bxh[j]) - torch.maximum(axl[i], bxl[j])).clamp(min=0)
+    iy = (torch.minimum(ayh[i], byh[j]) - torch.maximum(ayl[i], byl[j])).clamp(min=0)
+    sa, sb = area_a[i], area_b[j]
+    u = torch.minimum(ix * iy, torch.minimum(sa, sb))
+    can = u * (1.0 + 1e-6) > thr * (sa + sb - u)
+    i, j = i[can], j[can]
+    if i.numel() == 0:
+        return i, j
+    iou = torch.cat([_torch_pair_values(a[i[s:s + _TORCH_CHUNK_PAIRS]], b[j[s:s + _TORCH_CHUNK_PAIRS]], MODE_IOU_BEV)
+                     for s in range(0, i.numel(), _TORCH_CHUNK_PAIRS)])
+    over = iou > thr
+    return i[over], j[over]
+
+
+def _greedy_block(src: torch.Tensor, dst: torch.Tensor, n: int) -> torch.Tensor:
+    """The greedy decision among n boxes in score order: (n,) bool kept, for the edges src -> dst (src < dst:
+    src suppresses dst when src is kept).
+
+    A masked sweep to a fixed point: a box with a kept predecessor is suppressed; a box whose predecessors are
+    all suppressed is kept. Each round decides at least the first undecided box, so the result is exactly the
+    sequential sweep's, in as many rounds as the longest chain of boxes each suppressing the next."""
+    dev = src.device
+    keep = torch.zeros(n, dtype=torch.bool, device=dev)
+    undecided = torch.ones(n, dtype=torch.bool, device=dev)
+    while True:
+        hit = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(0, dst, keep[src].to(torch.int32))
+        undecided &= hit == 0
+        live = (keep | undecided)[src].to(torch.int32)
+        blocked = torch.zeros(n, dtype=torch.int32, device=dev).index_add_(0, dst, live)
+        new = undecided & (blocked == 0)
+        keep |= new
+        undecided &= ~new
+        if not bool(undecided.any()):
+            return keep
+
+
 def _nms_torch(boxes: torch.Tensor, scores: torch.Tensor, thr: float, mk: int) -> torch.Tensor:
-    """Device-side greedy NMS: one vectorised IoU row per kept box."""
+    """Device-side greedy NMS, block by block of the sorted boxes (float64 IoU, as the numba kernel): the boxes
+    of a block that a box kept before it suppresses drop out, the rest are decided by `_greedy_block`."""
     dev = boxes.device
     if boxes.shape[0] == 0 or mk == 0:
         return torch.zeros(0, dtype=torch.int64, device=dev)
-    dt = torch.float64 if boxes.dtype == torch.float64 else torch.float32
     order = torch.sort(scores.detach(), descending=True, stable=True).indices
-    b = boxes.detach()[order, :7].to(dt)
-    remaining = torch.arange(b.shape[0], device=dev)
-    keep = []
-    while remaining.numel() > 0 and len(keep) < mk:
-        i = remaining[:1]
-        keep.append(i)
-        rest = remaining[1:]
-        if rest.numel() == 0:
+    b = boxes.detach()[order, :7].to(torch.float64)
+    kept = torch.zeros(0, dtype=torch.int64, device=dev)  # positions in the sorted boxes
+    for start in range(0, b.shape[0], _NMS_BLOCK):
+        pos = torch.arange(start, min(start + _NMS_BLOCK, b.shape[0]), device=dev)
+        if kept.numel():
+            _, hit = _overlap_edges(b[kept], b[pos], thr, upper=False)
+            alive = torch.ones(pos.shape[0], dtype=torch.bool, device=dev)
+            alive[hit] = False
+            pos = pos[alive]
+        blk = b[pos]
+        src, dst = _overlap_edges(blk, blk, thr, upper=True)
+        kept = torch.cat([kept, pos[_greedy_block(src, dst, pos.shape[0])]])
+        if kept.numel() >= mk:
             break
-        iou = _torch_pair_values(b[i].expand(rest.numel(), 7), b[rest], MODE_IOU_BEV)
-        remaining = rest[iou <= thr]
-    return order[torch.cat(keep)]
+    return order[kept[:mk]]
 
 
 def nms_bev(boxes, scores, iou_threshold: float, max_keep: int | None = None):
@@ -119,7 +193,7 @@ def nms_bev(boxes, scores, iou_threshold: float, max_keep: int | None = None):
     func = "nms_bev"
     boxes, scores, thr, mk = _check_args(boxes, scores, iou_threshold, max_keep, func)
     if is_torch(boxes):
-        if boxes.device.type == "cpu":
+        if not use_torch(boxes.device):
             kept = _nms_numpy(boxes.detach().to(torch.float64).numpy(), scores.detach().to(torch.float64).numpy(),
                               thr, mk)
             return torch.from_numpy(kept)

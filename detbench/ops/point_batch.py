@@ -27,7 +27,8 @@ for bit on one device (`three_nn` takes its square root with torch.sqrt on the o
 
 Backends. `backend="auto"` runs the numba kernels for CPU tensors (via .numpy(), outputs come
 back as tensors) and vectorised torch for tensors on other devices (CUDA), memory linear in the
-points (chunked where a pairwise step is needed). `backend="torch"` forces the torch path on
+points (chunked where a pairwise step is needed); `DETBENCH_OPS=torch` makes "auto" take the
+torch path on the CPU too (detbench.ops.backend). `backend="torch"` forces the torch path on
 any device (the tests run it on CPU against the numba path); `backend="numba"` needs CPU tensors.
 numpy arrays are accepted wherever a tensor is and are taken as CPU tensors.
 """
@@ -36,6 +37,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 import torch
+
+from detbench.ops.backend import use_torch
 
 __all__ = [
     "EMPTY_INDEX",
@@ -120,7 +123,7 @@ def pick_backend(backend: str, device: torch.device, func: str) -> str:
     if backend not in ("auto", "numba", "torch"):
         raise ValueError(f"{func}: backend must be 'auto', 'numba' or 'torch', got {backend!r}")
     if backend == "auto":
-        return "numba" if device.type == "cpu" else "torch"
+        return "torch" if use_torch(device) else "numba"
     if backend == "numba" and device.type != "cpu":
         raise ValueError(f"{func}: backend='numba' needs CPU tensors, got {device}; use backend='auto' or 'torch'")
     return backend

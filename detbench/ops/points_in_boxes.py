@@ -19,7 +19,8 @@ This is the LiDAR-detected rule of the study: a vehicle counts as hit by the LiD
 numpy inputs run a numba kernel, parallel over points with a cheap axis-aligned bounding
 box rejection before the rotated test; torch inputs run vectorised torch on the inputs'
 device (chunked over points to bound memory). CPU tensors take the numba kernel as well
-(it is far faster there) and come back as tensors; on other devices the torch version
+(it is far faster there; DETBENCH_OPS=torch makes them take the torch version,
+detbench.ops.backend) and come back as tensors; on other devices the torch version
 computes in float32 (float64 if an input is float64), so a point within rounding distance
 of a face may be decided differently than by the float64 numba kernel.
 """
@@ -30,6 +31,7 @@ import numpy as np
 import torch
 from numba import njit, prange
 
+from detbench.ops.backend import use_torch
 from detbench.ops.box_coder import check_boxes, check_points, float_dtype_torch, is_torch
 
 __all__ = ["points_in_boxes", "points_in_boxes_mask"]
@@ -285,7 +287,7 @@ def points_in_boxes(points, boxes, bottom_lift: float = 0.0):
     points = check_points(points, func)
     boxes = check_boxes(boxes, func)
     points, boxes = _to_common(points, boxes)
-    if is_torch(points) and points.device.type == "cpu":
+    if is_torch(points) and not use_torch(points.device):
         counts, box_index = _points_in_boxes_numpy(_cpu_points(points), boxes.detach().to(torch.float64).numpy(),
                                                    lift, func)
         return torch.from_numpy(counts), torch.from_numpy(box_index)
@@ -346,7 +348,7 @@ def points_in_boxes_mask(points, boxes, bottom_lift: float = 0.0):
     points = check_points(points, func)
     boxes = check_boxes(boxes, func)
     points, boxes = _to_common(points, boxes)
-    if is_torch(points) and points.device.type == "cpu":
+    if is_torch(points) and not use_torch(points.device):
         return torch.from_numpy(points_in_boxes_mask(_cpu_points(points), boxes.detach().to(torch.float64).numpy(),
                                                      lift))
     if is_torch(points):

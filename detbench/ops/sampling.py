@@ -10,6 +10,8 @@ OpenPCDet kernel, on purpose: points near the origin are not skipped (pointnet2_
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 import numba
 import numpy as np
@@ -128,14 +130,35 @@ def _fps_frames_parallel(xs, ys, zs, rows, offsets, firsts, samples, out_offsets
                    out_offsets[f], temp)
 
 
+@contextmanager
+def _one_cpu_thread(device: torch.device) -> Iterator[None]:
+    """torch on one thread for the block when `device` is the CPU (DETBENCH_OPS=torch): a step's operations
+    are too small to share, and waking a second thread for each of them costs more than the step (about 8x
+    on the 2-core test machine under load)."""
+    if device.type != "cpu":
+        yield
+        return
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+
+
 def _fps_torch(p: torch.Tensor, counts: np.ndarray, samples: np.ndarray) -> torch.Tensor:
-    """Vectorised over frames (padded to the largest), one step per sample; p (N, 3) float64."""
+    """Batched over frames (padded to the largest), one step per sample; p (N, 3) float64.
+
+    A step is seven tensor operations on all frames at once and no host sync: gather the newest samples,
+    subtract, square, add the three squared differences in the numba kernel's order, take the running
+    minimum and its argmax (the first index of the maximum, the kernel's tie rule)."""
     dev = p.device
     total = int(samples.sum())
     live = np.flatnonzero(samples > 0)
     if live.size == 0:
         return torch.zeros(0, dtype=torch.int64, device=dev)
     offs = frame_offsets(counts)
+    f = live.size
     n = torch.as_tensor(counts[live], device=dev)
     start = torch.as_tensor(offs[live], device=dev)
     k0 = np.minimum(counts[live], samples[live])
@@ -143,19 +166,25 @@ def _fps_torch(p: torch.Tensor, counts: np.ndarray, samples: np.ndarray) -> torc
     ar = torch.arange(nmax, device=dev)
     valid = ar[None] < n[:, None]
     rows = torch.where(valid, start[:, None] + ar[None], torch.zeros_like(ar)[None])
-    px, py, pz = p[rows, 0], p[rows, 1], p[rows, 2]  # (F, nmax) each
-    temp = torch.where(valid, torch.full_like(px, math.inf), torch.full_like(px, -math.inf))
-    steps = int(k0.max())
-    sel = torch.zeros((live.size, steps), dtype=torch.int64, device=dev)
-    frames = torch.arange(live.size, device=dev)
-    last = torch.zeros(live.size, dtype=torch.int64, device=dev)
-    for k in range(1, steps):
-        dx = px - px[frames, last][:, None]
-        dy = py - py[frames, last][:, None]
-        dz = pz - pz[frames, last][:, None]
-        temp = torch.minimum(temp, dx * dx + dy * dy + dz * dz)
-        last = temp.argmax(dim=1)  # first index of the maximum
-        sel[:, k] = last
+    pts = p[rows].permute(2, 0, 1).contiguous()  # (3, F, nmax): x, y, z planes
+    temp = torch.where(valid, torch.full((f, nmax), math.inf, dtype=p.dtype, device=dev),
+                       torch.full((f, nmax), -math.inf, dtype=p.dtype, device=dev))  # padding never wins
+    diff = torch.empty_like(pts)
+    dist = torch.empty_like(temp)
+    last = torch.zeros(f, dtype=torch.int64, device=dev)
+    picks = [last]
+    with _one_cpu_thread(dev):
+        for _ in range(1, int(k0.max())):
+            centre = pts.gather(2, last.view(1, f, 1).expand(3, f, 1))
+            torch.sub(pts, centre, out=diff)
+            diff.mul_(diff)
+            torch.add(diff[0], diff[1], out=dist)
+            dist.add_(diff[2])
+            torch.minimum(temp, dist, out=temp)
+            last = temp.argmax(dim=1)
+            picks.append(last)
+    sel = torch.stack(picks, dim=1)  # (F, steps)
+    frames = torch.arange(f, device=dev)
     per = torch.as_tensor(samples[live], device=dev)
     fid = torch.repeat_interleave(frames, per)
     first = torch.cumsum(per, 0) - per
@@ -176,7 +205,8 @@ def farthest_point_sample(xyz, num_samples, counts=None, backend: str = "auto") 
     bounding boxes; a block that the new sample cannot bring closer is skipped, with exactly the
     dense loop's result (16384 -> 4096 points of a 1.8 m scan: 13-21 ms on the 2-core test
     machine under a load average of ~5, tools/bench_points.py; the dense loop took ~70 ms). Other
-    devices: torch, vectorised over the frames (padded to the largest), one step per sample.
+    devices (and the CPU under DETBENCH_OPS=torch): torch, batched over the frames (padded to the largest),
+    one step of seven tensor operations per sample and no host sync.
 
     Args:
         xyz: (N, >=3) points of B frames concatenated, x, y, z first (metres).

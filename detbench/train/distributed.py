@@ -19,8 +19,8 @@ import torch.distributed as dist
 from torch import nn
 from torch.nn.parallel import DistributedDataParallel
 
-__all__ = ["DistInfo", "init_distributed", "wrap_model", "reduce_mean", "any_rank", "sync_buffers",
-           "barrier", "main_process_first", "cleanup"]
+__all__ = ["DeviceError", "DistInfo", "init_distributed", "launch_ranks", "resolve_device", "wrap_model", "reduce_mean",
+           "any_rank", "sync_buffers", "barrier", "main_process_first", "cleanup"]
 
 
 @dataclass(frozen=True)
@@ -42,42 +42,81 @@ class DistInfo:
         return self.world_size > 1
 
 
-def _resolve_device(device: str, local_rank: int) -> torch.device:
-    if device not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {device!r}")
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda":
-        if not torch.cuda.is_available():
-            raise RuntimeError("--device cuda was asked for but torch sees no CUDA device "
-                               "(CPU-only torch build or no GPU); use --device cpu")
-        n = torch.cuda.device_count()
+def launch_ranks() -> tuple[int, int, int]:
+    """(rank, world size, local rank) torchrun set in the environment; (0, 1, 0) for a single process."""
+    def read(name: str, default: int) -> int:
+        value = os.environ.get(name, "") or str(default)
+        if not value.isdigit():
+            raise ValueError(f"environment variable {name}={value!r}: not a rank count; torchrun sets it, unset it "
+                             f"to run a single process")
+        return int(value)
+
+    return read("RANK", 0), read("WORLD_SIZE", 1), read("LOCAL_RANK", 0)
+
+
+class DeviceError(ValueError):
+    """A device this process cannot train on; `device` is the name asked for, `reason` what is wrong and the fix."""
+
+    def __init__(self, device: str, reason: str):
+        super().__init__(f"device {device}: {reason}")
+        self.device, self.reason = device, reason
+
+
+def resolve_device(device: str, local_rank: int = 0, world_size: int = 1) -> torch.device:
+    """The torch device `device` names for this process, checked against what torch sees (no side effects).
+
+    `device` is "auto" (CUDA when available), "cpu", "cuda" or "cuda:N". One process: "cuda" is cuda:0 and
+    "cuda:N" the N-th visible GPU. Several processes (torchrun): each takes cuda:LOCAL_RANK, so only "cuda" or
+    "auto" is accepted (the GPUs are chosen with CUDA_VISIBLE_DEVICES). `DeviceError` otherwise.
+    """
+    name = str(device).strip()
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, ValueError):
+        raise DeviceError(device, "not a device; use auto, cpu, cuda or cuda:N") from None
+    if dev.type == "cpu":
+        return torch.device("cpu")
+    if dev.type != "cuda":
+        raise DeviceError(device, "training runs on cpu or cuda; use auto, cpu, cuda or cuda:N")
+    if not torch.cuda.is_available():
+        raise DeviceError(device, "torch sees no CUDA device (a CPU-only torch build or no GPU); use --device cpu")
+    n = torch.cuda.device_count()
+    if world_size > 1:
+        if dev.index is not None:
+            raise DeviceError(device, f"under torchrun each of the {world_size} processes takes cuda:LOCAL_RANK; give "
+                                      f"--device cuda and choose the GPUs with CUDA_VISIBLE_DEVICES")
         if local_rank >= n:
-            raise RuntimeError(f"LOCAL_RANK={local_rank} but only {n} CUDA device(s) are visible; "
-                               f"use torchrun --nproc_per_node<={n}")
-        torch.cuda.set_device(local_rank)
+            raise DeviceError(device, f"LOCAL_RANK={local_rank} but only {n} CUDA device(s) are visible; use "
+                                      f"torchrun --nproc_per_node<={n}")
         return torch.device("cuda", local_rank)
-    return torch.device("cpu")
+    index = 0 if dev.index is None else dev.index
+    if index >= n:
+        raise DeviceError(device, f"only {n} CUDA device(s) are visible (cuda:0 to cuda:{n - 1}); "
+                                  f"CUDA_VISIBLE_DEVICES chooses which")
+    return torch.device("cuda", index)
 
 
 def init_distributed(device: str = "auto", timeout_minutes: float = 60.0) -> DistInfo:
     """Join the process group torchrun describes in the environment, or run as a single process.
 
     Args:
-        device: "auto" (CUDA when available), "cpu" or "cuda".
+        device: "auto" (CUDA when available), "cpu", "cuda" or "cuda:N" (one process; under torchrun each
+            process takes cuda:LOCAL_RANK), checked by `resolve_device` (`DeviceError`).
         timeout_minutes: how long collectives wait for a slow rank (rank 0 evaluates and
             writes checkpoints while the others wait).
     Returns:
         DistInfo(rank, world_size, local_rank, device).
     """
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
-    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
-    dev = _resolve_device(device, local_rank if world > 1 else 0)
+    rank, world, local_rank = launch_ranks()
+    dev = resolve_device(device, local_rank, world)
+    if dev.type == "cuda":
+        torch.cuda.set_device(dev)
     if world > 1 and not dist.is_initialized():
         missing = [k for k in ("MASTER_ADDR", "MASTER_PORT") if k not in os.environ]
         if missing:
-            raise RuntimeError(f"WORLD_SIZE={world} but {missing} not set; start multi-process runs with "
+            raise ValueError(f"WORLD_SIZE={world} but {missing} not set; start multi-process runs with "
                                f"torchrun --nproc_per_node=N tools/train.py ...")
         backend = "nccl" if dev.type == "cuda" else "gloo"
         dist.init_process_group(backend=backend, rank=rank, world_size=world,

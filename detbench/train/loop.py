@@ -29,12 +29,19 @@ its frame ids, counted in TensorBoard (train/nonfinite_steps) and listed in the 
 history.json record (`nonfinite_steps`). `max_nonfinite_steps` such steps in a row stop the run
 with `NonFiniteTrainingError` naming the frames and the newest checkpoint, which holds the
 weights of the last good step (skipped steps never change the weights). Under mixed precision
-(CUDA) an overflow of the *scaled* gradients is the GradScaler's business (it skips the step and
-lowers the scale, as designed); it counts as non-finite only once the scale is <= 1, i.e. when
-the unscaled gradient itself overflows.
+(CUDA) an overflow of the *scaled* gradients is the GradScaler's business: the step changes nothing
+(no update, BatchNorm statistics put back) and the scale is halved, as designed. Such a step is no
+update either: it is left out of the epoch's averaged losses, counted in history.json
+(`scaler_skipped_steps`) beside the scale at the epoch's end (`loss_scale`, also TensorBoard's
+train/loss_scale), so a scale that keeps falling shows; it counts as non-finite only once the scale
+is <= 1, i.e. when the unscaled gradient itself overflows. A non-finite step that is the model's
+(a NaN loss, or under mixed precision a NaN / inf in the forward pass's outputs, cause "output",
+which a loss that zeroes non-finite differences would hide) keeps the scale: halving it cannot
+help, and occasional NaN steps would otherwise drive it down unseen.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -58,7 +65,7 @@ from detbench.train.distributed import DistInfo, any_rank, barrier, reduce_mean,
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
 from detbench.train.precise_bn import recompute_bn_statistics
-from detbench.train.rng import capture_rng_state, restore_rng_state, seed_everything, worker_init_fn
+from detbench.train.rng import capture_rng_state, rank_seed, restore_rng_state, seed_everything, worker_init_fn
 from detbench.train.stop_request import StopRequest
 from detbench.train.train_config import RESUME_IGNORE_KEYS, TrainConfig
 from detbench.utils.atomic import atomic_write_text, read_json, remove_stale_temporaries
@@ -228,7 +235,7 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
     if not resume and ckpts.latest() is not None:
         raise CheckpointError(f"{ckpts.directory} already holds checkpoints of an earlier run ({ckpts.latest().name}); "
                               f"add --resume to continue it, or choose another --out folder (or delete that one)")
-    seed_everything(cfg.seed)
+    seed_everything(rank_seed(cfg.seed, info.rank))  # each rank its own draws; the weights are rank 0's (DDP)
     core = model.to(device)
     sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
                                  seed=cfg.seed, drop_last=False)
@@ -303,6 +310,7 @@ class _EpochRun:
     n_steps: int = 0  # steps that updated the model
     n_frames: int = 0
     n_skipped: int = 0  # steps skipped for a non-finite loss or gradient
+    n_scaler_skipped: int = 0  # steps the GradScaler skipped (scaled gradients overflowed; mixed precision)
     skipped: list[dict] = field(default_factory=list)  # the first NONFINITE_RECORDS_PER_EPOCH of them
     interrupted: bool = False  # stopped mid-epoch (a checkpoint of the last step is written)
 
@@ -312,8 +320,9 @@ class _StepResult:
     loss: float  # the step's loss (NaN or inf for a skipped step)
     parts: dict
     lr: float  # the rate this step used
-    skipped: str | None  # None: the model was updated; else what was not finite: "loss" or "gradient"
+    skipped: str | None  # what was not finite: "loss" or "gradient" (None: finite, see scaler_skipped)
     stop_requested: bool  # Ctrl-C / SIGTERM on any rank
+    scaler_skipped: bool = False  # the scaled gradients overflowed: the GradScaler skipped the update
 
 
 def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _EpochRun:
@@ -335,6 +344,10 @@ def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _E
             ep.n_frames += batch.batch_size
             if res.skipped is not None:
                 _nonfinite_step(run, ep, epoch, batch, res)
+            elif res.scaler_skipped:  # no update: not in the epoch's losses, counted apart
+                ep.n_scaler_skipped += 1
+                if info.is_main:
+                    run.logger.scalars({"loss_scale": run.scaler.get_scale()}, run.state.global_step, prefix="train/")
             else:
                 run.nonfinite_streak = 0
                 ep.n_steps += 1
@@ -363,13 +376,15 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
 
     Mixed precision: the forward pass runs under float16 autocast while the parameters and the
     optimizer state stay float32 (the master copy); the loss is scaled before backward and the
-    gradients unscaled (in float32) before clipping and the update. A skipped step leaves the
+    gradients unscaled (in float32) before clipping and the update. A skipped step (a non-finite
+    loss or gradient, or scaled gradients that overflowed, which the GradScaler skips) leaves the
     weights, the optimizer state and the BatchNorm statistics as they were.
     """
     saved = _float_buffers(run.core)
     with torch.autocast(device_type=run.info.device.type, dtype=torch.float16, enabled=run.use_amp):
         outputs = run.ddp_model(batch)
         loss, parts = run.core.loss(outputs, batch)
+    outputs_finite = not run.use_amp or _all_finite(outputs)
     run.optimizer.zero_grad(set_to_none=True)
     run.scaler.scale(loss).backward()  # every rank runs backward (DDP's all-reduce), finite or not
     loss_value = float(loss.detach())
@@ -378,31 +393,34 @@ def _step(run: _Run, batch: Batch, stop: StopRequest) -> _StepResult:
     grads = _grads(run.core)
     norm = _grad_norm(grads)
     grads_finite = bool(torch.isfinite(norm))
+    scaler_owns = run.use_amp and run.scaler.get_scale() > 1.0  # an overflow of scaled gradients is the scaler's
     if not math.isfinite(loss_value):
         cause = "loss"
-    elif not grads_finite and not (run.use_amp and run.scaler.get_scale() > 1.0):
-        cause = "gradient"  # (an overflow of the scaled gradients is the scaler's: it skips and lowers the scale)
+    elif not outputs_finite:  # a float16 overflow in the forward pass that the loss does not show
+        cause = "output"
+    elif not grads_finite and not scaler_owns:
+        cause = "gradient"
     else:
         cause = None
-    stop_requested, bad = any_rank([stop.requested, cause is not None], run.info)
+    overflow = cause is None and not grads_finite  # the scaler skips this step and halves its scale
+    stop_requested, bad, overflow = any_rank([stop.requested, cause is not None, overflow], run.info)
     lr = run.optimizer.param_groups[0]["lr"]
-    if bad:
-        cause = cause or "loss or gradient on another process"
+    if bad or overflow:
         for buf, copy in saved:
             buf.copy_(copy)
-        if run.use_amp:
-            run.scaler.update()  # lowers the scale when the (unscaled) gradients overflowed
+        if run.use_amp:  # halves the scale for an overflow of the scaled gradients, keeps it for the model's fault
+            run.scaler.update(None if overflow and not bad else run.scaler.get_scale())
         with warnings.catch_warnings():  # "scheduler.step() before optimizer.step()" when the first step is skipped
             warnings.simplefilter("ignore", UserWarning)
             run.scheduler.step()
-        return _StepResult(loss_value, parts, lr, cause, stop_requested)
+        if bad:
+            return _StepResult(loss_value, parts, lr, cause or "loss or gradient on another process", stop_requested)
+        return _StepResult(loss_value, parts, lr, None, stop_requested, scaler_skipped=True)
     if run.cfg.grad_clip > 0:
         _clip_(grads, norm, run.cfg.grad_clip)
     run.scaler.step(run.optimizer)  # plain optimizer.step() without mixed precision
     run.scaler.update()
-    with warnings.catch_warnings():  # the scaler may skip an overflowing step, as designed
-        warnings.simplefilter("ignore", UserWarning)
-        run.scheduler.step()
+    run.scheduler.step()
     return _StepResult(loss_value, parts, lr, None, stop_requested)
 
 
@@ -437,6 +455,29 @@ def _nonfinite_step(run: _Run, ep: _EpochRun, epoch: int, batch: Batch, res: _St
 def _use_amp(cfg: TrainConfig, device: torch.device) -> bool:
     """Mixed precision runs on CUDA only (CPU float16 kernels are slow and bfloat16 training is not tested)."""
     return cfg.amp and device.type == "cuda"
+
+
+def _all_finite(outputs: Any) -> bool:
+    """Every floating-point tensor in a model's outputs (named tuples, dataclasses, dicts, sequences) is finite;
+    one host sync."""
+    flags = []
+
+    def walk(o):
+        if isinstance(o, torch.Tensor):
+            if o.is_floating_point():
+                flags.append(torch.isfinite(o).all())
+        elif dataclasses.is_dataclass(o) and not isinstance(o, type):
+            for f in dataclasses.fields(o):
+                walk(getattr(o, f.name))
+        elif isinstance(o, Mapping):
+            for v in o.values():
+                walk(v)
+        elif isinstance(o, (list, tuple)):
+            for v in o:
+                walk(v)
+
+    walk(outputs)
+    return bool(torch.stack(flags).all()) if flags else True
 
 
 def _float_buffers(model: nn.Module) -> list[tuple[torch.Tensor, torch.Tensor]]:
@@ -479,6 +520,8 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
               "frames": frames_all, "losses": losses, "metrics": {}, "checkpoint": run.ckpts.name_for(run.state)}
     if ep.n_skipped:  # steps skipped for a non-finite loss or gradient (this rank's, listed with their frames)
         record.update(skipped_steps=ep.n_skipped, nonfinite_steps=ep.skipped)
+    if run.use_amp:  # the steps the GradScaler skipped and where its scale ended: a collapsing scale shows
+        record.update(scaler_skipped_steps=ep.n_scaler_skipped, loss_scale=run.scaler.get_scale())
     run.logger.add_epoch(record)
     run.last_ckpt = run.save(run.state) or run.last_ckpt
     if info.is_main:

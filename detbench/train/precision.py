@@ -20,8 +20,12 @@ autocast on CUDA), and reports for each precision:
   warm-up show).
 
 The model runs with `torch.autocast(device, dtype)` around its forward pass and its
-post-processing; parameters stay float32. (It lives in detbench.train beside `predict_frames`,
-whose frame preparation and NaN count it shares: detbench.eval sits below the training layer.)
+post-processing; parameters stay float32. The whole comparison runs with TensorFloat-32 off for
+matrix products and cuDNN convolutions (`strict_float32`): cuDNN's default on Ampere and later GPUs
+computes float32 convolutions in TF32 (10-bit mantissa), which would make the float32 reference row
+partly reduced precision itself. The report records both settings (`float32_settings`).
+(It lives in detbench.train beside `predict_frames`, whose frame preparation and NaN count it
+shares: detbench.eval sits below the training layer.)
 Results are plain dicts (JSON-ready), one schema for the tool (tools/precision.py), the tests
 and the trade study. `precision_markdown(report)` renders one.
 """
@@ -51,8 +55,8 @@ from detbench.ops import boxes_iou_bev, boxes_to_corners_3d, normalize_heading
 from detbench.train.inference import count_nonfinite, frame_sample
 
 __all__ = ["PRECISIONS", "PrecisionRun", "available_precisions", "autocast_for", "box_differences",
-           "checkpoint_precision_markdown", "checkpoint_precision_report", "compare_precision", "precision_frames",
-           "precision_markdown", "precision_summary_lines", "run_at_precision"]
+           "checkpoint_precision_markdown", "checkpoint_precision_report", "compare_precision", "float32_settings",
+           "precision_frames", "precision_markdown", "precision_summary_lines", "run_at_precision", "strict_float32"]
 
 PRECISIONS: dict[str, torch.dtype | None] = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}
 REFERENCE = "float32"
@@ -78,6 +82,47 @@ def autocast_for(precision: str, device: torch.device | str):
     if dtype is None:
         return contextlib.nullcontext()
     return torch.autocast(device_type=torch.device(device).type, dtype=dtype)
+
+
+def _tf32_switches() -> list[tuple[object, str, object]]:
+    """(object, attribute, its IEEE float32 value) of the matmul and cuDNN precision switches this torch has:
+    the `fp32_precision` strings of torch >= 2.9 (the legacy `allow_tf32` flags must not be mixed with them),
+    else the legacy flags."""
+    matmul, cudnn = torch.backends.cuda.matmul, torch.backends.cudnn
+    if hasattr(matmul, "fp32_precision") and hasattr(getattr(cudnn, "conv", None), "fp32_precision"):
+        return [(matmul, "fp32_precision", "ieee"), (cudnn.conv, "fp32_precision", "ieee"),
+                (cudnn.rnn, "fp32_precision", "ieee")]
+    return [(matmul, "allow_tf32", False), (cudnn, "allow_tf32", False)]
+
+
+def float32_settings() -> dict[str, str]:
+    """How float32 matrix products and cuDNN convolutions compute now: "ieee" (full float32) or "tf32"
+    (TensorFloat-32 on GPUs that have it; "none": torch's default for this torch version)."""
+    def name(value) -> str:
+        return value if isinstance(value, str) else ("tf32" if value else "ieee")
+
+    switches = _tf32_switches()
+    return {"cuda_matmul": name(getattr(switches[0][0], switches[0][1])),
+            "cudnn_conv": name(getattr(switches[1][0], switches[1][1])),
+            "float32_matmul_precision": torch.get_float32_matmul_precision()}
+
+
+@contextlib.contextmanager
+def strict_float32():
+    """Run the block with float32 matrix products and cuDNN convolutions in full float32 (TF32 off), then put
+    the settings back as they were."""
+    switches = _tf32_switches()
+    before = [getattr(obj, attr) for obj, attr, _ in switches]
+    precision = torch.get_float32_matmul_precision()
+    try:
+        for obj, attr, value in switches:
+            setattr(obj, attr, value)
+        torch.set_float32_matmul_precision("highest")
+        yield
+    finally:
+        for (obj, attr, _), value in zip(switches, before):
+            setattr(obj, attr, value)
+        torch.set_float32_matmul_precision(precision)
 
 
 @dataclass
@@ -242,9 +287,10 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
         match_iou: BEV IoU a reduced-precision detection needs with a float32 one to count as the same vehicle.
         road: the model's road setting (`RoadConfig.of_run_config` of its run config).
     Returns:
-        {"reference": "float32", "device", "num_frames", "score_threshold", "iou_threshold", "match_iou",
-         "precisions": {name: {"autocast_dtype", "seconds_per_frame", "detections", "nonfinite_values",
-         "nonfinite_frames", "nonfinite_detections", "ap_r40": {range}, "recall": {range},
+        {"reference": "float32", "device", "float32" (`float32_settings` during the runs: "ieee" matmul and cuDNN),
+         "num_frames", "score_threshold", "iou_threshold", "match_iou", "precisions": {name: {"autocast_dtype",
+         "seconds_per_frame", "detections", "nonfinite_values", "nonfinite_frames", "nonfinite_detections",
+         "ap_r40": {range}, "recall": {range},
          ["ap_r40_diff": {range}, "recall_diff": {range}, "max_abs_ap_r40_diff", "boxes": box_differences]}}}
     """
     score_threshold = shipped_default("eval.score_threshold", score_threshold)
@@ -264,7 +310,9 @@ def compare_precision(model: nn.Module, frames: Sequence, point_cloud_range: Seq
            "match_iou": float(match_iou), "precisions": {}}
     ref_run, ref_acc = None, None
     for p in names:
-        run = run_at_precision(model, frames, point_cloud_range, p, device, batch_size, progress, road)
+        with strict_float32():
+            out["float32"] = float32_settings()
+            run = run_at_precision(model, frames, point_cloud_range, p, device, batch_size, progress, road)
         acc = _accuracy(eval_base, run, iou_threshold, score_threshold)
         entry = {"autocast_dtype": None if PRECISIONS[p] is None else str(PRECISIONS[p]).replace("torch.", ""),
                  "seconds_per_frame": run.seconds / max(len(frames), 1),
@@ -292,8 +340,11 @@ def _f(v, digits: int = 3, signed: bool = False) -> str:
 
 def precision_markdown(report: dict, title: str = "Inference precision against float32") -> str:
     """A Markdown table of `compare_precision`'s report (units in the headers)."""
+    f32 = report.get("float32")
+    settings = (f"; float32 matrix products {f32['cuda_matmul']}, cuDNN convolutions {f32['cudnn_conv']} (ieee: "
+                f"full float32, tf32: TensorFloat-32)" if f32 else "")
     lines = [f"# {title}", "",
-             f"{report['num_frames']} frames on {report['device']}; AP@R40 / recall at 3D IoU "
+             f"{report['num_frames']} frames on {report['device']}{settings}; AP@R40 / recall at 3D IoU "
              f"{report['iou_threshold']:g}, level All, score >= {report['score_threshold']:g}; boxes matched to the "
              f"float32 run's at BEV IoU >= {report['match_iou']:g}. Differences are the precision's value minus "
              f"float32's. Corner: the largest displacement of any of a matched box's 8 corners (metres), "

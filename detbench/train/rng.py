@@ -6,11 +6,19 @@ Randomness in training comes from three places, each pinned down here:
   semantics, also used with one process);
 - augmentation: each sample's generator is `sample_rng(seed, epoch, index)`, so a frame's
   augmentation does not depend on which worker loads it or on what ran before;
-- everything else (model initialisation, dropout): the global python / numpy / torch
-  generators, seeded by `seed_everything` and saved in checkpoints with `capture_rng_state`.
+- everything else (model initialisation, dropout, the point sampling and proposal sampling of the
+  two-stage models): the global python / numpy / torch generators, seeded by `seed_everything`
+  and saved in checkpoints with `capture_rng_state`. With several processes each rank seeds them
+  with its own `rank_seed`, so the ranks do not draw the same dropout masks and samples for
+  different frames (the weights are rank 0's either way: DDP copies them to every rank).
+
+Exact replay holds on the CPU. On CUDA, kernels that add in parallel (`index_add_` in the sparse
+convolution, atomics in scatter reductions) and cuDNN's algorithm choice make the last bits vary
+from run to run; `deterministic_algorithms` asks torch for deterministic kernels where it has them.
 """
 from __future__ import annotations
 
+import os
 import random
 import signal
 
@@ -19,7 +27,10 @@ import torch
 
 from detbench.runtime import worker_threads
 
-__all__ = ["seed_everything", "sample_rng", "worker_init_fn", "capture_rng_state", "restore_rng_state"]
+__all__ = ["seed_everything", "rank_seed", "sample_rng", "worker_init_fn", "capture_rng_state", "restore_rng_state",
+           "deterministic_algorithms"]
+
+_RANK_SEED_STRIDE = 1_000_003  # a prime: rank seeds of nearby run seeds do not collide
 
 
 def seed_everything(seed: int) -> None:
@@ -28,6 +39,21 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
     torch.manual_seed(seed)  # also seeds every CUDA device
+
+
+def rank_seed(seed: int, rank: int) -> int:
+    """The seed of the global generators on `rank`: `seed` itself on rank 0 (a single process is unchanged)."""
+    return int(seed) + _RANK_SEED_STRIDE * int(rank)
+
+
+def deterministic_algorithms() -> None:
+    """Ask torch for deterministic kernels from now on (CUDA: cuDNN without benchmarking, deterministic
+    `index_add_` and scatters, cuBLAS with a fixed workspace). An op without a deterministic kernel warns once
+    naming itself instead of failing. Slower; call it before the first CUDA operation."""
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    torch.backends.cudnn.benchmark = False
+    torch.backends.cudnn.deterministic = True
+    torch.use_deterministic_algorithms(True, warn_only=True)
 
 
 def sample_rng(seed: int, epoch: int, index: int) -> np.random.Generator:

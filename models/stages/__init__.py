@@ -49,7 +49,7 @@ from .two_stage import (
     encode_refine_targets, fold_heading, predict_refined, refine_loss, rois_for_refinement, rotate_z,
     sample_proposal_targets, select_proposals,
 )
-from .vfe import MeanVFE
+from .vfe import MeanVFE, VFEConfig
 
 __all__ = [
     "MAX_ANCHOR_SIZES", "AnchorGenerator", "AnchorHead", "AnchorHeadConfig", "AnchorHeadOutput", "AnchorLossWeights",
@@ -78,4 +78,5 @@ __all__ = [
     "confidence_targets", "decode_refined", "encode_refine_targets", "fold_heading", "predict_refined",
     "refine_loss", "rois_for_refinement", "rotate_z", "sample_proposal_targets", "select_proposals",
     "MeanVFE",
+    "VFEConfig",
 ]

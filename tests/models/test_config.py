@@ -185,11 +185,16 @@ def test_no_value_of_a_model_key_is_written_in_code():
 @pytest.mark.parametrize("name", NAMES)
 def test_a_stored_config_upgrades_to_todays(name):
     """The model config a checkpoint stored before the model keys moved into the YAMLs (old spelling, no
-    loss weights, focal or direction keys) upgrades to exactly today's config of the same run."""
+    loss weights, focal or direction keys) upgrades to exactly today's config of the same run, with the
+    voxel features that checkpoint trained on (absolute x, y) where today's YAML takes offsets."""
     stored = STORED[name]
     today = models.prepare_model_config(name, smoke(name), TRAIN_BOXES)
     assert stored != today
-    assert models.upgrade_stored_model_config(name, stored) == today
+    then = copy.deepcopy(today)
+    if "vfe" in then:
+        assert then["vfe"] == {"xy": "offset"} and "vfe" not in stored
+        then["vfe"]["xy"] = "absolute"
+    assert models.upgrade_stored_model_config(name, stored) == then
     assert models.upgrade_stored_model_config(name, today) == today  # today's config is left as it is
     if name == "pillarnet":
         assert "pre_top_k" in stored["post"] and "pre_top_k" not in today["post"]
@@ -208,7 +213,9 @@ def test_a_checkpoint_with_a_stored_config_of_an_earlier_version_loads(name, tmp
     the rebuilt model predicts what the saved one does."""
     from detbench.train.checkpoint import TrainState, save_checkpoint
 
-    model = golden_model(name)
+    model = models.build_model(name, models.upgrade_stored_model_config(name, STORED[name]))  # as built then
+    model.load_state_dict(golden_model(name).state_dict())
+    model.eval()
     run_cfg = load_run_config(name, "smoke")
     run_cfg["model"] = STORED[name]
     path = save_checkpoint(tmp_path / "epoch_001.pt", model=model, state=TrainState(), config=run_cfg,

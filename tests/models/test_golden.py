@@ -19,20 +19,28 @@ regenerate the files with
     DETBENCH_REGEN_GOLDEN=1 python3 -m pytest -q tests/models/test_golden.py
 
 and say in the commit why the outputs changed.
+
+`test_torch_path_matches_the_numba_path` runs the same record, plus the gradient of every parameter, once
+with every op on its torch path (the GPU's; `DETBENCH_OPS=torch`, with the numba kernels made to raise) and
+once on the numba path, in float32 and under bfloat16 and float16 autocast (the CPU's autocast type and the
+one mixed-precision training uses on CUDA), and compares them.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
+import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
 import torch
 
 import models
 from detbench.data.batch import Batch, Detections
+from detbench.ops.backend import forced_backend
 from detbench.train.run_config import load_run_config
 from tests.helpers import batch_of, box_points
 
@@ -163,6 +171,59 @@ def test_golden_outputs(name):
     want = json.loads(path.read_text())
     assert sum(d["count"] for d in want["predict"]) > 0, f"{name}: the golden batch gives no detection to compare"
     compare(got, want)
+
+
+# ---------------------------------------------------------------- the ops' torch path (the GPU's) on the CPU
+def _forbid_numba(monkeypatch) -> list[str]:
+    """Make every numba kernel of detbench.ops raise when called; returns their names."""
+    names = []
+    for modname in sorted(m for m in sys.modules if m.startswith("detbench.ops.")):
+        mod = sys.modules[modname]
+        for attr, value in list(vars(mod).items()):
+            if isinstance(value, numba.core.registry.CPUDispatcher):
+                def called(*args, _name=f"{modname}.{attr}", **kwargs):
+                    raise AssertionError(f"{_name}: a numba kernel ran while every op should take its torch path")
+                monkeypatch.setattr(mod, attr, called)
+                names.append(f"{modname}.{attr}")
+    return names
+
+
+def path_record(name: str, backend: str, precision: str) -> dict:
+    """`golden_record` with the ops on `backend` ("auto": numba on the CPU, "torch") under `precision`'s
+    autocast ("float32": none), with the total loss's gradient: its sum of absolute values per parameter."""
+    dtype = {"float32": None, "bfloat16": torch.bfloat16, "float16": torch.float16}[precision]
+    with forced_backend(backend):
+        model = golden_model(name)
+        batch = golden_batch()
+        with torch.no_grad(), torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+            out = model(batch)
+            dets = model.predict(out, batch)
+        model.train()
+        torch.manual_seed(1)
+        with torch.autocast("cpu", dtype=dtype or torch.bfloat16, enabled=dtype is not None):
+            total, parts = model.loss(model(batch), batch)
+        total.backward()
+    grads = {n: None if p.grad is None else float(p.grad.double().abs().sum()) for n, p in model.named_parameters()}
+    return {"forward": output_summary(out), "predict": detections_summary(dets),
+            "loss": {"total": float(total.detach()), **{k: float(v) for k, v in sorted(parts.items())}},
+            "grads": grads}
+
+
+@pytest.mark.parametrize("precision", ["float32", "bfloat16", "float16"])
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_torch_path_matches_the_numba_path(name, precision, monkeypatch):
+    """Forward, predict, loss and backward of every detector with every op on its torch path (no numba kernel
+    runs) give the numba path's outputs and gradients, and every parameter gets a finite gradient."""
+    want = path_record(name, "auto", precision)
+    assert _forbid_numba(monkeypatch)
+    got = path_record(name, "torch", precision)
+    monkeypatch.undo()
+    assert sum(d["count"] for d in got["predict"]) > 0
+    compare(got, want)
+    missing = [n for n, g in got["grads"].items() if g is None or not math.isfinite(g)]
+    assert not missing, f"{name} ({precision}): parameters without a finite gradient on the torch path: {missing}"
+    for n, g in want["grads"].items():
+        _close(got["grads"][n], g, abs(g), f"grad {n}")
 
 
 # ---------------------------------------------------------------- evaluation reads no ground truth

@@ -143,3 +143,41 @@ def test_run_config_presets_and_unknown_keys():
         load_run_config("second", "smoke", overrides=["train.lrr=1"])
     with pytest.raises(ConfigError, match="unknown preset"):
         load_run_config("second", "fast")
+
+
+def test_voxel_features_locate_the_point_in_its_voxel_at_float16():
+    """The mean x, y enter the sparse backbone as offsets from the voxel's centre (within half a voxel of zero;
+    z and intensity absolute), so float16 keeps the point's place in its voxel at 150 m, where an absolute x
+    would be rounded to 0.125 m; offset plus centre gives back the absolute mean; `absolute` is kept for
+    checkpoints of earlier versions."""
+    from models.stages import MeanVFE, VFEConfig
+
+    grid = VoxelGrid((0.0, -16.0, -0.6, 153.6, 16.0, 4.2), (0.1, 0.1, 0.15))
+    rng = np.random.default_rng(0)
+    pts = np.c_[np.zeros(400), rng.uniform([0.0, -16, -0.6, 0], [153.6, 16, 4.2, 1], (400, 4))].astype(np.float32)
+    pts[:200, 1] = rng.uniform(140.0, 153.6, 200)
+    points = torch.from_numpy(pts)
+    off, ab = MeanVFE(grid, VFEConfig("offset"))(points, 1), MeanVFE(grid, VFEConfig("absolute"))(points, 1)
+    assert torch.equal(off.indices, ab.indices) and torch.equal(off.features[:, 2:], ab.features[:, 2:])
+    assert float(off.features[:, :2].abs().max()) <= 0.05 + 1e-6
+    centre = torch.tensor([0.0, -16.0]) + (off.indices[:, [3, 2]].double() + 0.5) * 0.1
+    assert torch.allclose(off.features[:, :2].double() + centre, ab.features[:, :2].double(), atol=2e-5)
+    far = ab.features[:, 0] > 140
+    half_err = lambda t: float((t.half().double() - t.double()).abs()[far].max())  # noqa: E731
+    assert half_err(off.features[:, 0]) < 1e-4 < 0.01 < half_err(ab.features[:, 0])
+    assert half_err(ab.features[:, 2]) < 0.002  # z (-0.6 to 4.2 m) is float16-safe as it is
+
+
+@pytest.mark.parametrize("name", ["second", "ct3d"])
+def test_the_first_sparse_convolution_sees_offsets_under_autocast(name):
+    """What enters SECOND's (and CT3D's first stage's) sparse backbone under autocast: x, y within half a voxel
+    of zero, as configs/second.yaml sets it."""
+    cfg = load_run_config(name, "smoke")["model"]
+    model = models.build_model(name, models.prepare_model_config(name, cfg, np.array([[20, 0, 0.8, 4.5, 1.9, 1.6, 0]])))
+    seen = []
+    model.backbone3d.register_forward_pre_hook(lambda m, args: seen.append(args[0].features))
+    car = np.array([140.0, 3.0, 0.8, 4.5, 1.9, 1.6, 0.2], np.float32)
+    with torch.no_grad(), torch.autocast("cpu", dtype=torch.bfloat16):
+        model.eval()(batch_of([box_points(car, 300)], [car[None]]))
+    half_voxel = cfg["voxel_size"][0] / 2
+    assert seen and float(seen[0][:, :2].abs().max()) <= half_voxel + 1e-6 and float(seen[0][:, 0].abs().max()) > 0

@@ -501,13 +501,16 @@ def test_bench_points_tool_writes_reports(tmp_path, capsys):
     threads = (torch.get_num_threads(), numba.get_num_threads())
     try:  # main() sets both thread counts; give them back to the other tests
         assert mod.main(["--out", str(tmp_path), "--points", "600", "--samples", "128", "--rois", "4",
-                         "--channels", "8", "--repeats", "1", "--threads", "1", "--frames", "2"]) == 0
+                         "--channels", "8", "--repeats", "1", "--threads", "1", "--frames", "2", "--nms-boxes", "300",
+                         "--nms-keep", "40"]) == 0
     finally:
         torch.set_num_threads(threads[0])
         numba.set_num_threads(threads[1])
     report = json.loads((tmp_path / "bench_points.json").read_text())
     assert report["units"].startswith("milliseconds") and report["fps_ms"] > 0
     assert any(r.get("equal_to_numba") is True for r in report["cases"])
+    nms = [r for r in report["cases"] if r["case"].startswith("nms_bev 300 -> 40")]
+    assert len(nms) == 2 and nms[1]["equal_to_numba"] is True and report["nms_torch_over_numba"] > 0
     md = (tmp_path / "bench_points.md").read_text()
     assert "FPS 600 -> 128" in md and "median ms" in md
     assert "ms per frame" in capsys.readouterr().out

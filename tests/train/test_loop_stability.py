@@ -181,7 +181,8 @@ def test_non_finite_steps_in_a_row_stop_the_run_keeping_the_last_good_checkpoint
 # ---------------------------------------------------------------- 3. mixed precision
 def _amp_run(tmp_path, device: torch.device, epochs: int = 2):
     """SECOND (smoke sizes) trained `epochs` x 4 steps with mixed precision on `device` (the scaler skips the
-    first ~5 steps, as designed: the initial loss scale 2**16 overflows float16 until it is lowered to 2**11)."""
+    first ~5 steps, as designed: the initial loss scale 2**16 overflows float16 until it is lowered to 2**11;
+    they are no updates)."""
     from detbench.train.distributed import DistInfo
 
     run_cfg = load_run_config("second", "smoke", overrides=[f"train.epochs={epochs}", "train.tensorboard=false"])
@@ -204,7 +205,11 @@ def _check_amp(model, start, res):
     moments = [v for st in ckpt["optimizer"]["state"].values() for k, v in st.items() if k in ("exp_avg", "exp_avg_sq")]
     assert moments and all(v.dtype == torch.float32 for v in moments)
     assert all(v.dtype == torch.float32 for v in ckpt["model"].values() if v.is_floating_point())
-    assert all(math.isfinite(r["losses"]["loss"]) for r in res.history)
+    # the steps the scaler skipped are counted apart, not averaged into the losses of the steps that updated
+    skipped = [r["scaler_skipped_steps"] for r in res.history]
+    assert sum(skipped) >= 1 and res.history[-1]["loss_scale"] == ckpt["scaler"]["scale"]
+    assert all(math.isfinite(r["losses"]["loss"]) for r, n in zip(res.history, skipped) if n < 4)
+    assert all(r["losses"] == {} for r, n in zip(res.history, skipped) if n == 4)  # no update in that epoch
     assert all(torch.isfinite(v).all() for v in model.state_dict().values() if v.is_floating_point())
     # the updates went through the scaler: weights moved, and by small, unscaled amounts
     moved = [float((v.cpu() - start[k]).abs().max()) for k, v in model.state_dict().items()
@@ -222,3 +227,56 @@ def test_mixed_precision_training_keeps_float32_master_weights_cpu_code_path(tmp
 def test_mixed_precision_training_on_cuda(tmp_path):
     assert loop_mod._use_amp(TrainConfig.from_dict({}), torch.device("cuda"))
     _check_amp(*_amp_run(tmp_path, torch.device("cuda")))
+
+
+class OverflowingDetector(FaultyDetector):
+    """TinyDetector with its loss times 1e-3 (so the GradScaler's first scale, 2 ** 16, leaves its float16
+    gradients finite), and times 1e30 at training forward pass k in `overflow`: a finite loss whose scaled
+    gradients overflow float16 (any scale > 1 makes them). At pass k in `inf_output` an output box is inf and
+    the loss, as a regression loss that zeroes non-finite differences, stays finite."""
+
+    def __init__(self, overflow=(), nan_input=(), inf_output=()):
+        super().__init__(nan_input=nan_input)
+        self.overflow, self.inf_output = set(overflow), set(inf_output)
+
+    def forward(self, batch):
+        out = super().forward(batch)
+        if self.training and self.train_calls in self.inf_output:
+            out = out._replace(boxes=out.boxes + torch.tensor(float("inf")).to(out.boxes.dtype))
+        return out
+
+    def loss(self, out, batch):
+        total, parts = super().loss(out._replace(boxes=torch.nan_to_num(out.boxes, posinf=0.0)), batch)
+        return total * (1e30 if self.train_calls in self.overflow else 1e-3), parts
+
+
+def test_steps_the_grad_scaler_skips_are_no_updates(tmp_path, monkeypatch):
+    """A step whose scaled gradients overflow changes nothing, is left out of the epoch's averaged losses and
+    is counted apart, with the scale it leaves, so a collapsing scale shows in history.json."""
+    monkeypatch.setattr(loop_mod, "_use_amp", lambda cfg, dev: cfg.amp)  # the CUDA path, run on the CPU
+    seed_everything(0)
+    model = OverflowingDetector(overflow={2, 5, 6})  # 4 steps per epoch: one skip in epoch 1, two in epoch 2
+    res = _train(tmp_path, "run", model)
+    w = model.weights_at_call
+    assert _same(w[2], w[3]) and _same(w[5], w[6]) and _same(w[6], w[7]) and not _same(w[3], w[4])
+    h = res.history
+    assert [r["scaler_skipped_steps"] for r in h] == [1, 2] and "skipped_steps" not in h[0]
+    assert [r["loss_scale"] for r in h] == [2.0 ** 15, 2.0 ** 13]  # halved at each skip from 2 ** 16
+    assert all(r["losses"]["loss"] < 0.01 for r in h), [r["losses"] for r in h]  # the 1e30 losses left out
+    assert load_checkpoint(res.last_checkpoint)["scaler"]["scale"] == 2.0 ** 13
+
+
+def test_under_mixed_precision_the_models_non_finite_steps_keep_the_scale(tmp_path, monkeypatch):
+    """A NaN loss, or an inf in the forward pass's outputs that the loss hides, is the model's fault: the step is
+    skipped and logged as non-finite ("loss", "output"), and the GradScaler keeps its scale (halving it cannot
+    help); an overflow of the scaled gradients still halves it."""
+    monkeypatch.setattr(loop_mod, "_use_amp", lambda cfg, dev: cfg.amp)
+    seed_everything(0)
+    model = OverflowingDetector(nan_input={2}, inf_output={3}, overflow={6})
+    res = _train(tmp_path, "run", model)
+    w = model.weights_at_call
+    assert _same(w[2], w[3]) and _same(w[3], w[4]) and _same(w[6], w[7])
+    h = res.history
+    assert [r["nonfinite"] for r in h[0]["nonfinite_steps"]] == ["loss", "output"] and "skipped_steps" not in h[1]
+    assert [r["scaler_skipped_steps"] for r in h] == [0, 1]
+    assert [r["loss_scale"] for r in h] == [2.0 ** 16, 2.0 ** 15]

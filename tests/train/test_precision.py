@@ -24,7 +24,8 @@ import models
 from detbench.data.batch import Batch, Detections
 from detbench.data.frame import Frame, Sensor
 from detbench.train.precision import (
-    available_precisions, autocast_for, box_differences, compare_precision, precision_markdown, run_at_precision,
+    available_precisions, autocast_for, box_differences, compare_precision, float32_settings, precision_markdown,
+    run_at_precision, strict_float32,
 )
 from tests.helpers import box_points
 import tools.precision
@@ -144,6 +145,33 @@ def test_compare_precision_reports_what_the_reduced_precision_changed():
                              ["bfloat16"], batch_size=4)
     assert rep2["precisions"]["bfloat16"]["ap_r40"]["small"] == 0.0
     assert rep2["precisions"]["bfloat16"]["max_abs_ap_r40_diff"] == pytest.approx(1.0)
+
+
+class SettingsRecorder(PrecisionSensitiveOracle):
+    """The oracle, recording the float32 matmul and cuDNN settings in force at each forward pass."""
+
+    def forward(self, batch):
+        self.settings_seen = [*getattr(self, "settings_seen", []), float32_settings()]
+        return super().forward(batch)
+
+
+def test_the_float32_reference_runs_without_tf32_and_says_so():
+    """cuDNN computes float32 convolutions in TensorFloat-32 by default (Ampere and later): the comparison turns
+    TF32 off for matrix products and cuDNN while it runs, records the settings, and puts them back after."""
+    frames = _frames()
+    truth = {f.frame_id: np.asarray(f.boxes) for f in frames}
+    before = float32_settings()
+    assert before["cudnn_conv"] == "tf32"  # torch's default
+    model = SettingsRecorder(truth, shift=0.0, nan_frame="none")
+    rep = compare_precision(model, frames, [0.0, -16.0, -0.6, 153.6, 16.0, 4.2], ["bfloat16"], batch_size=2)
+    assert len(model.settings_seen) == 4
+    assert all(s["cuda_matmul"] == "ieee" and s["cudnn_conv"] == "ieee" for s in model.settings_seen)
+    assert rep["float32"]["cuda_matmul"] == rep["float32"]["cudnn_conv"] == "ieee"
+    assert "float32 matrix products ieee, cuDNN convolutions ieee" in precision_markdown(rep)
+    assert float32_settings() == before
+    with strict_float32():
+        assert float32_settings()["cudnn_conv"] == "ieee" and torch.get_float32_matmul_precision() == "highest"
+    assert float32_settings() == before
 
 
 def test_precision_names_and_contexts():
