@@ -21,7 +21,7 @@ from detbench.utils.folder_ownership import (
     LOCK_FILE, OWNER_FILE, FolderInUse, FolderKind, check_claimable, folder_entries, folder_owner, write_owner,
 )
 
-__all__ = ["FolderLock", "acquire_folder_lock", "claim_folder"]
+__all__ = ["FolderLock", "acquire_folder_lock", "claim_folder", "lock_file"]
 
 
 def _holder_words(holder: dict | None) -> str:
@@ -66,30 +66,43 @@ class FolderLock:
             self.fd = -1
 
 
-def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out") -> FolderLock:
-    """Lock the folder `dest` (which exists) for this process: `FolderInUse` naming the holder's pid and host
-    when another process holds it. The lock is the kernel's (`flock`) on `dest/LOCK_FILE`, so it ends with
-    its process however that ends (a kill -9 included); the file names the holder, and a file left by a
-    killed holder is taken over (`FolderLock.recovered`). `what` names this holder for the others' refusal."""
+def lock_file(path: str | os.PathLike, what: str, in_use: Callable[[str], BaseException],
+              wait: Callable[[str], None] | None = None) -> FolderLock:
+    """Take the kernel's lock (`flock`) on the file `path` (created when missing) for this process, so it ends
+    with its process however that ends (a kill -9 included), and write into it who holds it (`what`, pid,
+    host, since when); a file left by a killed holder is taken over (`FolderLock.recovered`). While another
+    process holds it: with `wait`, `wait(words naming the holder)` is called once and the call blocks until
+    the lock is free; without, `in_use(words naming the holder)` is raised. The kernel's lock reaches other
+    pid namespaces (containers) on this machine, and other machines on a file system that shares locks
+    (NFS)."""
     import socket
     import time
 
-    path = Path(dest) / LOCK_FILE
+    path = Path(path)
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not POSIX: no lock
         return FolderLock(path, -1, None)
+    waited = False
     for _ in range(100):
         fd = os.open(path, os.O_RDWR | os.O_CREAT, NEW_FILE_MODE)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as e:
             holder = _read_holder(fd)
-            os.close(fd)
-            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) or wait is None:
+                os.close(fd)
+                if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise
+                raise in_use(_holder_words(holder)) from None
+            if not waited:
+                wait(_holder_words(holder))
+                waited = True
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            except BaseException:
+                os.close(fd)
                 raise
-            raise FolderInUse(f"{dest}: in use by {_holder_words(holder)} (its lock is {path}); wait for it to end, "
-                              f"or choose another {out}") from None
         try:
             same = os.fstat(fd).st_ino == os.stat(path).st_ino
         except FileNotFoundError:  # released and removed by its holder between our open and our lock
@@ -98,7 +111,7 @@ def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out
             break
         os.close(fd)
     else:  # pragma: no cover - another process creates and removes the lock a hundred times in a row
-        raise FolderInUse(f"{dest}: its lock {path} keeps changing hands; try again, or choose another {out}")
+        raise in_use(f"processes that keep taking and releasing its lock {path}")
     recovered = _read_holder(fd)
     holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname(),
               "since": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
@@ -107,6 +120,15 @@ def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out
     os.write(fd, json.dumps(holder).encode("utf-8"))
     os.fsync(fd)
     return FolderLock(path, fd, recovered)
+
+
+def acquire_folder_lock(dest: str | os.PathLike, what: str, *, out: str = "--out") -> FolderLock:
+    """Lock the folder `dest` (which exists) for this process (`lock_file` on `dest/LOCK_FILE`): `FolderInUse`
+    naming the holder's pid and host when another process holds it. `what` names this holder for the
+    others' refusal."""
+    path = Path(dest) / LOCK_FILE
+    return lock_file(path, what, lambda holder: FolderInUse(
+        f"{dest}: in use by {holder} (its lock is {path}); wait for it to end, or choose another {out}"))
 
 
 @contextmanager
