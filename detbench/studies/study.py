@@ -48,8 +48,8 @@ from detbench.train.run_config import load_run_config
 from detbench.train.run_layout import STUDY_FOLDER, default_study_dir
 from detbench.utils.cli import UserError
 from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
-from detbench.utils.folder_locks import claim_folder
-from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable, clear_folder
+from detbench.utils.folder_locks import claim_folder, clear_folder
+from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable
 
 
 @dataclass

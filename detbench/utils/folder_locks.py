@@ -12,16 +12,18 @@ from __future__ import annotations
 import errno
 import json
 import os
+import shutil
 from contextlib import contextmanager
 from pathlib import Path
 from collections.abc import Callable, Iterator
 
 from detbench.utils.atomic import NEW_FILE_MODE
 from detbench.utils.folder_ownership import (
-    LOCK_FILE, OWNER_FILE, FolderInUse, FolderKind, check_claimable, folder_entries, folder_owner, write_owner,
+    LOCK_FILE, OWNER_FILE, FolderInUse, FolderKind, check_claimable, check_replaceable, folder_entries, folder_owner,
+    write_owner,
 )
 
-__all__ = ["FolderLock", "acquire_folder_lock", "claim_folder", "lock_file"]
+__all__ = ["FolderLock", "acquire_folder_lock", "claim_folder", "clear_folder", "lock_file"]
 
 
 def _holder_words(holder: dict | None) -> str:
@@ -170,3 +172,32 @@ def _remove_created(dest: Path, created: list[Path]) -> None:
             p.rmdir()
         except OSError:
             break
+
+
+def clear_folder(dest: str | os.PathLike, kind: FolderKind, *, flag: str, out: str = "--out") -> list[str]:
+    """Delete what `dest` holds (the folder itself, its OWNER_FILE and its lock stay) once `check_replaceable`
+    allows it to be replaced (`overwrite` given as `flag`). A folder in it that a process holds (a training run
+    of a study, still running after its study was killed) is refused first (`FolderInUse`, naming the holder),
+    before anything is deleted; the others' locks are held while they are deleted. Returns the entries removed."""
+    dest = Path(dest)
+    removed = check_replaceable(dest, True, kind, flag=flag, out=out)
+    locks: list[FolderLock] = []
+    try:
+        for e in removed:
+            p = Path(e)
+            if p.is_dir() and not p.is_symlink() and (p / LOCK_FILE).is_file():
+                locks.append(lock_file(p / LOCK_FILE, f"{flag} of {dest}", lambda holder, p=p: FolderInUse(
+                    f"{p}: in use by {holder}; {flag} would delete it under that process: stop it (or wait for it "
+                    f"to end), then run the same command again")))
+        for e in removed:
+            p = Path(e)
+            if p.name == OWNER_FILE:
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink(missing_ok=True)
+    finally:
+        for lock in locks:
+            lock.release()
+    return [e for e in removed if Path(e).name != OWNER_FILE]
