@@ -28,8 +28,8 @@ from detbench.utils.atomic import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",
-           "check_out_dir", "is_project_file", "raised_on_purpose", "require", "run_main", "sigterm_as_ctrl_c",
-           "torch_device"]
+           "check_out_dir", "claim_output", "is_project_file", "output_folder", "raised_on_purpose", "require",
+           "run_main", "sigterm_as_ctrl_c", "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -173,6 +173,46 @@ def check_out_dir(path, flag: str = "--out") -> Path:
                 raise UserError(f"{flag} {path}: {p} is a file, not a folder; choose another {flag}")
             break
     return path
+
+
+def output_folder(path, kind, flag: str = "--out") -> Path:
+    """`path` as the output folder of a writer of `kind` (a `FolderKind`, e.g.
+    detbench.utils.report_folders.EVAL_FOLDER): `check_out_dir`, then the folder-ownership rule: new, empty or
+    proven to be `kind`'s (`check_claimable`), so no file the writer did not write is replaced; UserError
+    naming the folder and the fix. Nothing is written (`claim_output` writes)."""
+    from detbench.utils.folder_ownership import FolderNotReplaceable, check_claimable
+
+    path = check_out_dir(path, flag)
+    try:
+        check_claimable(path, kind, out=flag)
+    except FolderNotReplaceable as e:
+        raise UserError(f"{flag} {e}") from None
+    return path
+
+
+@contextmanager
+def claim_output(path, kind, flag: str = "--out") -> Iterator[Path]:
+    """Write a report of `kind` into `path` in the block: `output_folder` again, then the folder is made and
+    marked as `kind`'s (its owner file). A block that raises before writing anything leaves no folder it
+    made."""
+    from detbench.utils.folder_ownership import OWNER_FILE, folder_owner, write_owner
+
+    path = output_folder(path, kind, flag)
+    created = [p for p in (path, *path.parents) if not p.exists()]
+    path.mkdir(parents=True, exist_ok=True)
+    if folder_owner(path) is None:
+        write_owner(path, kind)
+    try:
+        yield path
+    except BaseException:
+        if created and sorted(p.name for p in path.iterdir()) in ([], [OWNER_FILE]):
+            (path / OWNER_FILE).unlink(missing_ok=True)
+            for p in created:
+                try:
+                    p.rmdir()
+                except OSError:
+                    break
+        raise
 
 
 def torch_device(name: str, flag: str = "--device"):

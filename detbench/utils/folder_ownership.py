@@ -94,8 +94,9 @@ def write_owner(dest: str | os.PathLike, kind: FolderKind) -> None:
 
 
 def folder_entries(dest: Path) -> list[str]:
-    """The names in `dest` that count: not temporary files of interrupted writes, nor the lock."""
-    return sorted(p.name for p in dest.iterdir() if not p.name.startswith(".tmp-") and p.name != LOCK_FILE)
+    """The names in `dest` that count: not temporary files of interrupted writes, nor locks (the folder's own,
+    and those of folders being written in it: `.detbench-lock-<name>`)."""
+    return sorted(p.name for p in dest.iterdir() if not p.name.startswith((".tmp-", LOCK_FILE)))
 
 
 def _is_kind(dest: Path, kind: FolderKind) -> bool:
