@@ -140,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: int = 4,
                                 progress: bool = True, stage: str = "refined"):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name, what the checkpoint
+    records of its training data)."""
     import models
     from detbench.train.checkpoint import CheckpointError
     from detbench.train.inference import checkpoint_predictions
@@ -151,7 +152,7 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: i
         raise UserError(str(e)) from None
     preds = checkpoint_predictions(model, ck, dataset, device=device, batch_size=batch_size, progress=progress,
                                    stage=stage, source=ckpt)
-    return preds, ck["model_name"]
+    return preds, ck["model_name"], ck["data"]
 
 
 def checkpoint_defaults(args: argparse.Namespace) -> None:
@@ -240,8 +241,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                        classes=args.pred_classes)
         preds, skipped = saved.predictions, saved.skipped
     else:
-        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, device, args.batch_size,
-                                                        not args.no_progress, args.stage)
+        preds, ckpt_model, trained_on = predictions_from_checkpoint(args.ckpt, dataset, device, args.batch_size,
+                                                                    not args.no_progress, args.stage)
         skipped = []
         model = model or ckpt_model
         checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage,
@@ -257,6 +258,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
     full = evaluation_report(dataset, preds, settings, model=model, height=args.height, split=args.split,
                              data=args.data, source=args.pred if args.pred is not None else args.ckpt, saved=saved,
                              pred_frame=args.pred_frame, checkpoint=checkpoint)
+    if checkpoint is not None:
+        from detbench.train.run import training_data_warnings
+
+        full.setdefault("warnings", []).extend(
+            training_data_warnings(trained_on, Path(args.data), args.split, list(dataset.frame_ids)))
     title = report_title(model, args.height, args.split, args.stage if args.ckpt is not None else "refined")
     with claim_output(args.out, EVAL_FOLDER):
         paths = write_report(full, args.out, title)

@@ -97,11 +97,14 @@ def main(argv=None) -> int:
             held.enter_context(claim_run_folder(out))
         except FolderNotReplaceable as e:
             raise UserError(f"--out {e}") from None
-        return train_in(args, cfg, out)
+        return train_in(args, cfg, out, held)
 
 
-def train_in(args, cfg: dict, out: Path) -> int:
-    """Train as `args` say into the run folder `out` (held by `main`)."""
+def train_in(args, cfg: dict, out: Path, held: ExitStack) -> int:
+    """Train as `args` say into the run folder `out` (held by `main`); the dataset is held for reading in
+    `held` (no detbench writer replaces it while the run reads it)."""
+    from detbench.utils.staged_folders import reading_folder
+
     from detbench.eval.evaluate import EvalConfig
     from detbench.data.road import RoadConfig
     from detbench.sim.dataset import default_dataset
@@ -116,6 +119,7 @@ def train_in(args, cfg: dict, out: Path) -> int:
     try:
         with main_process_first(info):
             root = default_dataset(cfg["data"], progress=info.is_main and not args.no_progress)
+            held.enter_context(reading_folder(root, "a training run"))
             train_set = TrainingSet.from_dataset(root, args.height, cfg["model"]["point_cloud_range"],
                                                  augment=AugmentConfig.from_dict(cfg["augment"]), seed=tcfg.seed,
                                                  road=road, progress=info.is_main and not args.no_progress)

@@ -48,8 +48,8 @@ class FolderLock:
     """The lock of one folder, held by this process (`acquire_folder_lock`). `recovered` is what the lock file said
     of an earlier holder that ended without releasing it (killed), or None."""
 
-    def __init__(self, path: Path, fd: int, recovered: dict | None):
-        self.path, self.fd, self.recovered = path, fd, recovered
+    def __init__(self, path: Path, fd: int, recovered: dict | None, shared: bool = False):
+        self.path, self.fd, self.recovered, self.shared = path, fd, recovered, shared
 
     def note(self) -> str | None:
         """One line about a lock taken over from a killed holder, or None."""
@@ -62,21 +62,44 @@ class FolderLock:
         if self.fd < 0:
             return
         try:
+            if self.shared:  # the last reader removes the file: only when no one else holds it
+                import fcntl
+
+                try:
+                    fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    return
             self.path.unlink(missing_ok=True)  # while still held: no other process has it open and locked
         finally:
             os.close(self.fd)  # closing the file releases the lock
             self.fd = -1
 
 
+def _only_readers(fd: int) -> bool:
+    """Whether the lock on `fd`'s file that refused an exclusive lock is held by readers alone (shared)."""
+    import fcntl
+
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    fcntl.flock(fd, fcntl.LOCK_UN)
+    return True
+
+
+READERS = "processes that read it (a training, for one)"  # how a refusal names the holders of a shared lock
+
+
 def lock_file(path: str | os.PathLike, what: str, in_use: Callable[[str], BaseException],
-              wait: Callable[[str], None] | None = None) -> FolderLock:
+              wait: Callable[[str], None] | None = None, *, shared: bool = False) -> FolderLock:
     """Take the kernel's lock (`flock`) on the file `path` (created when missing) for this process, so it ends
     with its process however that ends (a kill -9 included), and write into it who holds it (`what`, pid,
     host, since when); a file left by a killed holder is taken over (`FolderLock.recovered`). While another
     process holds it: with `wait`, `wait(words naming the holder)` is called once and the call blocks until
     the lock is free; without, `in_use(words naming the holder)` is raised. The kernel's lock reaches other
     pid namespaces (containers) on this machine, and other machines on a file system that shares locks
-    (NFS)."""
+    (NFS). `shared`: a reader's lock, held by any number of readers at once and refused while a writer holds
+    the exclusive one (and the other way round); a reader leaves the file as it is."""
     import socket
     import time
 
@@ -86,22 +109,24 @@ def lock_file(path: str | os.PathLike, what: str, in_use: Callable[[str], BaseEx
     except ImportError:  # pragma: no cover - not POSIX: no lock
         return FolderLock(path, -1, None)
     waited = False
+    mode = fcntl.LOCK_SH if shared else fcntl.LOCK_EX
     for _ in range(100):
         fd = os.open(path, os.O_RDWR | os.O_CREAT, NEW_FILE_MODE)
         try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            fcntl.flock(fd, mode | fcntl.LOCK_NB)
         except OSError as e:
-            holder = _read_holder(fd)
-            if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES) or wait is None:
+            busy = e.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES)
+            words = (READERS if not shared and busy and _only_readers(fd) else _holder_words(_read_holder(fd)))
+            if not busy or wait is None:
                 os.close(fd)
-                if e.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                if not busy:
                     raise
-                raise in_use(_holder_words(holder)) from None
+                raise in_use(words) from None
             if not waited:
-                wait(_holder_words(holder))
+                wait(words)
                 waited = True
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX)
+                fcntl.flock(fd, mode)
             except BaseException:
                 os.close(fd)
                 raise
@@ -114,6 +139,8 @@ def lock_file(path: str | os.PathLike, what: str, in_use: Callable[[str], BaseEx
         os.close(fd)
     else:  # pragma: no cover - another process creates and removes the lock a hundred times in a row
         raise in_use(f"processes that keep taking and releasing its lock {path}")
+    if shared:
+        return FolderLock(path, fd, None, shared=True)
     recovered = _read_holder(fd)
     holder = {"what": what, "pid": os.getpid(), "host": socket.gethostname(),
               "since": time.strftime("%Y-%m-%d %H:%M:%S %Z")}

@@ -34,7 +34,7 @@ from detbench.utils.folder_locks import FolderLock, lock_file
 from detbench.utils.folder_ownership import LOCK_FILE, FolderInUse
 
 __all__ = ["BUILD_MARKER", "STAGED_NEW", "STAGED_OLD", "destination_lock", "hold_destination", "pid_alive",
-           "recover_marked", "recover_staged", "staged_folder", "swap_in"]
+           "reading_folder", "recover_marked", "recover_staged", "staged_folder", "swap_in"]
 
 
 STAGED_NEW = ".tmp-new-"  # `.tmp-new-<name>-<pid>`: the folder being built (or, after an exchange, the old one)
@@ -64,13 +64,37 @@ def hold_destination(dest: str | os.PathLike, what: str, *, out: str = "--out",
         return
     key.parent.mkdir(parents=True, exist_ok=True)
     lock = lock_file(destination_lock(key), what, lambda holder: FolderInUse(
-        f"{dest}: being written by {holder}; wait for it to end, or choose another {out}"), wait=wait)
+        f"{dest}: in use by {holder}; wait for it to end, or choose another {out}"), wait=wait)
     _HELD[key] = lock
     try:
         yield
     finally:
         del _HELD[key]
         lock.release()
+
+
+@contextmanager
+def reading_folder(dest: str | os.PathLike, what: str, *, flag: str = "--data") -> Iterator[None]:
+    """Read the folder `dest` (a dataset a training reads for hours) in the block under a reader's lock on its
+    destination lock: no detbench writer replaces it meanwhile (`hold_destination` refuses, naming the
+    readers), and while one is replacing it the read is refused (`FolderInUse`, naming the writer). A folder
+    whose parent takes no lock file (read-only) cannot be replaced by detbench either: read without one."""
+    key = Path(os.path.abspath(dest))
+    if key in _HELD:
+        yield
+        return
+    try:
+        lock = lock_file(destination_lock(key), what, lambda holder: FolderInUse(
+            f"{flag} {dest}: in use by {holder}, which replaces it; wait for it to end"), shared=True)
+    except OSError as e:
+        if isinstance(e, FolderInUse) or e.errno not in (errno.EACCES, errno.EROFS, errno.EPERM):
+            raise
+        lock = None
+    try:
+        yield
+    finally:
+        if lock is not None:
+            lock.release()
 
 
 @contextmanager

@@ -3,6 +3,7 @@ holds its destination's lock (not judged by its pid, which another pid namespace
 second writer of one folder is refused while the first runs, and a dataset whose files vanished while it was
 written is never published."""
 import json
+from pathlib import Path
 import subprocess
 import sys
 import time
@@ -126,7 +127,7 @@ def test_two_simulations_into_one_new_out(tmp_path, tool):
         code, err = tool("simulate", "--out", out, "--frames", 2, "--heights", 1.8, "--seed", 1, "--no-progress")
     finally:
         finish(proc, go)
-    assert code == 2 and f"error: {out}: being written by a simulation pid {proc.pid} on host " in err, err
+    assert code == 2 and f"error: {out}: in use by a simulation pid {proc.pid} on host " in err, err
     assert "wait for it to end, or choose another --out" in err and "Traceback" not in err
     assert "wrote " not in err
     info = json.loads((out / "dataset.json").read_text())
@@ -152,5 +153,54 @@ def test_an_export_into_a_folder_another_writer_holds_is_refused(fault_data, tmp
     finally:
         holder.kill()
         holder.communicate()
-    assert code == 2 and f"error: {out}: being written by an OpenPCDet export pid {holder.pid} on host " in err, err
+    assert code == 2 and f"error: {out}: in use by an OpenPCDet export pid {holder.pid} on host " in err, err
     assert not out.exists()
+
+
+def test_a_dataset_a_training_reads_is_not_replaced(data_copy, tmp_path, tool):
+    """`simulate --overwrite` on the --data of a running training is refused in one line (the training holds a
+    reader's lock on it), and the dataset stays as the training found it."""
+    from tests.faults.faultkit import snapshot, stalling_trainer, train_argv
+
+    before = snapshot(data_copy)
+    proc, marker = stalling_trainer(tmp_path, "step", train_argv(data_copy, tmp_path / "run"))
+    try:
+        t0 = time.monotonic()
+        while not marker.exists():
+            assert proc.poll() is None, proc.communicate()[1][-3000:]
+            assert time.monotonic() - t0 < 240, "the training never reached its step"
+            time.sleep(0.1)
+        code, err = tool("simulate", "--out", data_copy, "--frames", 4, "--heights", 1.8, "--overwrite",
+                         "--no-progress")
+    finally:
+        proc.kill()
+        proc.communicate()
+    assert code == 2, err[-3000:]
+    assert f"error: {data_copy}: in use by processes that read it (a training, for one)" in err
+    assert "Traceback" not in err
+    def data(snap):  # the dataset's files (the training adds its ground-truth database)
+        return {k: v for k, v in snap.items() if not k.startswith("gt_database")}
+
+    assert data(snapshot(data_copy)) == data(before)
+
+
+def test_an_evaluation_says_when_its_data_changed_since_the_training(trained_run, fault_data, tmp_path, tool):
+    """The dataset a checkpoint was trained on is re-split (simulated again with another --test-fraction):
+    evaluating the checkpoint on it warns that the dataset changed and that training frames are among those
+    evaluated, on stderr and in report.json; on the data it was trained with, no such warning."""
+    import shutil
+
+    data = Path(shutil.copytree(fault_data, tmp_path / "data"))
+    src = json.loads((data / "dataset.json").read_text())["source"]
+    code, err = tool("simulate", "--out", data, "--frames", src["frames"], "--frames-per-scene", 4, "--heights",
+                     0.5, 1.8, "--seed", src["seed"], "--test-fraction", 0.67, "--overwrite", "--no-progress")
+    assert code == 0, err[-3000:]
+    ckpt = trained_run / "checkpoints" / "epoch_002.pt"
+    code, err = tool("eval", "--ckpt", ckpt, "--data", data, "--out", tmp_path / "eval", "--no-progress")
+    assert code == 0, err[-3000:]
+    assert f"{data} is not the dataset this checkpoint was trained on: its dataset.json changed since" in err
+    assert "frames of the test split were training frames of this checkpoint" in err
+    report = json.loads((tmp_path / "eval" / "report.json").read_text())
+    assert any("were training frames of this checkpoint" in w for w in report["warnings"])
+    code, err = tool("eval", "--ckpt", ckpt, "--data", fault_data, "--out", tmp_path / "eval0", "--no-progress")
+    assert code == 0 and "training frames of this checkpoint" not in err and "is not the dataset" not in err
