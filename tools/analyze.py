@@ -28,7 +28,10 @@ from detbench.studies.ability import DEFAULT_THRESHOLDS
 from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
-from detbench.utils.cli import add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, run_main
+from detbench.data.frame import height_key
+from detbench.utils.cli import (
+    add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, require_distinct, run_main,
+)
 from detbench.utils.report_folders import ABILITY_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
@@ -97,6 +100,7 @@ def check_arguments(args: argparse.Namespace) -> None:
     """UserError for a value the study cannot use, before any frame is read or simulated."""
     for h in args.heights or ():
         require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
+    require_distinct(args.heights, "--heights", key=height_key, what="height")
     require(args.lane_width is None or (math.isfinite(args.lane_width) and args.lane_width > 0),
             f"--lane-width {args.lane_width}: must be a positive number of metres (e.g. 3.5)")
     require(math.isfinite(args.distance_bin) and args.distance_bin > 0,

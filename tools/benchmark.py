@@ -41,7 +41,8 @@ from detbench.data.road import RoadConfig
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
 from detbench.utils.cli import (
-    EXIT_USER_ERROR, UserError, claim_output, doc_parser, output_folder, require, run_main, torch_device,
+    EXIT_USER_ERROR, UserError, claim_output, doc_parser, output_folder, require, require_distinct, run_main,
+    torch_device,
 )
 from detbench.utils.report_folders import BENCHMARK_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
@@ -133,6 +134,7 @@ def check_arguments(args: argparse.Namespace) -> None:
             f"--height {args.height:g}: must be a positive number of metres")
     if args.device != "auto":
         torch_device(args.device)
+    require_distinct(args.models, "--models", what="model")
     output_folder(args.out, BENCHMARK_FOLDER)
 
 

@@ -42,7 +42,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.studies.calibration_check import CalibrationOptions, check_calibration
-from detbench.utils.cli import UserError, add_sim_preset_argument, claim_output, output_folder
+from detbench.utils.cli import UserError, add_sim_preset_argument, claim_output, output_folder, require_distinct
 from detbench.utils.report_folders import CALIBRATION_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
@@ -90,6 +90,7 @@ def main(argv=None) -> int:
         pair_tolerance=args.pair_tolerance, preset=args.sim_preset, overrides=args.overrides,
         no_progress=args.no_progress)
     try:
+        require_distinct(args.seeds, "--seeds", what="seed")
         output_folder(args.out, CALIBRATION_FOLDER)
         report, md, failed = check_calibration(opts)
         with claim_output(args.out, CALIBRATION_FOLDER) as out:

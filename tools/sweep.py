@@ -36,7 +36,7 @@ from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
 from detbench.utils.cli import (
-    UserError, add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, run_main,
+    UserError, add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, require_distinct, run_main,
 )
 from detbench.utils.report_folders import SWEEP_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
@@ -98,6 +98,7 @@ def check_arguments(args: argparse.Namespace) -> None:
             height_key(h)
         except ValueError as e:
             raise UserError(f"--heights {h:g}: {e}") from None
+    require_distinct(args.heights, "--heights", key=height_key, what="height")
     for flag, v in (("--distance-bin", args.distance_bin), ("--voxel", args.voxel),
                     ("--evidence-scale", args.evidence_scale)):
         require(v is None or (math.isfinite(v) and v > 0), f"{flag} {v}: must be a positive number")

@@ -29,7 +29,7 @@ from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",
            "check_out_dir", "claim_output", "is_project_file", "output_folder", "raised_on_purpose", "require",
-           "run_main", "sigterm_as_ctrl_c", "torch_device"]
+           "require_distinct", "run_main", "sigterm_as_ctrl_c", "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -162,6 +162,18 @@ def require(ok: bool, message: str) -> None:
     """`UserError(message)` unless `ok`: a one-line check of an argument's value."""
     if not ok:
         raise UserError(message)
+
+
+def require_distinct(values, flag: str, key=None, what: str = "value") -> None:
+    """UserError when `values` (a list option) names one thing twice (compared by `key`, e.g. a height by
+    its height key, so 1.8 and 1.80 are one): every figure would count it twice."""
+    seen: dict = {}
+    for v in values or ():
+        k = v if key is None else key(v)
+        if k in seen:
+            same = f"{v} is given twice" if str(v) == str(seen[k]) else f"{seen[k]} and {v} are one {what}"
+            raise UserError(f"{flag} {' '.join(str(x) for x in values)}: {same}; give each {what} once")
+        seen[k] = v
 
 
 def check_out_dir(path, flag: str = "--out") -> Path:
