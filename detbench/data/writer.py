@@ -255,6 +255,12 @@ class DatasetWriter:
                     "train": sum(f in self._without for f in train), "test": sum(f in self._without for f in test)})
                 train = [f for f in train if f not in self._without]
                 test = [f for f in test if f not in self._without]
+                if self._frame_ids and not train and not test:
+                    r = self.drop_frames_without
+                    raise DatasetError(f"dropping the frames without a vehicle in the {r} range (--drop-frames-"
+                                       f"without {r}) leaves both splits empty: none of the {len(self._frame_ids)} "
+                                       f"frames has one; simulate more frames or denser traffic, or drop by a "
+                                       f"wider range (moderate, large)")
             self._check_files()
             atomic_write_text(imageset_path(self._dir, "train"), "".join(f + "\n" for f in train))
             atomic_write_text(imageset_path(self._dir, "test"), "".join(f + "\n" for f in test))
