@@ -48,7 +48,7 @@ from detbench.train.run_config import load_run_config
 from detbench.train.run_layout import STUDY_FOLDER, default_study_dir
 from detbench.utils.cli import UserError, require_distinct
 from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
-from detbench.utils.folder_locks import claim_folder, clear_folder
+from detbench.utils.folder_locks import check_members_free, claim_folder, clear_folder
 from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable
 
 
@@ -136,6 +136,9 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
             held.enter_context(claim_folder(out, STUDY_FOLDER, "a study", notes=_note))
             if args.fresh:
                 clear_folder(out, STUDY_FOLDER, flag="--fresh")
+            else:  # a job of an earlier driver that still runs (the driver was killed): not a second writer
+                check_members_free(out, "a job of an earlier run of this study that has not ended yet; wait for "
+                                        "it to end (or stop it), then run the same command again")
         except FolderNotReplaceable as e:
             raise UserError(f"--out {e}") from None
         return _run_stages(args, out, names, left_out, heights, base_cfg, repo=repo)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import os
 import signal
 import sys
 import threading
@@ -27,9 +28,9 @@ from pathlib import Path
 from detbench.utils.atomic import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "UserError", "add_sim_preset_argument", "as_user_error",
-           "check_out_dir", "claim_output", "is_project_file", "output_folder", "raised_on_purpose", "require",
-           "require_distinct", "run_main", "sigterm_as_ctrl_c", "torch_device"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "PARENT_ENV", "UserError", "add_sim_preset_argument",
+           "as_user_error", "check_out_dir", "claim_output", "end_with_parent", "is_project_file", "output_folder",
+           "raised_on_purpose", "require", "require_distinct", "run_main", "sigterm_as_ctrl_c", "torch_device"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -50,6 +51,30 @@ def _escape_unencodable_output() -> None:
             stream.reconfigure(errors=ESCAPE_ERRORS)
 
 
+# set by a study's (or the trade sweep's) executor in its jobs' environment: the driver's pid. A job then ends
+# with its driver (`end_with_parent`), however the driver ends (a kill -9, an out-of-memory kill)
+PARENT_ENV = "DETBENCH_PARENT_PID"
+
+
+def end_with_parent() -> None:
+    """In a job started by an executor (PARENT_ENV set to its driver's pid): have the kernel send this process
+    SIGTERM when the driver ends (Linux's parent-death signal; a training then saves its checkpoint and
+    exits), and stop at once when the driver has already ended. Nothing elsewhere."""
+    want = os.environ.get(PARENT_ENV, "")
+    if not want.isdigit():
+        return
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            pr_set_pdeathsig = 1
+            ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != int(want):  # the driver ended before the signal was armed
+        raise KeyboardInterrupt
+
+
 def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status,
     and Ctrl-C (KeyboardInterrupt) as one 'interrupted' line and 130. Output the terminal cannot encode (a file
@@ -57,6 +82,7 @@ def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | 
     _escape_unencodable_output()
     try:
         with sigterm_as_ctrl_c():
+            end_with_parent()
             return main(argv)
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)

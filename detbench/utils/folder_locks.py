@@ -201,6 +201,19 @@ def _remove_created(dest: Path, created: list[Path]) -> None:
             break
 
 
+def check_members_free(dest: str | os.PathLike, fix: str) -> None:
+    """`FolderInUse` naming the first folder in `dest` (a study's run, say) whose lock a process holds (a
+    training that outlived its killed study driver), then `fix`; nothing when none is held. A lock left by a
+    killed holder is removed on the way."""
+    dest = Path(dest)
+    if not dest.is_dir():
+        return
+    for p in sorted(dest.iterdir()):
+        if p.is_dir() and not p.is_symlink() and (p / LOCK_FILE).is_file():
+            lock_file(p / LOCK_FILE, "a check of its lock", lambda holder, p=p: FolderInUse(
+                f"{p}: in use by {holder}; {fix}")).release()
+
+
 def clear_folder(dest: str | os.PathLike, kind: FolderKind, *, flag: str, out: str = "--out") -> list[str]:
     """Delete what `dest` holds (the folder itself, its OWNER_FILE and its lock stay) once `check_replaceable`
     allows it to be replaced (`overwrite` given as `flag`). A folder in it that a process holds (a training run
