@@ -36,6 +36,7 @@ from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
 from detbench.utils.atomic import DiskFullError
+from detbench.utils.cli import UserError
 from detbench.utils.folder_ownership import check_replaceable
 from detbench.utils.staged_folders import hold_destination, recover_marked, recover_staged, staged_folder
 
@@ -43,11 +44,22 @@ DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, 
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
-    """Where simulated datasets are cached: `cache_dir`, else $DETBENCH_CACHE, else ~/.cache/detbench."""
-    if cache_dir:
-        return Path(cache_dir).expanduser()
+    """Where simulated datasets are cached: `cache_dir`, else $DETBENCH_CACHE, else ~/.cache/detbench.
+    UserError when that path is a file (or under one), naming where it came from."""
     env = os.environ.get("DETBENCH_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "detbench"
+    if cache_dir:
+        path, named = Path(cache_dir).expanduser(), f"data.cache_dir {cache_dir}"
+    elif env:
+        path, named = Path(env).expanduser(), f"DETBENCH_CACHE={env}"
+    else:
+        return Path.home() / ".cache" / "detbench"
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise UserError(f"{named}: {p} is a file, not a folder; point it at a folder for the cache of "
+                                f"simulated datasets (or leave it unset for ~/.cache/detbench)")
+            break
+    return path
 
 
 def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default_fps: int) -> tuple[int, int]:
@@ -238,6 +250,11 @@ def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path
     another that needs it at the same time waits and then reuses it.
     """
     cfg = {**DATA_DEFAULTS, **(data_cfg or {})}
+    for key in ("root", "cache_dir"):
+        if cfg[key] is not None and not isinstance(cfg[key], (str, os.PathLike)):
+            raise UserError(f"data.{key} is {cfg[key]!r}, not a folder path (YAML reads yes, no, on and off as "
+                            f"true and false, and digits as numbers); give a path, quoted if it looks like one of "
+                            f"those: --set 'data.{key}=\"yes\"'")
     if cfg["root"]:
         root = Path(cfg["root"]).expanduser()
         if not (root / "dataset.json").is_file():

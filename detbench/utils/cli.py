@@ -11,6 +11,10 @@ shell reports it): a tool that saves its work on an interrupt (training, the stu
 has said so by then, and a traceback would bury that. SIGTERM (`kill PID`, and how a stopped study
 stops its jobs) is taken as Ctrl-C, so a tool killed so unwinds the same way: a file being
 written atomically is dropped rather than left as a stray temporary, and a training saves.
+Two more kinds of error are the user's: an environment setting the libraries would stop on deep
+inside (`environment_problem`: NUMBA_NUM_THREADS=0, a numba threading layer that cannot load,
+DETBENCH_MAX_TENSOR_GB=nan), refused before the tool starts, and a path the file system refuses
+to write (`unwritable_problem`: read-only, no permission, a file where a folder belongs).
 """
 from __future__ import annotations
 
@@ -29,8 +33,9 @@ from detbench.utils.atomic import DiskFullError
 from detbench.utils.untrusted import ESCAPE_ERRORS
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USER_ERROR", "PARENT_ENV", "UserError", "add_sim_preset_argument",
-           "as_user_error", "check_out_dir", "claim_output", "end_with_parent", "is_project_file", "output_folder",
-           "raised_on_purpose", "require", "require_distinct", "run_main", "sigterm_as_ctrl_c", "torch_device"]
+           "as_user_error", "check_out_dir", "claim_output", "end_with_parent", "environment_problem",
+           "is_project_file", "output_folder", "raised_on_purpose", "require", "require_distinct", "run_main",
+           "sigterm_as_ctrl_c", "torch_device", "unwritable_problem"]
 
 EXIT_USER_ERROR = 2
 EXIT_INTERRUPTED = 130
@@ -75,17 +80,90 @@ def end_with_parent() -> None:
         raise KeyboardInterrupt
 
 
+NUMBA_LAYERS = ("default", "safe", "forksafe", "threadsafe", "workqueue", "omp", "tbb")
+
+
+def environment_problem(env=None) -> str | None:
+    """What is wrong with a setting of the environment that the libraries would otherwise stop on deep inside
+    (numba's thread count and threading layer, DETBENCH_MAX_TENSOR_GB), as one line with the fix; None when
+    nothing is."""
+    import math
+
+    if env is None:  # with what detbench.runtime set aside at import so that numba could load (not imported here:
+        # it is of this layer, and `import detbench` has run it first)
+        env = {**os.environ, **getattr(sys.modules.get("detbench.runtime"), "SET_ASIDE", {})}
+    threads = env.get("NUMBA_NUM_THREADS")
+    if threads is not None and not (threads.strip().isdigit() and int(threads) >= 1):
+        return (f"NUMBA_NUM_THREADS={threads}: numba's thread count is a whole number >= 1; set one (e.g. 1) or "
+                f"unset it for one per core")
+    layer = env.get("NUMBA_THREADING_LAYER")
+    if layer is not None and layer not in NUMBA_LAYERS:
+        return f"NUMBA_THREADING_LAYER={layer}: one of {', '.join(NUMBA_LAYERS)}; or unset it (detbench uses omp)"
+    if layer in ("tbb", "omp"):
+        import importlib.util
+
+        pool = "tbbpool" if layer == "tbb" else "omppool"
+        try:
+            ok = importlib.util.find_spec(f"numba.np.ufunc.{pool}") is not None
+            if ok:
+                importlib.import_module(f"numba.np.ufunc.{pool}")
+        except (ImportError, OSError, ValueError):
+            ok = False
+        if not ok:
+            need = "Intel TBB (pip install tbb)" if layer == "tbb" else "an OpenMP runtime"
+            return (f"NUMBA_THREADING_LAYER={layer}: numba cannot load this layer here (it needs {need}); install "
+                    f"it, or unset NUMBA_THREADING_LAYER (detbench then uses omp)")
+    cap = env.get("DETBENCH_MAX_TENSOR_GB")
+    if cap is not None and cap.strip():
+        try:
+            gb = float(cap)
+        except ValueError:
+            gb = math.nan
+        if not (math.isfinite(gb) and gb > 0):
+            return (f"DETBENCH_MAX_TENSOR_GB={cap}: the largest tensor a model may allocate is a positive number "
+                    f"of GiB (e.g. 16, the default when it is unset)")
+    return None
+
+
+def unwritable_problem(e: OSError) -> str | None:
+    """One line for a file-system refusal of a path the user chose (a read-only file system, a folder without
+    write permission, a file where a folder belongs), naming the path and the fix; None for other errors."""
+    import errno
+
+    path = e.filename
+    if not path or e.errno not in (errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR, errno.EEXIST):
+        return None
+    if e.errno == errno.EROFS:
+        why = "the file system is read-only"
+    elif e.errno in (errno.EACCES, errno.EPERM):
+        why = "permission denied"
+    else:
+        why = "a file stands where a folder belongs"
+    return (f"{path}: cannot be written ({why}); choose a folder you can write to (--out, a copy of --data, "
+            f"$DETBENCH_CACHE), or make this one writable")
+
+
 def run_main(main: Callable[[Sequence[str] | None], int], argv: Sequence[str] | None = None) -> int:
     """`main(argv)`, with a `UserError` (or a full disk) printed as one 'error: ...' line and its exit status,
     and Ctrl-C (KeyboardInterrupt) as one 'interrupted' line and 130. Output the terminal cannot encode (a file
     name that is not UTF-8) is printed escaped (`\\xff`)."""
     _escape_unencodable_output()
+    problem = environment_problem()
+    if problem is not None:
+        print(f"error: {problem}", file=sys.stderr)
+        return EXIT_USER_ERROR
     try:
         with sigterm_as_ctrl_c():
             end_with_parent()
             return main(argv)
     except (UserError, DiskFullError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return EXIT_USER_ERROR
+    except OSError as e:
+        problem = unwritable_problem(e)
+        if problem is None:
+            raise
+        print(f"error: {problem}", file=sys.stderr)
         return EXIT_USER_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

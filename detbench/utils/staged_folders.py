@@ -63,8 +63,13 @@ def hold_destination(dest: str | os.PathLike, what: str, *, out: str = "--out",
         yield
         return
     key.parent.mkdir(parents=True, exist_ok=True)
-    lock = lock_file(destination_lock(key), what, lambda holder: FolderInUse(
-        f"{dest}: in use by {holder}; wait for it to end, or choose another {out}"), wait=wait)
+    try:
+        lock = lock_file(destination_lock(key), what, lambda holder: FolderInUse(
+            f"{dest}: in use by {holder}; wait for it to end, or choose another {out}"), wait=wait)
+    except OSError as e:  # the folder the destination is made in cannot be written: name it, not the lock file
+        if isinstance(e, FolderInUse) or e.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+            raise
+        raise OSError(e.errno, e.strerror, str(key.parent)) from None
     _HELD[key] = lock
     try:
         yield
