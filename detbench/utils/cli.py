@@ -99,20 +99,14 @@ def environment_problem(env=None) -> str | None:
     layer = env.get("NUMBA_THREADING_LAYER")
     if layer is not None and layer not in NUMBA_LAYERS:
         return f"NUMBA_THREADING_LAYER={layer}: one of {', '.join(NUMBA_LAYERS)}; or unset it (detbench uses omp)"
-    if layer in ("tbb", "omp"):
-        import importlib.util
+    if layer == "tbb":  # the layer that needs a package of its own (omp, detbench's default, comes with numba)
+        import importlib
 
-        pool = "tbbpool" if layer == "tbb" else "omppool"
         try:
-            ok = importlib.util.find_spec(f"numba.np.ufunc.{pool}") is not None
-            if ok:
-                importlib.import_module(f"numba.np.ufunc.{pool}")
+            importlib.import_module("numba.np.ufunc.tbbpool")
         except (ImportError, OSError, ValueError):
-            ok = False
-        if not ok:
-            need = "Intel TBB (pip install tbb)" if layer == "tbb" else "an OpenMP runtime"
-            return (f"NUMBA_THREADING_LAYER={layer}: numba cannot load this layer here (it needs {need}); install "
-                    f"it, or unset NUMBA_THREADING_LAYER (detbench then uses omp)")
+            return ("NUMBA_THREADING_LAYER=tbb: numba cannot load this layer here (it needs Intel TBB: pip install "
+                    "tbb); install it, or unset NUMBA_THREADING_LAYER (detbench then uses omp)")
     cap = env.get("DETBENCH_MAX_TENSOR_GB")
     if cap is not None and cap.strip():
         try:
