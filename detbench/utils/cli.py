@@ -269,7 +269,7 @@ def require_distinct(values, flag: str, key=None, what: str = "value") -> None:
     for v in values or ():
         k = v if key is None else key(v)
         if k in seen:
-            same = f"{v} is given twice" if str(v) == str(seen[k]) else f"{seen[k]} and {v} are one {what}"
+            same = f"{v} is given twice" if str(v) == str(seen[k]) else f"{seen[k]} and {v} are one {what}, given twice"
             raise UserError(f"{flag} {' '.join(str(x) for x in values)}: {same}; give each {what} once")
         seen[k] = v
 
