@@ -187,9 +187,14 @@ def parse_override(item: str) -> tuple[list[str], Any]:
         raise ConfigError(f"override {excerpt(item)} has an empty key")
     try:
         value = yaml_value(raw, f"--set {excerpt(key)}") if raw.strip() else ""
+        return key.split("."), _numbers_from_strings(value)
     except yaml.YAMLError:
-        value = raw
-    return key.split("."), _numbers_from_strings(value)
+        return key.split("."), _numbers_from_strings(raw)
+    except ValueError as e:  # Python reads no integer of more than sys.get_int_max_str_digits() digits
+        if isinstance(e, ConfigError):
+            raise
+        raise ConfigError(f"--set {excerpt(key)}: the value is a number {len(raw.strip())} characters long, too "
+                          f"long to read as one; no setting takes such a number: give one of a sensible size") from None
 
 
 def _numbers_from_strings(value: Any) -> Any:

@@ -53,6 +53,15 @@ REPORTED = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS", "NUMBA_THREA
 _user_set: dict[str, str] = {}
 _applied: dict[str, str] = {}
 _imported_first = [True]
+# Settings numba cannot even be imported with (NUMBA_NUM_THREADS=0), set aside at import so the tool can start
+# and refuse them in one line (detbench.utils.cli.environment_problem) instead of failing inside numba's import.
+SET_ASIDE: dict[str, str] = {}
+
+
+def _set_aside_invalid(env) -> None:
+    threads = env.get("NUMBA_NUM_THREADS")
+    if threads is not None and not (threads.strip().isdigit() and int(threads) >= 1):
+        SET_ASIDE["NUMBA_NUM_THREADS"] = env.pop("NUMBA_NUM_THREADS")
 
 
 def apply_defaults(environ=None) -> dict[str, str]:
@@ -67,6 +76,7 @@ def apply_defaults(environ=None) -> dict[str, str]:
     inherited = {k for k in env.get(MARKER, "").split(",") if k in DEFAULTS and k in env}
     first = environ is None and _imported_first[0]
     if first:
+        _set_aside_invalid(env)
         _imported_first[0] = False
         _user_set.update({k: env[k] for k in REPORTED if k in env and k not in inherited})
     applied = {}

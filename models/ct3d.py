@@ -5,7 +5,8 @@ The model is SECOND's network (`SECONDStages`, its modules registered under SECO
 so a SECOND checkpoint initialises them) with a second stage:
 
   points --SECOND (vfe, backbone3d, to_bev, backbone2d, head)--> anchor scores and boxes
-  --select_proposals (NMS; train / test budgets)--> RoIs (B, R, 7)
+  --select_proposals (boxes with non-finite geometry dropped and counted; NMS; train / test budgets)
+  --> RoIs (B, R, 7)
   --sample_proposal_targets (training: fg / bg ratio, IoU thresholds)--> RoIs with targets
   --CT3DRoIHead (cylinder points, keypoint encoding, self-attention encoder,
      channel-wise decoder)--> (B, R, d) --RefineHead--> IoU-guided confidence + residual box
@@ -32,7 +33,8 @@ from .second import SECOND, SECONDConfig, SECONDStages
 from .stages import AnchorHeadOutput, Section, StageConfig
 from .stages.ct3d_head import CT3DHeadConfig, CT3DRoIHead
 from .stages.two_stage import (
-    OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, refine_loss, rois_for_refinement,
+    OutputStageSwitch, Proposals, RefineHead, RefineOutput, dropped_proposals_part, predict_refined, refine_loss,
+    rois_for_refinement,
 )
 
 POINT_FEATURES = 1  # a Batch's point columns after x, y, z: the intensity
@@ -88,7 +90,7 @@ class CT3D(OutputStageSwitch, nn.Module):
         w = self.cfg.roi_head.loss_weights
         rpn_total, rpn_parts = self.rpn.loss(out.rpn, batch)
         rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, w.refine)
-        return w.rpn * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts}
+        return w.rpn * rpn_total + rcnn_total, {**rpn_parts, **rcnn_parts, **dropped_proposals_part(out.proposals)}
 
     def predict(self, out: TwoStageOutput, batch: Batch) -> list[Detections]:
         if self.output_stage == "proposals":

@@ -7,8 +7,8 @@ The model is the composition of shared stages, read top to bottom:
   --PointNet2MSG (set abstraction down, feature propagation up)--> a feature per point
   --PointHead--> foreground logit + a box per point (residual coding on the mean vehicle size,
      or the paper's bin-based coding: point_head.box_coding)
-  --select_proposals (NMS; train / test budgets; at test time optionally split by range:
-     roi_head.test_split)--> RoIs
+  --select_proposals (boxes with non-finite geometry dropped and counted; NMS; train / test budgets;
+     at test time optionally split by range: roi_head.test_split)--> RoIs
   --sample_proposal_targets (training: fg / bg ratio, IoU thresholds)--> RoIs with targets
   --PointRCNNRoIHead (RoI point pooling, canonical coordinates + depth + score, optionally the
      coordinates scaled by the RoI's half-size and the RoI's size, set abstraction inside each
@@ -39,7 +39,8 @@ from .stages.point_head import PointHead, PointHeadConfig, PointHeadOutput, poin
 from .stages.pointnet2 import PointNet2Config, PointNet2MSG, SamplingConfig, sample_frame_points
 from .stages.pointrcnn_head import PointRCNNRoIHead, PointRCNNRoIHeadConfig
 from .stages.two_stage import (
-    OutputStageSwitch, Proposals, RefineHead, RefineOutput, predict_refined, refine_loss, rois_for_refinement,
+    OutputStageSwitch, Proposals, RefineHead, RefineOutput, dropped_proposals_part, predict_refined, refine_loss,
+    rois_for_refinement,
 )
 
 POINT_FEATURES = 1  # a Batch's point columns after x, y, z: the intensity
@@ -124,7 +125,7 @@ class PointRCNN(OutputStageSwitch, nn.Module):
                           bottom_lift=self.point_head.fg_bottom_lift)
         point_total, point_parts = self.point_head.loss(out.point, t, out.xyz)
         rcnn_total, rcnn_parts = refine_loss(out.refine, self.coder, self.loss_weights)
-        return point_total + rcnn_total, {**point_parts, **rcnn_parts}
+        return point_total + rcnn_total, {**point_parts, **rcnn_parts, **dropped_proposals_part(out.proposals)}
 
     @torch.no_grad()
     def predict(self, out: PointRCNNOutput, batch: Batch) -> list[Detections]:

@@ -28,7 +28,11 @@ from detbench.studies.ability import DEFAULT_THRESHOLDS
 from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
-from detbench.utils.cli import add_sim_preset_argument, check_out_dir, require, run_main
+from detbench.data.frame import height_key
+from detbench.utils.cli import (
+    add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, require_distinct, run_main,
+)
+from detbench.utils.report_folders import ABILITY_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
@@ -96,6 +100,7 @@ def check_arguments(args: argparse.Namespace) -> None:
     """UserError for a value the study cannot use, before any frame is read or simulated."""
     for h in args.heights or ():
         require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
+    require_distinct(args.heights, "--heights", key=height_key, what="height")
     require(args.lane_width is None or (math.isfinite(args.lane_width) and args.lane_width > 0),
             f"--lane-width {args.lane_width}: must be a positive number of metres (e.g. 3.5)")
     require(math.isfinite(args.distance_bin) and args.distance_bin > 0,
@@ -104,7 +109,7 @@ def check_arguments(args: argparse.Namespace) -> None:
     require(args.example_window >= 1, f"--example-window {args.example_window}: must be an integer >= 1")
     require(args.frames_per_scene is None or args.frames_per_scene >= 1,
             f"--frames-per-scene {args.frames_per_scene}: must be an integer >= 1")
-    out = check_out_dir(args.out)
+    out = output_folder(args.out, ABILITY_FOLDER)
     if args.json:
         check_out_dir(Path(args.json).parent, "--json")
         require(not Path(args.json).is_dir(), f"--json {args.json}: is a folder; give a file path, e.g. "
@@ -122,7 +127,15 @@ def main(argv=None) -> int:
         example_window=args.example_window, skip_bad=args.skip_bad, bootstrap=args.bootstrap,
         no_progress=args.no_progress)
     report, example, seconds = run_ability(opts)
-    out = Path(args.out)
+    with claim_output(args.out, ABILITY_FOLDER) as out:
+        written = write_ability(args, opts, out, report, example)
+    print("\n".join(summary_lines(report, seconds)))
+    print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def write_ability(args: argparse.Namespace, opts: AbilityOptions, out: Path, report: dict, example) -> list[Path]:
+    """Write the report, its figures and (--compare-splits) the split check into `out`; the paths written."""
     json_path = Path(args.json) if args.json else out / "ability.json"
     atomic_write_json(json_path, report)
     atomic_write_text(out / "ability.md", ability_markdown(report))
@@ -141,9 +154,7 @@ def main(argv=None) -> int:
         written += [out / "split_check.json", out / "split_check.md"]
         for line in split_check_warnings(result, "test split", "train split"):
             print(line, file=sys.stderr)
-    print("\n".join(summary_lines(report, seconds)))
-    print("wrote: " + ", ".join(str(p) for p in written))
-    return 0
+    return written
 
 
 if __name__ == "__main__":

@@ -46,7 +46,11 @@ from detbench.benchmarks.profile import profile_markdown
 from detbench.data.road import RoadConfig
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
-from detbench.utils.cli import EXIT_USER_ERROR, UserError, check_out_dir, doc_parser, require, run_main, torch_device
+from detbench.utils.cli import (
+    EXIT_USER_ERROR, UserError, claim_output, doc_parser, output_folder, require, require_distinct, run_main,
+    torch_device,
+)
+from detbench.utils.report_folders import BENCHMARK_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
 
 
@@ -159,7 +163,8 @@ def check_arguments(args: argparse.Namespace) -> None:
             f"--height {args.height:g}: must be a positive number of metres")
     if args.device != "auto":
         torch_device(args.device)
-    check_out_dir(args.out)
+    require_distinct(args.models, "--models", what="model")
+    output_folder(args.out, BENCHMARK_FOLDER)
 
 
 def main(argv=None) -> int:
@@ -231,10 +236,10 @@ def main(argv=None) -> int:
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             "preset": args.preset, "study": args.study, "height": args.height,
             "frames_from": sorted({r["frames_from"] for r in results})}
-    out = Path(args.out)
-    atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
-    atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results)
-                      + ("\n" + "\n".join(profile_markdown(results)) if args.profile else ""))
+    with claim_output(args.out, BENCHMARK_FOLDER) as out:
+        atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})
+        atomic_write_text(out / "benchmark.md", benchmark_markdown(meta, results)
+                          + ("\n" + "\n".join(profile_markdown(results)) if args.profile else ""))
     print(f"wrote {out / 'benchmark.json'}, {out / 'benchmark.md'}")
     return 0
 

@@ -37,13 +37,13 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 if not __package__:  # run as a file (python tools/<name>.py): the checkout root on sys.path when not installed
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.studies.calibration_check import CalibrationOptions, check_calibration
-from detbench.utils.cli import UserError, add_sim_preset_argument
+from detbench.utils.cli import UserError, add_sim_preset_argument, claim_output, output_folder, require_distinct
+from detbench.utils.report_folders import CALIBRATION_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
@@ -90,14 +90,15 @@ def main(argv=None) -> int:
         pair_tolerance=args.pair_tolerance, preset=args.sim_preset, overrides=args.overrides,
         no_progress=args.no_progress)
     try:
+        require_distinct(args.seeds, "--seeds", what="seed")
+        output_folder(args.out, CALIBRATION_FOLDER)
         report, md, failed = check_calibration(opts)
+        with claim_output(args.out, CALIBRATION_FOLDER) as out:
+            atomic_write_json(out / "calibration.json", report)
+            atomic_write_text(out / "calibration.md", md)
     except UserError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / "calibration.json", report)
-    atomic_write_text(out / "calibration.md", md)
     print(f"wrote {out / 'calibration.json'}, {out / 'calibration.md'}")
     if args.strict:
         return 1 if failed else 0

@@ -28,7 +28,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.config import shipped_default
-from detbench.eval.prediction_files import write_predictions
+from detbench.eval.prediction_files import remove_prediction_folder, write_prediction_folder
 from detbench.eval.report import summary_lines
 from detbench.eval.run import (
     CheckpointRun,
@@ -40,7 +40,8 @@ from detbench.eval.run import (
     report_title,
     write_report,
 )
-from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
+from detbench.utils.cli import UserError, claim_output, output_folder, require, run_main, torch_device
+from detbench.utils.report_folders import COMBINED_FOLDER, EVAL_FOLDER
 
 SPLITS = ("train", "test", "all")
 
@@ -139,7 +140,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: int = 4,
                                 progress: bool = True, stage: str = "refined"):
-    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name)."""
+    """Run a detector checkpoint over `dataset` -> ({frame_id: (boxes, scores)}, model name, what the checkpoint
+    records of its training data)."""
     import models
     from detbench.train.checkpoint import CheckpointError
     from detbench.train.inference import checkpoint_predictions
@@ -150,7 +152,7 @@ def predictions_from_checkpoint(ckpt: Path, dataset, device="cpu", batch_size: i
         raise UserError(str(e)) from None
     preds = checkpoint_predictions(model, ck, dataset, device=device, batch_size=batch_size, progress=progress,
                                    stage=stage, source=ckpt)
-    return preds, ck["model_name"]
+    return preds, ck["model_name"], ck["data"]
 
 
 def checkpoint_defaults(args: argparse.Namespace) -> None:
@@ -228,7 +230,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise UserError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
     if args.pred is None and (args.pred_frame != "ground" or args.pred_classes is not None):
         raise UserError("--pred-frame and --pred-classes describe saved predictions; they go with --pred")
-    check_out_dir(args.out)
+    output_folder(args.out, EVAL_FOLDER)
     device = torch_device(args.device) if args.ckpt is not None else None
     t0 = time.perf_counter()
     dataset, other_ids = load_split(args.data, args.height, args.split)
@@ -239,21 +241,31 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                        classes=args.pred_classes)
         preds, skipped = saved.predictions, saved.skipped
     else:
-        preds, ckpt_model = predictions_from_checkpoint(args.ckpt, dataset, device, args.batch_size,
-                                                        not args.no_progress, args.stage)
+        preds, ckpt_model, trained_on = predictions_from_checkpoint(args.ckpt, dataset, device, args.batch_size,
+                                                                    not args.no_progress, args.stage)
         skipped = []
         model = model or ckpt_model
         checkpoint = CheckpointRun(args.trained_height, args.out / "pred", args.stage,
                                    train_seed=args.train_seed, train_preset=args.train_preset)
-        write_predictions(preds, checkpoint.predictions_dir)
+    with claim_output(args.out, EVAL_FOLDER):
+        if checkpoint is not None:
+            write_prediction_folder(preds, checkpoint.predictions_dir)
+        elif (args.out / "pred").is_dir() and not args.pred.resolve().is_relative_to((args.out / "pred").resolve()):
+            remove_prediction_folder(args.out / "pred")  # an earlier evaluation's, not these predictions
     settings = EvalSettings(iou_threshold=args.iou_threshold, score_threshold=args.score_threshold,
                             iou_kind=args.iou_kind, extras=not args.no_extras, bootstrap=args.bootstrap,
                             progress=not args.no_progress)
     full = evaluation_report(dataset, preds, settings, model=model, height=args.height, split=args.split,
                              data=args.data, source=args.pred if args.pred is not None else args.ckpt, saved=saved,
                              pred_frame=args.pred_frame, checkpoint=checkpoint)
+    if checkpoint is not None:
+        from detbench.train.run import training_data_warnings
+
+        full.setdefault("warnings", []).extend(
+            training_data_warnings(trained_on, Path(args.data), args.split, list(dataset.frame_ids)))
     title = report_title(model, args.height, args.split, args.stage if args.ckpt is not None else "refined")
-    paths = write_report(full, args.out, title)
+    with claim_output(args.out, EVAL_FOLDER):
+        paths = write_report(full, args.out, title)
     for line in summary_lines(full):
         print(line)
     if skipped:
@@ -279,9 +291,9 @@ def run_combine(args: argparse.Namespace) -> int:
         raise UserError("--combine needs --out DIR for the combined table")
     if any(v is not None for v in (args.data, args.height, args.pred, args.ckpt)):
         raise UserError("--combine merges finished reports; do not give --data/--height/--pred/--ckpt with it")
-    check_out_dir(args.out)
-    comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures, range_name=args.range_name,
-                                       with_variants=args.with_variants)
+    with claim_output(args.out, COMBINED_FOLDER):
+        comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures,
+                                           range_name=args.range_name, with_variants=args.with_variants)
     print(f"combined {len(args.combine)} reports: models {', '.join(comb['models'])}; heights "
           f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
     print("wrote " + ", ".join(str(p) for p in paths))

@@ -35,7 +35,10 @@ from detbench import runtime  # noqa: F401  (first detbench import: thread-runti
 from detbench.studies.sweep_sim import (
     DEFAULT_LIDAR, SweepOptions, correlate_with_detectors, load_sweep, run_sweep, summary_lines,
 )
-from detbench.utils.cli import UserError, add_sim_preset_argument, check_out_dir, require, run_main
+from detbench.utils.cli import (
+    UserError, add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, require_distinct, run_main,
+)
+from detbench.utils.report_folders import SWEEP_FOLDER
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
 
@@ -95,12 +98,13 @@ def check_arguments(args: argparse.Namespace) -> None:
             height_key(h)
         except ValueError as e:
             raise UserError(f"--heights {h:g}: {e}") from None
+    require_distinct(args.heights, "--heights", key=height_key, what="height")
     for flag, v in (("--distance-bin", args.distance_bin), ("--voxel", args.voxel),
                     ("--evidence-scale", args.evidence_scale)):
         require(v is None or (math.isfinite(v) and v > 0), f"{flag} {v}: must be a positive number")
     require(args.correlation_replicates >= 1,
             f"--correlation-replicates {args.correlation_replicates}: must be an integer >= 1")
-    check_out_dir(args.out)
+    output_folder(args.out, SWEEP_FOLDER)
     if args.json:
         check_out_dir(Path(args.json).parent, "--json")
 
@@ -124,13 +128,14 @@ def main(argv=None) -> int:
             print(f"note: {note}", file=sys.stderr)
     from detbench.studies.sweep import sweep_markdown
 
-    atomic_write_json(json_path, report)
-    atomic_write_text(out / "sweep.md", sweep_markdown(report))
-    written = [json_path, out / "sweep.md"]
-    if not args.no_figures:
-        from detbench.studies.sweep_plots import save_sweep_figures
+    with claim_output(out, SWEEP_FOLDER):
+        atomic_write_json(json_path, report)
+        atomic_write_text(out / "sweep.md", sweep_markdown(report))
+        written = [json_path, out / "sweep.md"]
+        if not args.no_figures:
+            from detbench.studies.sweep_plots import save_sweep_figures
 
-        written += list(save_sweep_figures(report, out).values())
+            written += list(save_sweep_figures(report, out).values())
     print("\n".join(summary_lines(report)))
     print("wrote: " + ", ".join(str(p) for p in written))
     return 0

@@ -78,6 +78,29 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+# a DataLoader worker's memory: a spawned worker holds about 313 MiB resident before it reads a frame
+# (docs/benchmarks.md, "What a DataLoader worker costs"); rounded up for the frames and buffers of its batches
+WORKER_BYTES = 400 << 20
+
+
+def check_workers(workers: int) -> None:
+    """UserError for more DataLoader workers than this process has cores for (its affinity and cgroup CPU
+    quota), or than the memory it may still use (the machine's and its cgroup's) holds at WORKER_BYTES each."""
+    from detbench.studies.cpu_load import available_memory, usable_cores
+
+    cores = usable_cores()
+    if workers > cores:
+        raise UserError(f"train.workers {workers}: this process may use {cores} CPU core(s) (its affinity and "
+                        f"cgroup quota), so more DataLoader workers than that only compete for them; give "
+                        f"--workers {cores} or fewer (0 loads in the training process)")
+    free = available_memory()
+    if free is not None and workers * WORKER_BYTES > free:
+        fit = int(free // WORKER_BYTES)
+        raise UserError(f"train.workers {workers}: each DataLoader worker takes about {WORKER_BYTES >> 20} MiB and "
+                        f"{free / 2**30:.1f} GiB are free for this process (the machine's and its cgroup's "
+                        f"limit); give --workers {fit} or fewer")
+
+
 def run_config_from_args(args) -> dict:
     """The merged, checked run config (every section's keys and value kinds, before anything runs)."""
     overrides = option_overrides(args.overrides, epochs=args.epochs, batch_size=args.batch_size,
@@ -114,17 +137,21 @@ def main(argv=None) -> int:
 
         deterministic_algorithms()
     cfg = run_config_from_args(args)
+    check_workers(int(cfg["train"]["workers"]))
     out = Path(args.out or run_layout.default_train_dir(cfg["model"]["name"], args.height, args.preset))
     with ExitStack() as held:
         try:
             held.enter_context(claim_run_folder(out))
         except FolderNotReplaceable as e:
             raise UserError(f"--out {e}") from None
-        return train_in(args, cfg, out)
+        return train_in(args, cfg, out, held)
 
 
-def train_in(args, cfg: dict, out: Path) -> int:
-    """Train as `args` say into the run folder `out` (held by `main`)."""
+def train_in(args, cfg: dict, out: Path, held: ExitStack) -> int:
+    """Train as `args` say into the run folder `out` (held by `main`); the dataset is held for reading in
+    `held` (no detbench writer replaces it while the run reads it)."""
+    from detbench.utils.staged_folders import reading_folder
+
     from detbench.eval.evaluate import EvalConfig
     from detbench.data.road import RoadConfig
     from detbench.sim.dataset import default_dataset
@@ -143,6 +170,7 @@ def train_in(args, cfg: dict, out: Path) -> int:
     try:
         with main_process_first(info):
             root = default_dataset(cfg["data"], progress=info.is_main and not args.no_progress)
+            held.enter_context(reading_folder(root, "a training run"))
             train_set = TrainingSet.from_dataset(root, args.height, cfg["model"]["point_cloud_range"],
                                                  augment=AugmentConfig.from_dict(cfg["augment"]), seed=tcfg.seed,
                                                  road=road, progress=info.is_main and not args.no_progress)

@@ -444,7 +444,8 @@ def convert_openpcdet_custom(sources: dict[str, str | os.PathLike], out: str | o
 
     # the new dataset is built beside `out` and swapped in whole when complete: a conversion that fails
     # or is killed leaves `out` as it was (see detbench.utils.staged_folders.staged_folder)
-    with staged_folder(out) as staged:
+    recheck = lambda: check_replaceable(out, overwrite, DATASET_FOLDER)  # noqa: E731 - again under out's lock
+    with staged_folder(out, what="a conversion", check=recheck) as staged:
         write_owner(staged, DATASET_FOLDER)
         copied = copy_frames(staged, choice.ids, srcs, frames, cmap, label_tolerance, link, progress)
         split = write_split(staged, choice, ref, rule, test_fraction)

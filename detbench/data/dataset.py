@@ -24,6 +24,7 @@ from detbench.data.layout import (
 )
 from detbench.data.readers import check_inside, read_imageset, read_labels, read_meta, read_points
 from detbench.data.transforms import sensor_to_ground
+from detbench.utils.untrusted import excerpt
 
 
 def split_ids(root: str | os.PathLike, split: str) -> list[str]:
@@ -44,6 +45,22 @@ def split_ids(root: str | os.PathLike, split: str) -> list[str]:
                            f"a frame belongs to one split - remove it from one list",
                            path=imageset_path(root, "test"))
     return sorted(train + test)
+
+
+def check_frame_count(root: Path, info: DatasetInfo, all_ids: list[str]) -> None:
+    """DatasetError when dataset.json's `num_frames` is not the frames its ImageSets list (with those its
+    `split.dropped` rule left out of both splits): a report would state the wrong count."""
+    n = info.num_frames
+    if n is None:
+        return
+    dropped = (info.split.get("dropped") or {}).get("frames", 0) if isinstance(info.split, dict) else 0
+    dropped = dropped if isinstance(dropped, int) and not isinstance(dropped, bool) else 0
+    want = len(all_ids) + dropped
+    if not isinstance(n, int) or isinstance(n, bool) or n != want:
+        more = f" and {dropped} frame(s) its split.dropped rule left out" if dropped else ""
+        raise DatasetError(f"'num_frames' is {excerpt(n)}, but ImageSets list {len(all_ids)} frame(s){more}; set "
+                           f"num_frames to {want} in dataset.json (or re-create the dataset)",
+                           path=Path(root) / INFO_FILE)
 
 
 class Height3Dataset:
@@ -81,6 +98,8 @@ class Height3Dataset:
             self._scene_of = self.info.scene_rule.scenes(all_ids)
         if check_files:
             self._check_files()
+            if split == "all" or all(imageset_path(self.root, s).is_file() for s in ("train", "test")):
+                check_frame_count(self.root, self.info, self._ids if split == "all" else split_ids(self.root, "all"))
 
     # ------------------------------------------------------------------ properties
     @property

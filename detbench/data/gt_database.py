@@ -270,9 +270,19 @@ def load_gt_database(out_dir: str | os.PathLike) -> GTDatabase:
                       arrays["track_ids"].astype(np.int64), info)
 
 
+def _same_source(stored, source: Mapping | None) -> bool:
+    """The database's recorded source is `source` but for the dataset's path: the frames' content fingerprint
+    decides whether they are the same frames, so a dataset moved or copied (or read-only elsewhere) reuses it."""
+    if not isinstance(stored, Mapping):
+        return False
+    return {k: v for k, v in stored.items() if k != "root"} == {k: v for k, v in dict(source or {}).items()
+                                                               if k != "root"}
+
+
 def build_or_load_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLike, source: Mapping | None = None,
                               bottom_lift: float = DETECTED_BOTTOM_LIFT, progress: bool = True) -> GTDatabase:
-    """Load the database in `out_dir` if it was built from the same frames, source and lift; else (re)build it.
+    """Load the database in `out_dir` if it was built from the same frames (content), source (but for the
+    dataset's path: a moved dataset keeps its database) and lift; else (re)build it.
 
     In a distributed run, call it on rank 0 first (`detbench.train.distributed.main_process_first`).
     """
@@ -283,7 +293,7 @@ def build_or_load_gt_database(frames: Sequence[Frame], out_dir: str | os.PathLik
         except (ValueError, FileNotFoundError):
             db = None
         if (db is not None and db.info.get("frames_sha1") == frames_fingerprint(frames)
-                and db.info.get("source") == dict(source or {})
+                and _same_source(db.info.get("source"), source)
                 and db.info.get("bottom_lift") == float(bottom_lift)):
             return db
         if progress:

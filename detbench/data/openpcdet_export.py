@@ -324,7 +324,8 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     removed = check_replaceable(out, overwrite, EXPORT_FOLDER, out="--out")
     recover_staged(out)
     # built beside `out` and swapped in whole when complete: a failed or killed export leaves `out` as it was
-    with staged_folder(out) as dst:
+    with staged_folder(out, what="an OpenPCDet export",
+                       check=lambda: check_replaceable(out, overwrite, EXPORT_FOLDER, out="--out")) as dst:
         done = export_frames(datasets, dst, cmap, frame, progress)
         for split, name in OPENPCDET_SPLITS.items():
             atomic_write_text(dst / IMAGESETS_DIR / f"{name}.txt", "".join(f + "\n" for f in done.written[split]))

@@ -197,9 +197,10 @@ def _parse_label_line(s: str, path, lineno: int, known: set | None) -> tuple[lis
                                line=lineno)
         vals.append(v)
     for col, v in zip(("dx", "dy", "dz"), vals[3:6]):
-        if v < 0:
-            raise DatasetError(f"size {col} is {v:g}; box sizes must be >= 0 metres (dx length, dy width, "
-                               f"dz height)", path=path, line=lineno)
+        if not v > 0:
+            raise DatasetError(f"size {col} is {v:g}; box sizes must be > 0 metres (dx length, dy width, dz "
+                               f"height): a box without volume holds no point, so the vehicle would count as "
+                               f"one the LiDAR missed", path=path, line=lineno)
     name = parts[7]
     try:
         float(name)

@@ -18,7 +18,7 @@ import numpy as np
 
 from detbench.data.errors import DatasetError
 from detbench.data.frame import height_key
-from detbench.data.dataset import Height3Dataset, split_ids
+from detbench.data.dataset import Height3Dataset, check_frame_count, split_ids
 from detbench.data.layout import INFO_FILE, LABELS_DIR, read_info
 from detbench.data.readers import label_problems, read_points
 from detbench.data.transforms import sensor_to_ground
@@ -56,8 +56,9 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
                      ) -> ValidationReport:
     """Read every listed frame at every height (or `heights`, metres) and collect the problems.
 
-    Checks dataset.json, ImageSets (duplicates, ids in both splits, a scene in both splits
-    under the by-scene rule), every label (every malformed line of it), meta and points file
+    Checks dataset.json (its num_frames against the ImageSets), ImageSets (duplicates, ids in both
+    splits, a scene in both splits, whatever split.rule says, unless the dataset has one scene cut in
+    time), every label (every malformed line of it), meta and points file
     (format, dtype and byte order, plausible values, counts), what the points say about the
     frame they are in (`points_frame_problem`: the road's height in the declared frame), and
     warns about label files no split lists. A file's problem is listed once. Stops collecting
@@ -91,6 +92,11 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
         err(e)
         return rep
     rep.num_frames = len(ids)
+    try:
+        check_frame_count(root, info, ids)
+    except DatasetError as e:
+        if err(e):
+            return rep
     if not ids:
         rep.warnings.append(f"{root}: ImageSets list no frames")
     listed = set(ids)
@@ -114,22 +120,12 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
     if not datasets:
         return rep
     any_ds = next(iter(datasets.values()))
-    rule = info.split.get("rule", "by-scene")
-    if rule == "by-scene":
-        try:
-            train_ids = set(split_ids(root, "train"))
-            scenes = any_ds.scene_ids()
-            train_sc = {scenes[f] for f in ids if f in train_ids}
-            test_sc = {scenes[f] for f in ids if f not in train_ids}
-            both = sorted(train_sc & test_sc)
-            if both:
-                if err(DatasetError(f"scene(s) {both[:5]} have frames in both train.txt and test.txt; split by "
-                                    f"scene (frames of a scene are nearly identical)",
-                                    path=root / "ImageSets" / "test.txt")):
-                    return rep
-        except (DatasetError, FileNotFoundError) as e:
-            if err(e):
-                return rep
+    try:
+        problem = _shared_scenes(root, info.split.get("rule"), ids, any_ds)
+    except (DatasetError, FileNotFoundError) as e:
+        problem = e
+    if problem is not None and err(problem):
+        return rep
     iterator = ids
     if progress:
         from tqdm import tqdm
@@ -150,6 +146,21 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
         if problem and err(DatasetError(problem, path=root / INFO_FILE), once=False):
             return rep
     return rep
+
+
+def _shared_scenes(root: Path, rule, ids: list[str], dataset: Height3Dataset) -> DatasetError | None:
+    """The error of a scene with frames in both splits, whatever split.rule says: only a dataset of one scene
+    cut in time (rule time-block) has one by design, and a source's split kept on conversion (rule kept) was
+    warned about then (`detbench.data.convert.split_scene_warning`)."""
+    train_ids = set(split_ids(root, "train"))
+    scenes = dataset.scene_ids()
+    train_sc = {scenes[f] for f in ids if f in train_ids}
+    test_sc = {scenes[f] for f in ids if f not in train_ids}
+    both = sorted(train_sc & test_sc)
+    if not both or rule == "kept" or (rule == "time-block" and len(train_sc | test_sc) == 1):
+        return None
+    return DatasetError(f"scene(s) {both[:5]} have frames in both train.txt and test.txt; split by scene (frames "
+                        f"of a scene are nearly identical)", path=root / "ImageSets" / "test.txt")
 
 
 def _road_height(points: np.ndarray) -> float | None:

@@ -138,7 +138,9 @@ class DatasetWriter:
         recover_staged(self.root)
         if check_replaceable(self.root, self.overwrite, DATASET_FOLDER, flag="overwrite=True"):
             self._stage = ExitStack()
-            self._dir = self._stage.enter_context(staged_folder(self.root))
+            self._dir = self._stage.enter_context(staged_folder(
+                self.root, what="a dataset writer",
+                check=lambda: check_replaceable(self.root, self.overwrite, DATASET_FOLDER, flag="overwrite=True")))
         self._dir.mkdir(parents=True, exist_ok=True)
         if folder_owner(self._dir) is None:
             write_owner(self._dir, DATASET_FOLDER)  # first: even an unfinished dataset is known to be one
@@ -223,6 +225,18 @@ class DatasetWriter:
             self._without.add(fid)
 
     # ------------------------------------------------------------------ finish
+    def _check_files(self) -> None:
+        """DatasetError when a file this writer wrote is gone (another process deleted it while the dataset was
+        written): such a dataset is never finished, so no later command trusts it."""
+        missing = []
+        for fid in self._frame_ids:
+            paths = [points_path(self._dir, hk, fid, self.points_ext) for hk in self.height_keys]
+            missing += [p for p in (*paths, label_path(self._dir, fid), meta_path(self._dir, fid)) if not p.is_file()]
+        if missing:
+            raise DatasetError(f"{self.root}: {len(missing)} file(s) written for its {len(self._frame_ids)} frames "
+                               f"vanished before the dataset was finished (e.g. {missing[0]}): another process "
+                               f"deleted them; the dataset is not finished, run the same command again")
+
     def close(self) -> DatasetInfo:
         """Write ImageSets (split by scene) and dataset.json; returns the DatasetInfo."""
         if self._closed:
@@ -241,6 +255,13 @@ class DatasetWriter:
                     "train": sum(f in self._without for f in train), "test": sum(f in self._without for f in test)})
                 train = [f for f in train if f not in self._without]
                 test = [f for f in test if f not in self._without]
+                if self._frame_ids and not train and not test:
+                    r = self.drop_frames_without
+                    raise DatasetError(f"dropping the frames without a vehicle in the {r} range (--drop-frames-"
+                                       f"without {r}) leaves both splits empty: none of the {len(self._frame_ids)} "
+                                       f"frames has one; simulate more frames or denser traffic, or drop by a "
+                                       f"wider range (moderate, large)")
+            self._check_files()
             atomic_write_text(imageset_path(self._dir, "train"), "".join(f + "\n" for f in train))
             atomic_write_text(imageset_path(self._dir, "test"), "".join(f + "\n" for f in test))
             heights = {}

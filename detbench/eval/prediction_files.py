@@ -11,6 +11,7 @@ naming the file and the line. Other tools' layouts (OpenPCDet's result.pkl, KITT
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 from collections.abc import Iterable, Mapping
 
@@ -18,9 +19,11 @@ import numpy as np
 
 from detbench.data.detections import Detections
 from detbench.utils.atomic import atomic_write_text
+from detbench.utils.cli import UserError
 from detbench.utils.untrusted import excerpt
 
 __all__ = ["PREDICTION_SUFFIX", "format_prediction_lines", "parse_prediction_file", "read_prediction_dir",
+           "remove_prediction_folder", "write_prediction_folder",
            "write_predictions"]
 
 
@@ -107,6 +110,26 @@ def format_prediction_lines(boxes: np.ndarray, scores: np.ndarray, class_name: s
         raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
     tail = f" {class_name}" if class_name else ""
     return "".join(" ".join(repr(float(v)) for v in (*b, s)) + tail + "\n" for b, s in zip(boxes, scores))
+
+
+def write_prediction_folder(preds: Mapping[str, Detections | tuple], pred_dir: str | Path) -> None:
+    """`write_predictions` into a folder that replaces `pred_dir` whole when complete
+    (detbench.utils.staged_folders.staged_folder): no file of an earlier evaluation's predictions stays
+    beside these, and an interrupted write leaves the earlier folder as it was."""
+    from detbench.utils.staged_folders import staged_folder
+
+    with staged_folder(pred_dir, what="an evaluation's predictions") as staged:
+        write_predictions(preds, staged)
+
+
+def remove_prediction_folder(pred_dir: str | Path) -> None:
+    """Remove a prediction folder an earlier evaluation wrote (only `<frame_id>.txt` files, or refused)."""
+    pred_dir = Path(pred_dir)
+    foreign = [p.name for p in pred_dir.iterdir() if not (p.is_file() and p.name.endswith(PREDICTION_SUFFIX))]
+    if foreign:
+        raise UserError(f"{pred_dir}: holds {', '.join(sorted(foreign)[:5])}, which an evaluation does not write; "
+                        f"move it elsewhere, or choose another --out")
+    shutil.rmtree(pred_dir)
 
 
 def write_predictions(preds: Mapping[str, Detections | tuple], pred_dir: str | Path) -> None:

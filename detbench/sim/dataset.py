@@ -5,10 +5,12 @@
 into a `DatasetWriter`. `default_dataset` is what every command uses when no `--data` is
 given: the dataset described by a config's `data:` section, generated once into a cache
 folder named by a digest of everything that shapes it (preset, overrides, frames, scene
-length, heights, seed, split) and reused afterwards. Generation goes to a temporary folder
-`.tmp-sim-...-<pid>` that is renamed into place when complete, so an interrupted run never
-leaves a half dataset that later runs would trust; a failed generation (a full disk) removes
-its folder, and one whose process was killed is removed by the next `default_dataset` call.
+length, heights, seed, split) and reused afterwards. Generation holds the dataset's lock (one
+builder, even among machines sharing the cache; the others wait and reuse it) and goes to a staged
+folder swapped into place when complete, so an interrupted run never leaves a half dataset that
+later runs would trust; a failed generation (a full disk) removes its folder, and one whose
+process was killed is removed by the next `default_dataset` call (only folders detbench marked
+as its builds, and only when no process holds their destination).
 `estimate_dataset_bytes` and `check_space` size a dataset before it is simulated, so a run the
 disk cannot hold stops at once instead of after hours. `write_simulation` (every simulated dataset,
 tools/simulate.py's included) builds beside its
@@ -34,18 +36,30 @@ from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
 from detbench.utils.atomic import DiskFullError
+from detbench.utils.cli import UserError
 from detbench.utils.folder_ownership import check_replaceable
-from detbench.utils.staged_folders import pid_alive, recover_staged, staged_folder
+from detbench.utils.staged_folders import hold_destination, recover_marked, recover_staged, staged_folder
 
 DATA_DEFAULTS: dict = shipped_defaults("data")  # configs/default.yaml `data:`, each key documented there
 
 
 def cache_root(cache_dir: str | os.PathLike | None = None) -> Path:
-    """Where simulated datasets are cached: `cache_dir`, else $DETBENCH_CACHE, else ~/.cache/detbench."""
-    if cache_dir:
-        return Path(cache_dir).expanduser()
+    """Where simulated datasets are cached: `cache_dir`, else $DETBENCH_CACHE, else ~/.cache/detbench.
+    UserError when that path is a file (or under one), naming where it came from."""
     env = os.environ.get("DETBENCH_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "detbench"
+    if cache_dir:
+        path, named = Path(cache_dir).expanduser(), f"data.cache_dir {cache_dir}"
+    elif env:
+        path, named = Path(env).expanduser(), f"DETBENCH_CACHE={env}"
+    else:
+        return Path.home() / ".cache" / "detbench"
+    for p in (path, *path.parents):
+        if p.exists():
+            if not p.is_dir():
+                raise UserError(f"{named}: {p} is a file, not a folder; point it at a folder for the cache of "
+                                f"simulated datasets (or leave it unset for ~/.cache/detbench)")
+            break
+    return path
 
 
 def plan_frames(frames: int | None, scenes: int | None, fps: int | None, default_fps: int) -> tuple[int, int]:
@@ -127,14 +141,17 @@ def check_space(root: str | os.PathLike, nbytes: int, *, what: str, fix: str) ->
 def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int, *, source: dict,
                      frames_per_scene: int | None = None, test_fraction: float | None = None, overwrite: bool = False,
                      progress: bool = True, on_step: Callable[[list], None] | None = None,
-                     finish: Callable[[Path], None] | None = None, drop_frames_without: str | None = None) -> Path:
+                     finish: Callable[[Path], None] | None = None, drop_frames_without: str | None = None,
+                     wait: Callable[[str], None] | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
 
     The dataset is built in a sibling folder `.tmp-new-<name>-<pid>` and swapped in whole when
     complete (`detbench.utils.staged_folders.staged_folder`): an interrupted or failed run leaves `root` as it
     was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
     `root` must be new or empty, or hold only a dataset's files and `overwrite` be set
-    (`detbench.utils.folder_ownership.check_replaceable`; FileExistsError otherwise, before anything is simulated).
+    (`detbench.utils.folder_ownership.check_replaceable`; FileExistsError otherwise, before anything is simulated,
+    and again under `root`'s lock). A second writer of `root` is refused while this one runs (`FolderInUse`),
+    or with `wait` (called once with words naming the other writer) waits for it.
     `on_step(frames_of_one_step)` is called after each step is written (e.g. for statistics);
     `finish(folder)` once the dataset is complete, before the swap (e.g. to add a report to it).
     `test_fraction` None: configs/default.yaml `data.test_fraction` (read by the DatasetWriter);
@@ -144,7 +161,8 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     heights = [float(lid.height) for lid in lidars]
     recover_staged(root)
     check_replaceable(root, overwrite, DATASET_FOLDER)
-    with staged_folder(root) as staged:
+    with staged_folder(root, what="a simulation", check=lambda: check_replaceable(root, overwrite, DATASET_FOLDER),
+                       wait=wait) as staged:
         with DatasetWriter(staged, heights, source, test_fraction, drop_frames_without=drop_frames_without) as writer:
             stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
             for step in tqdm(stream, total=int(frames), desc="simulate", unit="frame", disable=not progress,
@@ -209,23 +227,34 @@ def dataset_digest(data_cfg: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
-def remove_abandoned_builds(cache: Path) -> list[Path]:
-    """Delete the `.tmp-*-<pid>` folders in the cache folder `cache` whose process no longer runs: a build
-    of the default dataset (`.tmp-sim-...-<pid>`) and the staging folder inside it (`.tmp-new-...-<pid>`)."""
-    doomed = [d for d in cache.glob(".tmp-*-*") if d.is_dir() and d.name.rsplit("-", 1)[-1].isdigit()
-              and not pid_alive(int(d.name.rsplit("-", 1)[-1]))]
-    for d in doomed:
-        shutil.rmtree(d, ignore_errors=True)
-    return doomed
+def remove_abandoned_builds(cache: Path) -> list[str]:
+    """Finish the interrupted builds in the cache folder `cache`: the staged folders that carry detbench's
+    build marker and whose destination no process holds (`detbench.utils.staged_folders.recover_marked`).
+    A live build, on this machine or on another sharing the cache, holds its destination's lock and is left
+    alone; a folder detbench did not mark is never touched. Returns one note per thing done."""
+    return recover_marked(cache)
+
+
+def _waiting(final: Path) -> Callable[[str], None]:
+    def note(holder: str) -> None:
+        tqdm.write(f"waiting for {holder}, which simulates {final}; this run reuses it when it is done")
+    return note
 
 
 def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path:
     """The dataset a command runs on: `data_cfg["root"]` if set, else the cached simulated one.
 
     The simulated dataset is generated on first use (with a progress bar) into
-    `cache_root()/sim-<preset>-<frames>f-<digest>` and reused afterwards.
+    `cache_root()/sim-<preset>-<frames>f-<digest>` and reused afterwards. One process builds it, holding its
+    lock (`detbench.utils.staged_folders.hold_destination`; the cache may be shared by several machines):
+    another that needs it at the same time waits and then reuses it.
     """
     cfg = {**DATA_DEFAULTS, **(data_cfg or {})}
+    for key in ("root", "cache_dir"):
+        if cfg[key] is not None and not isinstance(cfg[key], (str, os.PathLike)):
+            raise UserError(f"data.{key} is {cfg[key]!r}, not a folder path (YAML reads yes, no, on and off as "
+                            f"true and false, and digits as numbers); give a path, quoted if it looks like one of "
+                            f"those: --set 'data.{key}=\"yes\"'")
     if cfg["root"]:
         root = Path(cfg["root"]).expanduser()
         if not (root / "dataset.json").is_file():
@@ -237,31 +266,22 @@ def default_dataset(data_cfg: dict | None = None, progress: bool = True) -> Path
     final = cache_root(cfg["cache_dir"]) / name
     if (final / "dataset.json").is_file():
         return final
-    remove_abandoned_builds(final.parent)
-    check_space(final, estimate_dataset_bytes([lidar_preset(float(h)) for h in cfg["heights"]], int(cfg["frames"])),
-                what=f"the simulated default dataset ({cfg['frames']} frames x {len(cfg['heights'])} heights)",
-                fix="free some space there, point $DETBENCH_CACHE (or data.cache_dir) at a larger disk, or lower "
-                    "data.frames")
-    tmp = final.parent / f".tmp-{name}-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    if progress:
-        tqdm.write(f"simulating the default dataset once into {final} ({cfg['frames']} frames x "
-                   f"{len(cfg['heights'])} heights; later runs reuse it)")
-    try:
-        simulate_dataset(tmp, frames=int(cfg["frames"]), heights=cfg["heights"], seed=int(cfg["seed"]),
+    with hold_destination(final, "a build of the simulated default dataset", out="data.cache_dir",
+                          wait=_waiting(final)):
+        if (final / "dataset.json").is_file():  # built by the process this one waited for
+            return final
+        remove_abandoned_builds(final.parent)
+        check_space(final, estimate_dataset_bytes([lidar_preset(float(h)) for h in cfg["heights"]],
+                                                  int(cfg["frames"])),
+                    what=f"the simulated default dataset ({cfg['frames']} frames x {len(cfg['heights'])} heights)",
+                    fix="free some space there, point $DETBENCH_CACHE (or data.cache_dir) at a larger disk, or "
+                        "lower data.frames")
+        if progress:
+            tqdm.write(f"simulating the default dataset once into {final} ({cfg['frames']} frames x "
+                       f"{len(cfg['heights'])} heights; later runs reuse it)")
+        simulate_dataset(final, frames=int(cfg["frames"]), heights=cfg["heights"], seed=int(cfg["seed"]),
                          preset=cfg["sim_preset"], overrides=cfg["sim_overrides"],
                          frames_per_scene=cfg["frames_per_scene"], test_fraction=float(cfg["test_fraction"]),
                          frame_stride=int(cfg.get("frame_stride") or 1),
                          progress=progress, drop_frames_without=cfg.get("drop_frames_without"))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    try:
-        os.replace(tmp, final)
-    except OSError:
-        if (final / "dataset.json").is_file():  # another process finished the same dataset first
-            shutil.rmtree(tmp, ignore_errors=True)
-        else:
-            raise
     return final

@@ -6,8 +6,11 @@ drives it for a study; detbench.studies.ray_executor is the same interface on Ra
 output into its log, or with `stream` also through to this process's terminal. Each job gets
 `env` on top of this process's environment: for a study `JOB_ENV` (one torch and one numba thread,
 so results do not depend on the number of jobs at once), for the trade sweep nothing (its points
-measure the thread counts they set). An ended job's exit status comes with its wall time and its
-CPU time, its own children included (`usage`).
+measure the thread counts they set); and always the driver's pid (`detbench.utils.cli.PARENT_ENV`),
+so a job ends with its driver however the driver ends (a kill -9 included: the kernel sends the job
+SIGTERM, and a training saves first). A job's log from an earlier run is kept as `<id>.log.prev`,
+never truncated. An ended job's exit status comes with its wall time and its CPU time, its own
+children included (`usage`).
 
 `run_to_end` runs one job alone and waits for it: at a deadline it gets a stop signal (SIGTERM: a
 training writes its checkpoint and exits) and a kill STOP_GRACE_S later; Ctrl-C stops it the same
@@ -25,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detbench.studies.cpu_load import MachineLoad, slots_note
+from detbench.utils.cli import PARENT_ENV
 
 STOP_GRACE_S = 120.0  # seconds a stopped job has to finish (a training writes its checkpoint) before a kill
 # Every study job's environment on top of the driver's: one torch (OpenMP) and one numba thread, unbuffered
@@ -78,12 +82,16 @@ class LocalExecutor:
     def start(self, job, cmd: list[str]) -> None:
         assert job.log is not None
         job.log.parent.mkdir(parents=True, exist_ok=True)
-        env = {**os.environ, **self.env}
+        env = {**os.environ, **self.env, PARENT_ENV: str(os.getpid())}  # the job ends with this driver
         device = None
         if self.devices:
             used = {r.device for r in self.procs.values()}
             device = next(d for d in self.devices if d not in used)
             env["CUDA_VISIBLE_DEVICES"] = device
+        if not self.append_logs and job.log.is_file() and job.log.stat().st_size:
+            # the log of an earlier run of the job is kept beside, never truncated: a job of a driver that was
+            # killed may still be writing to it
+            os.replace(job.log, job.log.with_name(job.log.name + ".prev"))
         fh = open(job.log, "a" if self.append_logs else "w", encoding="utf-8")
         fh.write(f"$ {' '.join(cmd)}\n")
         fh.flush()

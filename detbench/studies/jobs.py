@@ -280,7 +280,7 @@ def run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, scheduler: 
     """Run `jobs` (the longest remaining path first among those ready) on `executor`; each job's output in
     `logs`/<id>.log. Raises UserError (a job that ended on the user's error, exit 2) or SystemExit
     naming the failed job's log after the running jobs stopped; KeyboardInterrupt after Ctrl-C (or SIGTERM)
-    stopped them. See the module's docstring."""
+    stopped them; any other error of the driver stops them too before it propagates. See the module's docstring."""
     with sigterm_as_ctrl_c():  # `kill PID` of a driver run outside a tool's run_main, too
         return _run_graph(jobs, executor, logs, scheduler=scheduler, poll_s=poll_s)
 
@@ -327,9 +327,10 @@ def _run_graph(jobs: list[Job], executor, logs: str | os.PathLike, *, scheduler:
                 else:
                     progress.stopped(job)
                     progress.say(f"=== {job.what} stopped (exit {rc}); its log: {job.log}")
-    except KeyboardInterrupt:
+    except BaseException as e:  # Ctrl-C, SIGTERM, or an error of the driver itself: no job outlives it
         if executor.running:
-            progress.say(f"\n=== interrupted: stopping {', '.join(by_id[i].what for i in executor.running)} "
+            why = "interrupted" if isinstance(e, KeyboardInterrupt) else f"the study driver failed ({e!r})"
+            progress.say(f"\n=== {why}: stopping {', '.join(by_id[i].what for i in executor.running)} "
                          f"(a training writes its checkpoint first)")
             _stop_all(executor, progress, by_id)
         executor.close()

@@ -46,10 +46,10 @@ from detbench.studies.study_report import cross_height_file_markdown, study_mark
 from detbench.studies.study_results import cross_height_figure, study_results
 from detbench.train.run_config import load_run_config
 from detbench.train.run_layout import STUDY_FOLDER, default_study_dir
-from detbench.utils.cli import UserError
+from detbench.utils.cli import UserError, require_distinct
 from detbench.utils.atomic import atomic_write_json, atomic_write_text, read_json
-from detbench.utils.folder_locks import claim_folder
-from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable, clear_folder
+from detbench.utils.folder_locks import check_members_free, claim_folder, clear_folder
+from detbench.utils.folder_ownership import FolderNotReplaceable, check_replaceable
 
 
 @dataclass
@@ -112,6 +112,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     study's (`detbench.train.run_layout.STUDY_FOLDER`); it is locked while the study runs, so a second
     study on it is refused; `fresh` empties it first, only when it holds nothing but a study's files."""
     out = Path(args.out or default_study_dir(args.preset)).resolve()
+    require_distinct(args.models, "--models", what="model")
     try:
         names, left_out = study_models(args.preset, args.models, args.overrides, registry=registry)
         base_cfg = load_run_config(names[0], args.preset, overrides=args.overrides)
@@ -124,6 +125,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
     if bad_heights:
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
+    require_distinct(args.heights, "--heights", key=height_key, what="height")
     heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
     _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
@@ -134,6 +136,9 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
             held.enter_context(claim_folder(out, STUDY_FOLDER, "a study", notes=_note))
             if args.fresh:
                 clear_folder(out, STUDY_FOLDER, flag="--fresh")
+            else:  # a job of an earlier driver that still runs (the driver was killed): not a second writer
+                check_members_free(out, "a job of an earlier run of this study that has not ended yet; wait for "
+                                        "it to end (or stop it), then run the same command again")
         except FolderNotReplaceable as e:
             raise UserError(f"--out {e}") from None
         return _run_stages(args, out, names, left_out, heights, base_cfg, repo=repo)
@@ -273,6 +278,7 @@ def _check_executor_options(args: StudyOptions) -> None:
         from detbench.studies.ray_executor import import_ray
 
         import_ray()  # not installed: the install command
+    require_distinct(args.seeds, "--seeds", what="seed")
     bad = [s for s in (args.seeds or []) if s < 0]
     if bad:
         raise UserError(f"--seeds {' '.join(map(str, bad))}: a training seed is a whole number >= 0, "

@@ -245,6 +245,8 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
 
 
 DATA_FINGERPRINT_KEY = "frames_sha1"  # the training frames' content (detbench.data.gt_database.frames_fingerprint)
+# recorded for evaluations (detbench.train.run.training_data_warnings), not compared on resume (the fingerprint is)
+EVALUATION_ONLY_KEYS = ("dataset_sha1", "train_frames")
 
 
 def _fingerprint_of(data: Mapping) -> str | None:
@@ -257,7 +259,7 @@ def _check_same_data(path: Path, saved: Mapping, now: Mapping) -> None:
     record it, the same content fingerprint of the training frames (the path then does not matter: a dataset
     may move). A checkpoint without a fingerprint is compared by its recorded source path."""
     old_fp, new_fp = _fingerprint_of(saved), _fingerprint_of(now)
-    ignore = (DATA_FINGERPRINT_KEY, "source") if old_fp and new_fp else (DATA_FINGERPRINT_KEY,)
+    ignore = (DATA_FINGERPRINT_KEY, *EVALUATION_ONLY_KEYS) + (("source",) if old_fp and new_fp else ())
     bad = config_diff(saved, now, ignore)
     if bad:
         raise CheckpointError(f"{path}: checkpoint was trained on other data ({'; '.join(bad)}); resume with "

@@ -16,6 +16,8 @@ are spawned).
 """
 from __future__ import annotations
 
+import errno
+import hashlib
 import math
 import os
 from dataclasses import replace
@@ -41,6 +43,15 @@ __all__ = ["EpochBatches", "TrainingSet", "default_database_dir"]
 def default_database_dir(root: str | os.PathLike, height: float) -> Path:
     """ROOT/gt_database/<height_key>: where `TrainingSet.from_dataset` keeps the ground-truth database."""
     return Path(root) / "gt_database" / height_key(height)
+
+
+def cached_database_dir(root: str | os.PathLike, height: float) -> Path:
+    """Where the ground-truth database of a dataset that cannot be written goes: the simulated datasets' cache
+    (`detbench.sim.dataset.cache_root`), gt_database/<digest of the dataset's path>/<height_key>."""
+    from detbench.sim.dataset import cache_root
+
+    digest = hashlib.sha1(str(Path(root).resolve()).encode("utf-8", "surrogateescape")).hexdigest()[:12]
+    return cache_root() / "gt_database" / digest / height_key(height)
 
 
 class TrainingSet(Dataset):
@@ -87,7 +98,8 @@ class TrainingSet(Dataset):
         """`Height3Dataset(root, height, split)` with the ground-truth database built (once) if sampling is on.
 
         The database comes from the *train* split only; it lives in `database_dir`, else
-        `augment.gt_sampling.database_dir`, else ROOT/gt_database/<height>. In a distributed
+        `augment.gt_sampling.database_dir`, else ROOT/gt_database/<height>, or, when the dataset cannot be
+        written (read-only), in the cache (`cached_database_dir`). In a distributed
         run call this inside `main_process_first(info)`.
         """
         augment = augment or AugmentConfig.none()
@@ -95,10 +107,16 @@ class TrainingSet(Dataset):
         db = None
         if augment.gt_sampling.enabled and split != "test":
             train_frames = frames if split == "train" else Height3Dataset(root, height, "train")
-            where = database_dir or augment.gt_sampling.database_dir or default_database_dir(root, height)
-            db = build_or_load_gt_database(train_frames, where, progress=progress,
-                                           source={"root": str(Path(root).resolve()), "height": float(height),
-                                                   "split": "train"})
+            where = database_dir or augment.gt_sampling.database_dir
+            source = {"root": str(Path(root).resolve()), "height": float(height), "split": "train"}
+            try:
+                db = build_or_load_gt_database(train_frames, where or default_database_dir(root, height),
+                                               progress=progress, source=source)
+            except OSError as e:  # a dataset the user may not write (read-only): the database goes to the cache
+                if where is not None or e.errno not in (errno.EROFS, errno.EACCES, errno.EPERM):
+                    raise
+                db = build_or_load_gt_database(train_frames, cached_database_dir(root, height), progress=progress,
+                                               source=source)
         if db is None and augment.gt_sampling.enabled:
             augment = replace(augment, gt_sampling=replace(augment.gt_sampling, enabled=False))
         return cls(frames, point_cloud_range, augment=augment, gt_database=db, seed=seed, training=split != "test",

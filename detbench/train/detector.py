@@ -74,7 +74,11 @@ class Detector(Protocol):
 class TwoStageDetector(Detector, Protocol):
     """A detector with a proposal stage and a refinement stage (PointRCNN, CT3D): `predict`
     returns either stage's boxes. models/stages/two_stage.py implements the switch once
-    (`OutputStageSwitch`); tools check for it with `isinstance(model, TwoStageDetector)`."""
+    (`OutputStageSwitch`); tools check for it with `isinstance(model, TwoStageDetector)`.
+
+    Its outputs carry `proposals.dropped`, per frame the first-stage boxes left out between the stages
+    because their geometry is not finite; `predict_frames` reports them, and its `loss` logs them
+    (`num_dropped_proposals`)."""
 
     def set_output_stage(self, stage: str) -> None:
         """'refined' (the default): `predict` returns the second stage's boxes; 'proposals': the

@@ -3,11 +3,14 @@
 Non-finite model outputs are never dropped silently: post-processing leaves NaN / inf boxes
 out of the detections, so a model with broken weights would look merely untrained;
 `predict_frames` counts them in the raw outputs and raises `NonFiniteOutputError` naming
-the frames.
+the frames. A two-stage model's first-stage boxes that decode to non-finite geometry are left
+out between its stages (one wild box is not broken weights); `predict_frames` prints their
+count as a warning.
 """
 from __future__ import annotations
 
 import dataclasses
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -35,6 +38,13 @@ def frame_sample(frame: Frame, point_cloud_range: Sequence[float], road: RoadCon
 
 class NonFiniteOutputError(FloatingPointError):
     """The model's outputs held NaN or inf for some frames (broken weights or a diverged run)."""
+
+
+def dropped_proposals(outputs: Any) -> int:
+    """First-stage boxes a two-stage model left out between its stages as non-finite (`TwoStageDetector`);
+    0 for a one-stage model."""
+    dropped = getattr(getattr(outputs, "proposals", None), "dropped", None)
+    return 0 if dropped is None else int(dropped.sum())
 
 
 def count_nonfinite(outputs: Any) -> int:
@@ -70,6 +80,7 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
     n = len(frames)
     bar = tqdm(total=n, desc=desc, unit="frame", disable=not progress, leave=False, dynamic_ncols=True)
     bad: list[str] = []  # frames of batches whose outputs were not finite
+    dropped = 0  # first-stage boxes of a two-stage model left out as non-finite
     try:
         for start in range(0, n, batch_size):
             samples = [frame_sample(frames[i], point_cloud_range, road)
@@ -78,6 +89,7 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
             outputs = model(batch)
             if count_nonfinite(outputs):
                 bad.extend(s.frame_id for s in samples)
+            dropped += dropped_proposals(outputs)
             dets = model.predict(outputs, batch)
             for s, d in zip(samples, dets):
                 out[s.frame_id] = d.numpy()
@@ -89,6 +101,10 @@ def predict_frames(model: nn.Module, frames: Sequence[Frame], point_cloud_range:
         raise NonFiniteOutputError(f"the model's outputs hold NaN or inf in the batches of {len(bad)} of {n} "
                                    f"frames (e.g. {', '.join(bad[:3])}); its weights are broken or the run "
                                    f"diverged: use an earlier checkpoint, or train again with a lower train.lr")
+    if dropped:
+        print(f"warning: {desc}: the first stage decoded {dropped} box(es) over {n} frames to non-finite "
+              f"geometry (inf, or too large to measure); they were left out before the second stage",
+              file=sys.stderr)
     return out
 
 

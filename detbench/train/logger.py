@@ -9,9 +9,10 @@ epoch), so a resumed run continues the same curves.
 from __future__ import annotations
 
 import math
+import sys
 import warnings
 from pathlib import Path
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -20,7 +21,24 @@ from detbench.config import shipped_default
 from detbench.ops import boxes_to_corners_bev
 from detbench.utils.atomic import atomic_write_json
 
-__all__ = ["TrainLogger", "bev_figure", "format_epoch_summary"]
+__all__ = ["TrainLogger", "bev_figure", "drawable_boxes", "format_epoch_summary"]
+
+
+def drawable_boxes(boxes: np.ndarray, point_cloud_range: Sequence[float]) -> np.ndarray:
+    """(K,) bool: the boxes (K, 7) a bird's-eye figure of `point_cloud_range` draws. A box with a non-finite
+    value, or a corner beyond one view's width or height from the view, is left out: matplotlib cannot lay
+    out a line or a label 1e20 m away (its text renderer fails), and such a box would be off the figure."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    ok = np.isfinite(b).all(axis=1)
+    ok[ok] &= (np.abs(b[ok, :2]).max(axis=1) < 1e9) & (np.abs(b[ok, 3:5]).max(axis=1) < 1e9)
+    if not ok.any():
+        return ok
+    r = [float(v) for v in point_cloud_range]
+    w, h = max(r[3] - r[0], 1e-6), max(r[4] - r[1], 1e-6)
+    c = boxes_to_corners_bev(b[ok])  # (K', 4, 2)
+    inside = ((c[..., 0] >= r[0] - w) & (c[..., 0] <= r[3] + w) & (c[..., 1] >= r[1] - h) & (c[..., 1] <= r[4] + h))
+    ok[ok] = inside.all(axis=1)
+    return ok
 
 
 def bev_figure(points: np.ndarray, gt_boxes: np.ndarray, pred_boxes: np.ndarray, pred_scores: np.ndarray,
@@ -33,6 +51,8 @@ def bev_figure(points: np.ndarray, gt_boxes: np.ndarray, pred_boxes: np.ndarray,
         gt_boxes: (M, 7); pred_boxes: (K, 7); pred_scores: (K,) in [0, 1].
         point_cloud_range: [x_min, y_min, z_min, x_max, y_max, z_max] metres; sets the axes.
         score_threshold: predictions below it are not drawn (None: the evaluator's, configs/default.yaml).
+    Boxes off the view (`drawable_boxes`) are not drawn; the legend counts them. A score label is drawn at
+    its box's first corner when that corner lies in the view.
     Returns:
         A matplotlib Figure (no pyplot state), x forward to the right, y left upwards, metres.
     """
@@ -50,18 +70,20 @@ def bev_figure(points: np.ndarray, gt_boxes: np.ndarray, pred_boxes: np.ndarray,
 
     def draw(boxes: np.ndarray, color: str, label: str, scores: np.ndarray | None = None) -> None:
         boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-        if boxes.shape[0] == 0:
-            ax.plot([], [], color=color, label=f"{label} (0)")
+        shown = drawable_boxes(boxes, r)
+        off = boxes.shape[0] - int(shown.sum())
+        legend = f"{label} ({boxes.shape[0]}" + (f"; {off} off the view, not drawn)" if off else ")")
+        if not shown.any():
+            ax.plot([], [], color=color, label=legend)
             return
-        corners = boxes_to_corners_bev(boxes)
-        for k, c in enumerate(corners):
+        for n, k in enumerate(np.flatnonzero(shown)):
+            c = boxes_to_corners_bev(boxes[k:k + 1])[0]
             loop = np.vstack([c, c[:1]])
-            ax.plot(loop[:, 0], loop[:, 1], color=color, linewidth=1.0,
-                    label=f"{label} ({boxes.shape[0]})" if k == 0 else None)
+            ax.plot(loop[:, 0], loop[:, 1], color=color, linewidth=1.0, label=legend if n == 0 else None)
             front = 0.5 * (c[0] + c[3])  # heading tick: centre -> front edge
             ax.plot([boxes[k, 0], front[0]], [boxes[k, 1], front[1]], color=color, linewidth=0.8)
-            if scores is not None:
-                ax.text(c[0, 0], c[0, 1], f"{scores[k]:.2f}", color=color, fontsize=6)
+            if scores is not None and r[0] <= c[0, 0] <= r[3] and r[1] <= c[0, 1] <= r[4]:
+                ax.text(c[0, 0], c[0, 1], f"{scores[k]:.2f}", color=color, fontsize=6, clip_on=True)
 
     draw(gt_boxes, "tab:green", "ground truth")
     keep = np.asarray(pred_scores).reshape(-1) >= score_threshold
@@ -127,6 +149,18 @@ class TrainLogger:
         """Write a matplotlib figure as an image."""
         if self.writer is not None:
             self.writer.add_figure(tag, fig, step, close=True)
+
+    def preview(self, tag: str, step: int, make_figure: Callable[[], Figure], what: str) -> None:
+        """Write the figure `make_figure()` returns as an image. The figure is a view of the run, not part of
+        it: when it cannot be made or rendered, `what` and the reason are one warning line on stderr and the
+        training goes on."""
+        if self.writer is None:
+            return
+        try:
+            self.writer.add_figure(tag, make_figure(), step, close=True)
+        except Exception as e:  # noqa: BLE001 - any failure of a figure, by design
+            reason = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+            print(f"warning: {what} was not drawn ({reason}); the training goes on", file=sys.stderr, flush=True)
 
     def set_history(self, records: list[dict]) -> None:
         """Replace the in-memory history (on resume: the records of the completed epochs)."""

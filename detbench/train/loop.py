@@ -52,6 +52,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from matplotlib.figure import Figure
 from torch import nn
 from torch.utils.data import DataLoader
 from torch.utils.data.distributed import DistributedSampler
@@ -544,15 +545,16 @@ def _evaluate(run: _Run, epoch: int, eval_fn: Callable[[nn.Module, int], Mapping
         with torch.no_grad():
             metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
     if cfg.bev_image and run.logger.writer is not None and run.preview is not None:
-        _log_preview(core, run.preview, run.train_set, run.logger, epoch + 1, run.state.global_step, run.info.device)
+        run.logger.preview("bev/predictions_vs_ground_truth", run.state.global_step,
+                           lambda: _preview_figure(core, run.preview, run.train_set, epoch + 1, run.info.device),
+                           f"the bird's-eye preview of epoch {epoch + 1}")
     restore_rng_state(rng_before)
     core.train()
     return metrics
 
 
-def _log_preview(model: nn.Module, preview: Sample, train_set, logger: TrainLogger, epoch: int, step: int,
-                 device: torch.device) -> None:
-    """Run the model on the preview frame and log the bird's-eye image (ground truth vs predictions)."""
+def _preview_figure(model: nn.Module, preview: Sample, train_set, epoch: int, device: torch.device) -> Figure:
+    """Run the model on the preview frame and draw the bird's-eye image (ground truth vs predictions)."""
     model.eval()
     with torch.no_grad():
         batch = collate([preview]).to(device)
@@ -563,6 +565,5 @@ def _log_preview(model: nn.Module, preview: Sample, train_set, logger: TrainLogg
         pts = preview.points
         pc_range = [pts[:, 0].min(), pts[:, 1].min(), 0.0, pts[:, 0].max() + 1e-3, pts[:, 1].max() + 1e-3, 1.0] \
             if len(pts) else [0.0, -1.0, 0.0, 1.0, 1.0, 1.0]
-    fig = bev_figure(preview.points, preview.gt_boxes, boxes, scores, pc_range,
-                     title=f"frame {preview.frame_id}, epoch {epoch}: ground truth (green) vs predictions (red)")
-    logger.figure("bev/predictions_vs_ground_truth", fig, step)
+    return bev_figure(preview.points, preview.gt_boxes, boxes, scores, pc_range,
+                      title=f"frame {preview.frame_id}, epoch {epoch}: ground truth (green) vs predictions (red)")

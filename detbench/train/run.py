@@ -3,6 +3,7 @@ the frames read once before training so a bad file stops the run before it start
 the anchors, the evaluation after each epoch, and the summary files of the run."""
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 from contextlib import contextmanager
@@ -66,7 +67,41 @@ def training_data_info(root: Path, height: float, train_set: TrainingSet) -> dic
     computed when it has one), so a dataset re-simulated or edited in place is told from the one trained on."""
     db = train_set.sampler.db if train_set.sampler is not None else None
     sha1 = (db.info.get("frames_sha1") if db is not None else None) or frames_fingerprint(train_set.frames)
-    return {"source": str(root), "height": float(height), "frames_sha1": str(sha1)}
+    info = {"source": str(root), "height": float(height), "frames_sha1": str(sha1)}
+    return {**info, **dataset_identity(root, train_set.frames)}
+
+
+def dataset_identity(root: Path, frames) -> dict:
+    """What an evaluation of a checkpoint compares with the data it is given (`training_data_warnings`): the
+    digest of the dataset's dataset.json (its source, seed and split; another after a re-simulation or a
+    re-split) and the ids of the training frames, one string of lines (one value however many frames)."""
+    info_file = Path(root) / "dataset.json"
+    digest = hashlib.sha1(info_file.read_bytes()).hexdigest() if info_file.is_file() else None
+    ids = getattr(frames, "frame_ids", None)
+    return {"dataset_sha1": digest, "train_frames": "\n".join(str(i) for i in (ids if ids is not None else []))}
+
+
+def training_data_warnings(data_info: dict, root: Path, split: str, split_ids: list[str]) -> list[str]:
+    """Warnings for an evaluation on `split` of the dataset `root` (frame ids `split_ids`) of a checkpoint that
+    records `data_info` (`training_data_info`): the dataset was re-simulated, re-split or edited since the
+    training, and (for a split other than train or all) frames it was trained on are among those evaluated.
+    None for a checkpoint that records neither."""
+    out = []
+    was = data_info.get("dataset_sha1")
+    now = dataset_identity(root, [])["dataset_sha1"]
+    if was and now and was != now:
+        out.append(f"{root} is not the dataset this checkpoint was trained on: its dataset.json changed since "
+                   f"(re-simulated, re-split or edited); the figures describe the data as it is now")
+    listed = data_info.get("train_frames")
+    trained = set(listed.split("\n")) - {""} if isinstance(listed, str) else set()
+    if split not in ("train", "all") and trained:
+        both = sorted(trained.intersection(split_ids))
+        if both:
+            out.append(f"{len(both)} of the {len(split_ids)} frames of the {split} split were training frames of "
+                       f"this checkpoint (e.g. {', '.join(both[:3])}): the dataset was re-split since, so these "
+                       f"figures are not a held-out test; evaluate on the data the model was trained with, or "
+                       f"train again")
+    return out
 
 
 def check_training_frames(frames) -> None:

@@ -4,9 +4,9 @@ The one rule for every writer that replaces or deletes a folder: a folder is rep
 detbench can prove it wrote it, by the owner file (OWNER_FILE, written into a new folder before
 anything else) or by what a finished folder of its kind holds (`FolderKind`: its marker or its
 evidence, never entry names alone). `check_replaceable` applies it before a folder is replaced
-whole (the replacement itself: detbench.utils.staged_folders), `check_claimable` before a process
-writes into a folder for a while (the claim and its lock: detbench.utils.folder_locks), and
-`clear_folder` empties a folder it allows to be replaced. A refusal is `FolderNotReplaceable`,
+whole (the replacement itself: detbench.utils.staged_folders), and `check_claimable` before a process
+writes into a folder for a while (the claim and its lock: detbench.utils.folder_locks, whose
+`clear_folder` empties a folder `check_replaceable` allows to be replaced). A refusal is `FolderNotReplaceable`,
 naming the folder and the fix.
 """
 from __future__ import annotations
@@ -14,14 +14,13 @@ from __future__ import annotations
 import json
 import os
 import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
 from detbench.utils.atomic import atomic_write_json
 
 __all__ = ["FolderInUse", "FolderKind", "FolderNotReplaceable", "LOCK_FILE", "OWNER_FILE", "check_claimable",
-           "check_replaceable", "clear_folder", "folder_entries", "folder_owner", "write_owner"]
+           "check_replaceable", "folder_entries", "folder_owner", "write_owner"]
 
 
 class FolderNotReplaceable(FileExistsError, ValueError):
@@ -95,8 +94,9 @@ def write_owner(dest: str | os.PathLike, kind: FolderKind) -> None:
 
 
 def folder_entries(dest: Path) -> list[str]:
-    """The names in `dest` that count: not temporary files of interrupted writes, nor the lock."""
-    return sorted(p.name for p in dest.iterdir() if not p.name.startswith(".tmp-") and p.name != LOCK_FILE)
+    """The names in `dest` that count: not temporary files of interrupted writes, nor locks (the folder's own,
+    and those of folders being written in it: `.detbench-lock-<name>`)."""
+    return sorted(p.name for p in dest.iterdir() if not p.name.startswith((".tmp-", LOCK_FILE)))
 
 
 def _is_kind(dest: Path, kind: FolderKind) -> bool:
@@ -196,19 +196,3 @@ def check_claimable(dest: str | os.PathLike, kind: FolderKind, *, out: str = "--
         raise _not_this_kind(dest, kind, _listing(entries), out)
     _refuse_foreign(dest, entries, kind, f", and no {OWNER_FILE} says that the rest is detbench's; move {{it}} "
                                          f"elsewhere first or choose another {out}")
-
-
-def clear_folder(dest: str | os.PathLike, kind: FolderKind, *, flag: str, out: str = "--out") -> list[str]:
-    """Delete what `dest` holds (the folder itself, its OWNER_FILE and its lock stay) once `check_replaceable`
-    allows it to be replaced (`overwrite` given as `flag`). Returns the entries removed."""
-    dest = Path(dest)
-    removed = check_replaceable(dest, True, kind, flag=flag, out=out)
-    for e in removed:
-        p = Path(e)
-        if p.name == OWNER_FILE:
-            continue
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        else:
-            p.unlink(missing_ok=True)
-    return [e for e in removed if Path(e).name != OWNER_FILE]

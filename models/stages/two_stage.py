@@ -127,6 +127,7 @@ class Proposals(NamedTuple):
     rois: torch.Tensor  # (B, R, 7) boxes, PAD_ROI where mask is False
     scores: torch.Tensor  # (B, R) first-stage confidence in [0, 1] (0 for padding)
     mask: torch.Tensor  # (B, R) bool, True for real proposals
+    dropped: torch.Tensor | None = None  # (B,) int64: first-stage boxes left out as non-finite (`finite_geometry`)
 
 
 class RoiTargets(NamedTuple):
@@ -166,14 +167,23 @@ class OutputStageSwitch:
 # --------------------------------------------------------------------------------------
 # proposals
 # --------------------------------------------------------------------------------------
+def finite_geometry(boxes: torch.Tensor) -> torch.Tensor:
+    """(...,) bool: the box (..., 7) and the squares of its centre and size are finite in float32, so every
+    derived length (a cylinder's radius, a corner, a BEV area) is finite too. A first stage that decodes a
+    box to inf, or to 1e20 m (finite, but its BEV diagonal overflows), fails this."""
+    b = boxes.float()
+    return torch.isfinite(b).all(dim=-1) & torch.isfinite(b[..., :6].square().sum(dim=-1))
+
+
 @torch.no_grad()
 def select_proposals(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: int, post_nms_top_k: int,
                      nms_threshold: float, valid: torch.Tensor | None = None) -> Proposals:
     """Per frame: the `pre_nms_top_k` best candidates, rotated BEV NMS, at most `post_nms_top_k`.
 
     boxes (B, A, 7), scores (B, A) in [0, 1], valid (B, A) bool or None (all valid).
-    Returns padded `Proposals` with R = post_nms_top_k slots, best first. Non-finite boxes
-    are never proposed.
+    Returns padded `Proposals` with R = post_nms_top_k slots, best first. A valid candidate whose box fails
+    `finite_geometry` or whose score is not finite is never proposed; `Proposals.dropped` counts them per
+    frame, so a first stage that decodes a box to infinity costs that box, not the step or the evaluation.
     """
     b = boxes.shape[0]
     r = int(post_nms_top_k)
@@ -181,10 +191,14 @@ def select_proposals(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: i
     rois = torch.tensor(PAD_ROI, dtype=torch.float32, device=device).repeat(b, r, 1)
     out_scores = torch.zeros(b, r, dtype=torch.float32, device=device)
     mask = torch.zeros(b, r, dtype=torch.bool, device=device)
+    dropped = []
     for i in range(b):
-        ok = torch.isfinite(boxes[i]).all(dim=1) & torch.isfinite(scores[i])
+        ok = finite_geometry(boxes[i]) & torch.isfinite(scores[i])
         if valid is not None:
+            dropped.append(int((valid[i] & ~ok).sum()))
             ok &= valid[i]
+        else:
+            dropped.append(int((~ok).sum()))
         idx = ok.nonzero(as_tuple=True)[0]
         if idx.numel() == 0:
             continue
@@ -200,7 +214,7 @@ def select_proposals(boxes: torch.Tensor, scores: torch.Tensor, pre_nms_top_k: i
         rois[i, :k] = cand[kept]
         out_scores[i, :k] = s[kept]
         mask[i, :k] = True
-    return Proposals(rois, out_scores, mask)
+    return Proposals(rois, out_scores, mask, torch.tensor(dropped, dtype=torch.int64, device=device))
 
 
 @torch.no_grad()
@@ -223,7 +237,13 @@ def select_proposals_by_distance(boxes: torch.Tensor, scores: torch.Tensor, pre_
     b = select_proposals(boxes, scores, int(pre_nms_top_k) - pre_near, int(post_nms_top_k) - post_near,
                          nms_threshold, ok & ~near)
     return Proposals(torch.cat([a.rois, b.rois], dim=1), torch.cat([a.scores, b.scores], dim=1),
-                     torch.cat([a.mask, b.mask], dim=1))
+                     torch.cat([a.mask, b.mask], dim=1), a.dropped + b.dropped)
+
+
+def dropped_proposals_part(p: Proposals) -> dict[str, float]:
+    """The loss part that logs `Proposals.dropped`: first-stage boxes left out as non-finite, per frame."""
+    n = 0.0 if p.dropped is None else float(p.dropped.sum())
+    return {"num_dropped_proposals": n / max(p.rois.shape[0], 1)}
 
 
 # --------------------------------------------------------------------------------------

@@ -244,7 +244,7 @@ def _fresh(tmp_path):
     ("1 abc 0.8 4 2 1.5 0 car", r"0000_000\.txt:2: column 'y' is 'abc', not a number"),
     ("1 2 nan 4 2 1.5 0 car", r"0000_000\.txt:2: column 'z' is nan; label values must be finite"),
     ("1 2 0.8 inf 2 1.5 0 car", r"0000_000\.txt:2: column 'dx' is inf"),
-    ("1 2 0.8 4 -2 1.5 0 car", r"0000_000\.txt:2: size dy is -2; box sizes must be >= 0"),
+    ("1 2 0.8 4 -2 1.5 0 car", r"0000_000\.txt:2: size dy is -2; box sizes must be > 0"),
     ("1 2 0.8 4 2 1.5 car 0", r"0000_000\.txt:2: column 'heading' is 'car'"),
     ("1 2 0.8 4 2 1.5 0 bicycle", r"0000_000\.txt:2: class 'bicycle' is not in the dataset's classes"),
 ])

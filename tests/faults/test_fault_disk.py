@@ -49,27 +49,40 @@ def test_disk_full_while_simulating(tmp_path):
 
 
 def test_abandoned_and_failed_default_dataset_builds_are_removed(tmp_path, monkeypatch):
-    """A `.tmp-sim-*-PID` folder of a killed build is removed by the next build; a failed build removes
-    its own; a finished dataset is kept."""
+    """A marked staged folder of a killed build (`.tmp-new-<name>-PID` with detbench's build marker) is removed by
+    the next build; a build that fails removes its own; a finished dataset is kept; a folder detbench did not
+    mark, however it is named, stays."""
+    import json
+
     import detbench.sim.dataset as simds
+    from detbench.data.writer import DatasetWriter
+    from detbench.utils.staged_folders import BUILD_MARKER
 
     cfg = {"frames": 4, "frames_per_scene": 2, "heights": [1.8], "cache_dir": str(tmp_path)}
-    dead = tmp_path / ".tmp-sim-paper-2f-0123456789ab-999999999"  # no process has this id
-    dead.mkdir()
-    (dead / "points").mkdir()
-    real = simds.simulate_dataset
+    dead = tmp_path / ".tmp-new-sim-paper-2f-0123456789ab-999999999"  # no process has this id
+    (dead / "points").mkdir(parents=True)
+    (dead / BUILD_MARKER).write_text(json.dumps({"dest": "sim-paper-2f-0123456789ab", "pid": 999999999}))
+    users = [tmp_path / ".tmp-thesis-backup-2023", tmp_path / ".tmp-new-sim-paper-2f-0123456789ab-42"]
+    for folder in users:  # no build marker: the user's
+        folder.mkdir()
+        (folder / "chapter1.tex").write_text("the user's")
+    real = DatasetWriter.add
 
-    def fails(root, **kw):
-        real(root, **kw)
-        raise OSError(28, "No space left on device")
+    def fails(self, frames):
+        if len(self) == 2:
+            raise OSError(28, "No space left on device")
+        real(self, frames)
 
-    monkeypatch.setattr(simds, "simulate_dataset", fails)
+    monkeypatch.setattr(DatasetWriter, "add", fails)
     with pytest.raises(OSError, match="No space left"):
         simds.default_dataset(cfg, progress=False)
-    assert not dead.exists() and not list(tmp_path.glob(".tmp-*"))
-    monkeypatch.setattr(simds, "simulate_dataset", real)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert not dead.exists() and left == sorted(p.name for p in users), left
+    monkeypatch.setattr(DatasetWriter, "add", real)
     final = simds.default_dataset(cfg, progress=False)
-    assert (final / "dataset.json").is_file() and not list(tmp_path.glob(".tmp-*"))
+    assert (final / "dataset.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([final.name, *(p.name for p in users)])
+    assert all((p / "chapter1.tex").read_text() == "the user's" for p in users)
 
 
 # Runs inside the namespace, where argv[1:4] are fresh tmpfs mounts of 256 KiB, 1 MiB and 64 KiB: a simulated

@@ -68,7 +68,8 @@ def test_fresh_empties_a_study_folder_and_nothing_else(tmp_path):
     """What --fresh removes: a folder proven to be a study (owner file, or a finished study's study.json) holding
     only a study's entries, its runs proven to be runs; the folder itself and its owner file stay."""
     from detbench.train.run_layout import STUDY_FOLDER
-    from detbench.utils.folder_ownership import FolderNotReplaceable, clear_folder
+    from detbench.utils.folder_locks import clear_folder
+    from detbench.utils.folder_ownership import FolderNotReplaceable
 
     study = tmp_path / "study"
     (study / "second_h1.8" / "checkpoints").mkdir(parents=True)
