@@ -307,6 +307,7 @@ class _EpochRun:
 
     lr: float
     t0: float  # perf_counter at the epoch's start, seconds
+    cpu0: float  # this process's CPU time (process_time) at the epoch's start, seconds
     sums: dict[str, float] = field(default_factory=dict)  # over the steps that updated the model
     n_steps: int = 0  # steps that updated the model
     n_frames: int = 0
@@ -332,7 +333,7 @@ def _train_epoch(run: _Run, epoch: int, stop: StopRequest, progress: bool) -> _E
     run.batches.set_epoch(epoch, skip=run.state.step_in_epoch if epoch == run.state.epoch else 0)
     run.loader_gen.manual_seed(cfg.seed * 100_003 + epoch)
     run.core.train()
-    ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter())
+    ep = _EpochRun(lr=run.optimizer.param_groups[0]["lr"], t0=time.perf_counter(), cpu0=time.process_time())
     bar = tqdm(stop.start_iter(run.loader), total=len(run.batches), desc=f"epoch {epoch + 1}/{cfg.epochs}",
                unit="batch", disable=not (progress and info.is_main), leave=False, dynamic_ncols=True)
     try:
@@ -512,13 +513,15 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
     run.state = TrainState(epoch + 1, 0, run.state.global_step, cfg.seed)
     losses = reduce_mean({k: v / max(ep.n_steps, 1) for k, v in ep.sums.items()}, info)
     seconds = time.perf_counter() - ep.t0
+    cpu_seconds = time.process_time() - ep.cpu0  # the training process's own (its data workers are apart)
     frames_all = int(reduce_mean({"f": ep.n_frames}, info)["f"] * info.world_size)
     sync_buffers(core, info)  # every rank ends the epoch with the same BatchNorm statistics
     step, lr = run.state.global_step, ep.lr
     # the epoch's line goes to history.json before its checkpoint: a kill during the (long) evaluation
     # then loses only the metrics, and a kill before the checkpoint replays the epoch and its line
     record = {"epoch": epoch + 1, "global_step": step, "lr": lr, "seconds": round(seconds, 3),
-              "frames": frames_all, "losses": losses, "metrics": {}, "checkpoint": run.ckpts.name_for(run.state)}
+              "cpu_seconds": round(cpu_seconds, 3), "frames": frames_all, "losses": losses, "metrics": {},
+              "checkpoint": run.ckpts.name_for(run.state)}
     if ep.n_skipped:  # steps skipped for a non-finite loss or gradient (this rank's, listed with their frames)
         record.update(skipped_steps=ep.n_skipped, nonfinite_steps=ep.skipped)
     if run.use_amp:  # the steps the GradScaler skipped and where its scale ended: a collapsing scale shows

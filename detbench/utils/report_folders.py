@@ -8,8 +8,8 @@ from __future__ import annotations
 
 from detbench.utils.folder_ownership import FolderKind
 
-__all__ = ["ABILITY_FOLDER", "BENCHMARK_FOLDER", "CALIBRATION_FOLDER", "COMBINED_FOLDER", "EVAL_FOLDER",
-           "SWEEP_FOLDER"]
+__all__ = ["ABILITY_FOLDER", "BENCHMARK_FOLDER", "CALIBRATION_FOLDER", "COMBINED_FOLDER", "CURVES_FOLDER",
+           "EVAL_FOLDER", "SWEEP_FOLDER"]
 
 FIGURE = r"[A-Za-z0-9_.-]+\.png"  # the figures a report folder holds
 
@@ -40,3 +40,7 @@ CALIBRATION_FOLDER = FolderKind(name="a calibration check", marker="calibration.
 # tools/benchmark.py: latency, memory and size of the detectors
 BENCHMARK_FOLDER = FolderKind(name="a benchmark", marker="benchmark.json", entries=("benchmark.json", "benchmark.md"),
                               foreign="written by tools/benchmark.py", key="benchmark")
+
+# tools/curves.py: learning curves over training seeds
+CURVES_FOLDER = FolderKind(name="learning curves", marker="curves.json", entries=("curves.json", "curves.md"),
+                           foreign="written by tools/curves.py", key="curves", patterns=(FIGURE,))
