@@ -24,7 +24,7 @@ the arguments and writes the report.
 
 Examples:
   python tools/check_calibration.py --seeds 0 1 2 3 4 5   # the full check: six seeds, 8000 frames each
-  python tools/check_calibration.py --sim-preset v1        # calibration v1 (the default is v2)
+  python tools/check_calibration.py --sim-preset v2        # calibration v2 (the default is v3)
   python tools/check_calibration.py --seeds 0 --frames 2000 --block-frames 0
   python tools/check_calibration.py --set traffic.density_per_km_lane=10 --strict
 
@@ -71,8 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="allowed |second-in-lane LDR - paper| (default 0.07)")
     ap.add_argument("--pair-tolerance", type=float, default=0.03,
                     help="allowed |LDR(0.5 m) - LDR(1.0 m)| in each cell (default 0.03)")
-    add_sim_preset_argument(ap, detail=", calibration v2; v1 is calibration v1; the report names the preset's "
-                                       "calibration")
+    add_sim_preset_argument(ap, detail=", calibration v3; v2 and v1 are calibrations v2 and v1; the report "
+                                       "names the preset's calibration")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                     help="simulator config override, repeatable")
     ap.add_argument("--out", default="runs/check_calibration", help="output folder for the JSON and Markdown")

@@ -145,9 +145,14 @@ def check_sim_config(cfg: dict) -> None:
         raise ConfigError("sim config: traffic.window_ahead_m must exceed output.region_x_m[1] (the traffic seam "
                           "would be visible)")
     try:
-        VehicleCatalog(cfg["vehicles"])
+        catalog = VehicleCatalog(cfg["vehicles"])
     except (ValueError, KeyError) as e:
         raise ConfigError(f"sim config: vehicles: {e}") from None
+    ego = cfg["traffic"]["ego_type"]
+    if not catalog.knows(ego):
+        raise ConfigError(f"sim config: traffic.ego_type {ego!r} is not a vehicle type, blueprint or blueprint class "
+                          f"of vehicles.draw: {catalog.draw}; known: {', '.join([*catalog.classes, *catalog.types])} "
+                          f"(configs/sim.yaml)")
 
 
 # ---------------------------------------------------------------------------- frames

@@ -21,9 +21,9 @@ follower in both, so lane changes cannot cause overlaps either.
 Spawning: each lane ring holds exactly its share (density x window length) of vehicles,
 filled front to back: a vehicle follows the one ahead at a short platoon gap with
 probability `platoon.follow_fraction`, else at a free gap, and the free gaps are scaled to
-fill the ring (see `Traffic._spawn_lane`). Vehicle types come from a shuffled deck that
-holds the mix in proportion (`vehicles.mix_deck_size`), so every scene has close to the
-configured share of trucks and vans.
+fill the ring (see `Traffic._spawn_lane`). Vehicles come from a shuffled deck that holds every
+blueprint once (`vehicles.blueprint_deck`), or the class mix in proportion
+(`vehicles.mix_deck_size`), so every scene has close to the catalogue's share of trucks and vans.
 Desired speeds: speed limit x lane factor (faster inside) x vehicle factor; platoon
 followers want slightly more than their leader so platoons stay together.
 
@@ -478,12 +478,13 @@ class Traffic:
         ego_w = lane_profile(t["ego_lane_weights"], n)
         ego_w = ego_w / ego_w.sum()
         self.ego_type = str(t["ego_type"])
-        if self.ego_type not in self.catalog.types:
-            raise ValueError(f"traffic.ego_type {self.ego_type!r} is not a vehicle type; known: "
-                             f"{', '.join(self.catalog.types)}")
+        if not self.catalog.knows(self.ego_type):
+            raise ValueError(f"traffic.ego_type {self.ego_type!r} is not a vehicle type, blueprint or blueprint class; "
+                             f"known: {', '.join([*self.catalog.classes, *self.catalog.types])}")
         ego_lane = int(rng.choice(n, p=ego_w))
-        ego_shape = self.catalog.sample(rng, self.ego_type)
-        self._add(self.own, ego_shape, self.ego_type, 0.0, ego_lane, ego=True)
+        ego_name = self.catalog.pick(rng, self.ego_type)  # a class of blueprints: one of them
+        ego_shape = self.catalog.sample(rng, ego_name)
+        self._add(self.own, ego_shape, ego_name, 0.0, ego_lane, ego=True)
         self.own.can_change[0] = False  # the ego changes lanes only on its own schedule (ego_lane_change_every_s)
         self.own.lane_lo[0], self.own.lane_hi[0] = 0, n - 1
         lane_w = lane_profile(t["lane_density_weights"], n)

@@ -1,10 +1,18 @@
-"""Vehicle types and their shapes: every vehicle is a few boxes ("parts") in its own frame.
+"""Vehicles: CARLA's blueprints or per-class size distributions, each vehicle a few boxes ("parts").
 
 Vehicle frame: x forward, y left, z up, metres; the origin is on the road at the centre of
 the vehicle's footprint. A part is (cx, cy, cz, hx, hy, hz): centre and half sizes, axis
 aligned in the vehicle frame (all parts share the vehicle's heading).
 
-Shapes (each from published dimensions; length/width/height spreads come from the config):
+Two ways to draw a vehicle (`vehicles.draw` in configs/sim.yaml):
+- blueprints: one of CARLA's blueprints, uniformly (as CARLA's generate_traffic.py picks them),
+  every instance of a blueprint with its one size and shape; the label box is the blueprint's
+  bounding box and the parts span it shrunk by `label_margin` (on the four sides and the top),
+  narrower where the blueprint's body is narrower than its box (a box that holds mirrors);
+- types: a class, then its length, width and height drawn independently from truncated
+  normals; the label box is the parts' tight box grown by `label_margin`.
+
+Shapes (each from published dimensions; the overall size comes from the blueprint or the class):
 - sedan: lower body from the ground clearance to the belt line over the full length and
   width, a narrower and shorter greenhouse (cabin) up to the roof, four wheels;
 - suv: the same with more clearance, a higher belt line and a longer, squarer cabin;
@@ -14,9 +22,8 @@ Shapes (each from published dimensions; length/width/height spreads come from th
   closing the space under the cargo box down to ~0.5 m, front wheels and a rear tandem;
 - bus: one tall body on raised floor, four wheels.
 
-The label box of a vehicle is the tight box around all its parts, from the road surface
-(z = 0) to the roof, enlarged by `label_margin` metres on the four sides and the top (the
-parts are built so that their union spans exactly length x width x height).
+The label box runs from the road surface (z = 0) to the roof; the parts are built so that
+their union spans exactly the length x width x height they are built for.
 """
 from __future__ import annotations
 
@@ -43,7 +50,8 @@ class VehicleType:
 
 @dataclass
 class VehicleShape:
-    """One sampled vehicle: class name, label size (metres), parts (P, 6), reflectivity in [0, 1]."""
+    """One sampled vehicle: class name, label size (metres), parts (P, 6), reflectivity in [0, 1], and what it was
+    drawn as (its blueprint id, or its class for a type)."""
 
     cls: str
     length: float
@@ -51,6 +59,7 @@ class VehicleShape:
     height: float
     parts: np.ndarray
     reflectivity: float
+    name: str = ""
 
 
 def _draw(rng: np.random.Generator, spec: tuple[float, float, float, float]) -> float:
@@ -137,16 +146,65 @@ def build_parts(shape: str, length: float, width: float, height: float, rng: np.
     return np.asarray(parts, dtype=np.float64)
 
 
+@dataclass(frozen=True)
+class Blueprint:
+    """One of CARLA's vehicle blueprints: id, class, shape, bounding box (metres) and body width (metres,
+    at most the box width: a box may hold mirrors that the body does not)."""
+
+    name: str
+    cls: str
+    shape: str
+    length: float
+    width: float
+    height: float
+    body_width: float
+    speed_factor: float = 1.0
+    outer_lanes_only: int = 0
+    lane_change: bool = True
+
+
+DRAWS = ("blueprints", "types")
+
+
+def _blueprint(row, k: int) -> Blueprint:
+    where = f"vehicles.blueprints[{k}]"
+    if not (isinstance(row, (list, tuple)) and len(row) in (6, 7) and all(isinstance(v, str) for v in row[:3])
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) and v > 0 for v in row[3:])):
+        raise ValueError(f"{where} must be [blueprint id, class, shape, length, width, height] or with a body width "
+                         f"after them (metres > 0), got {row!r} (configs/sim.yaml)")
+    name, cls, shape = row[:3]
+    if shape not in SHAPES:
+        raise ValueError(f"{where} ({name}): unknown shape {shape!r}; use one of {', '.join(SHAPES)}")
+    length, width, height = (float(v) for v in row[3:6])
+    body = float(row[6]) if len(row) == 7 else width
+    if body > width:
+        raise ValueError(f"{where} ({name}): the body width {body} m exceeds the box width {width} m; the label box "
+                         f"holds the whole body")
+    return Blueprint(name, cls, shape, length, width, height, body)
+
+
 class VehicleCatalog:
-    """Vehicle classes with their mix (probabilities) and size spreads, from the `vehicles` config."""
+    """What vehicles are drawn from, by the `vehicles` config: CARLA's blueprints (`draw: blueprints`) or classes
+    with size spreads (`draw: types`). `names` are what is drawn (blueprint ids or class names), `probs` their
+    probabilities, `types[name]` their speed and lane attributes."""
 
     def __init__(self, cfg: dict):
         self.label_margin = float(cfg.get("label_margin_m", 0.0))
         if self.label_margin < 0:
             raise ValueError("vehicles.label_margin_m must be >= 0 metres")
+        self.draw = cfg.get("draw", "types")
+        if self.draw not in DRAWS:
+            raise ValueError(f"vehicles.draw must be one of {', '.join(DRAWS)}, got {self.draw!r}")
+        self.types: dict[str, VehicleType | Blueprint] = {}
+        self.classes: dict[str, list[str]] = {}  # blueprints: class -> its blueprint ids
+        if self.draw == "blueprints":
+            self._init_blueprints(cfg)
+        else:
+            self._init_types(cfg)
+
+    def _init_types(self, cfg: dict) -> None:
         types = cfg["types"]
         mix = cfg["mix"]
-        self.types: dict[str, VehicleType] = {}
         for name, t in types.items():
             shape = t.get("shape", name)
             if shape not in SHAPES:
@@ -174,20 +232,64 @@ class VehicleCatalog:
         if self.deck_size < 0:
             raise ValueError("vehicles.mix_deck_size must be >= 0 (0 draws every type independently)")
 
+    def _init_blueprints(self, cfg: dict) -> None:
+        rows = cfg.get("blueprints")
+        if not isinstance(rows, (list, tuple)) or not rows:
+            raise ValueError("vehicles.blueprints must be a non-empty list of blueprint rows (configs/sim.yaml)")
+        for k, row in enumerate(rows):
+            bp = _blueprint(row, k)
+            if bp.name in self.types:
+                raise ValueError(f"vehicles.blueprints: {bp.name} is listed twice")
+            self.types[bp.name] = bp
+            self.classes.setdefault(bp.cls, []).append(bp.name)
+        spawn = cfg.get("spawn_classes")
+        if not (isinstance(spawn, (list, tuple)) and spawn and all(isinstance(c, str) for c in spawn)):
+            raise ValueError(f"vehicles.spawn_classes must be a non-empty list of classes of vehicles.blueprints "
+                             f"({', '.join(self.classes)}), got {spawn!r}")
+        unknown = [c for c in spawn if c not in self.classes]
+        if unknown:
+            raise ValueError(f"vehicles.spawn_classes names class(es) {unknown} that no blueprint has; known: "
+                             f"{', '.join(self.classes)}")
+        self.names = [n for n, bp in self.types.items() if bp.cls in spawn]
+        self.probs = np.full(len(self.names), 1.0 / len(self.names))
+        deck = cfg.get("blueprint_deck", True)
+        if not isinstance(deck, bool):
+            raise ValueError(f"vehicles.blueprint_deck must be true or false, got {deck!r}")
+        self.deck_size = len(self.names) if deck else 0  # a deck holds every spawnable blueprint once
+
+    def knows(self, name: str) -> bool:
+        """Whether `name` names something a vehicle can be drawn as: a type, a blueprint or a blueprint class."""
+        return name in self.types or name in self.classes
+
+    def pick(self, rng: np.random.Generator, name: str) -> str:
+        """The type or blueprint `name` names: itself, or for a class of blueprints one of its blueprints, uniformly
+        (no draw otherwise)."""
+        if name in self.types:
+            return name
+        if name in self.classes:
+            ids = self.classes[name]
+            return ids[int(rng.integers(len(ids)))]
+        raise ValueError(f"{name!r} is neither a vehicle type, a blueprint nor a blueprint class; known: "
+                         f"{', '.join([*self.classes, *self.types])}")
+
     def sample_type(self, rng: np.random.Generator) -> str:
         return self.names[int(rng.choice(len(self.names), p=self.probs))]
 
     def deck(self, rng: np.random.Generator) -> TypeDeck | None:
-        """A stratified type deck for one scene (None when `mix_deck_size` is 0)."""
+        """A stratified deck for one scene (None when draws are independent)."""
         return TypeDeck(self.names, self.probs, self.deck_size, rng) if self.deck_size > 0 else None
 
     def sample(self, rng: np.random.Generator, type_name: str | None = None) -> VehicleShape:
-        """One vehicle: its class, label size (metres, margin included), parts and reflectivity."""
+        """One vehicle: its class, label size (metres), parts and reflectivity."""
         t = self.types[type_name or self.sample_type(rng)]
+        m = self.label_margin
+        if isinstance(t, Blueprint):
+            L, W, H = t.length, t.width, t.height  # the label box is the blueprint's box
+            parts = build_parts(t.shape, L - 2 * m, min(t.body_width, W - 2 * m), H - m, rng)
+            return VehicleShape(t.cls, L, W, H, parts, float(rng.uniform(0.35, 0.95)), t.name)
         L, W, H = _draw(rng, t.length), _draw(rng, t.width), _draw(rng, t.height)
         parts = build_parts(t.shape, L, W, H, rng)
-        m = self.label_margin
-        return VehicleShape(t.name, L + 2 * m, W + 2 * m, H + m, parts, float(rng.uniform(0.35, 0.95)))
+        return VehicleShape(t.name, L + 2 * m, W + 2 * m, H + m, parts, float(rng.uniform(0.35, 0.95)), t.name)
 
 
 class TypeDeck:
@@ -229,4 +331,5 @@ def label_box_local(parts: np.ndarray, margin: float = 0.0) -> np.ndarray:
     return np.array([c[0], c[1], c[2], hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2], 0.0])
 
 
-__all__ = ["VehicleType", "VehicleShape", "VehicleCatalog", "TypeDeck", "build_parts", "label_box_local", "SHAPES"]
+__all__ = ["VehicleType", "Blueprint", "VehicleShape", "VehicleCatalog", "DRAWS", "TypeDeck", "build_parts",
+           "label_box_local", "SHAPES"]

@@ -249,9 +249,9 @@ def add_sim_preset_argument(parser: argparse.ArgumentParser, default: str = "pap
     is kept as its deprecated spelling for one release: accepted, with a note on stderr."""
     parser.add_argument("--sim-preset", dest="sim_preset", default=default, metavar="NAME",
                         help=f"simulator calibration: a preset of configs/sim.yaml (default {default}){detail}; "
-                             f"paper (also carla-tm) is calibration v2, the CARLA-like world every figure of the "
-                             f"README uses; v1 a world fitted to Table IV with traffic that is not CARLA's; not a "
-                             f"training budget")
+                             f"paper (also carla-tm) is calibration v3, the CARLA-like world with CARLA's vehicle "
+                             f"blueprints; v2 the same world with per-class size distributions; v1 a world fitted to "
+                             f"Table IV with traffic that is not CARLA's; not a training budget")
     parser.add_argument("--preset", dest="sim_preset", action=_DeprecatedSimPreset, metavar="NAME",
                         help="deprecated spelling of --sim-preset, accepted for one release")
 

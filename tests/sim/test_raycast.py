@@ -145,7 +145,8 @@ def test_nothing_from_the_ego():
 
 
 def test_label_boxes_tightly_enclose_the_parts():
-    cfg = load_sim_config()
+    # a world of types (calibration v2): the label box is the parts' tight box grown by the margin
+    cfg = load_sim_config("v2")
     cat = VehicleCatalog(cfg["vehicles"])
     m = cat.label_margin
     rng = np.random.default_rng(5)

@@ -273,15 +273,14 @@ def test_an_overfull_lane_ring_drops_vehicles_instead_of_overlapping():
     from detbench.sim.vehicles import VehicleCatalog
 
     cfg = load_sim_config("paper", ["traffic.density_per_km_lane=150.0", "traffic.opposite_density_per_km_lane=150.0",
-                                    "vehicles.mix.truck=1.0", "vehicles.mix.car=0.0", "vehicles.mix.suv=0.0",
-                                    "vehicles.mix.taxi=0.0", "vehicles.mix.van=0.0", "vehicles.mix.bus=0.0"])
+                                    "vehicles.spawn_classes=[truck, bus]"])
     t = cfg["traffic"]
     ring = float(t["window_behind_m"]) + float(t["window_ahead_m"])
     tr = Traffic(t, HighwaySimulator(cfg, 0).layout, VehicleCatalog(cfg["vehicles"]), np.random.default_rng(0))
     for cw in (tr.own, tr.opp):
         for lane in range(cw.n_lanes):
             idx = np.flatnonzero(cw.lane == lane)
-            assert 0 < idx.size < 150 * ring / 1000  # 150/km of 11 m trucks cannot fit
+            assert 0 < idx.size < 150 * ring / 1000  # 150/km of 5-10 m trucks and buses cannot fit
             order = idx[np.argsort(cw.x[idx])]
             x, L = cw.x[order], cw._len[order]
             gaps = np.diff(x) - 0.5 * (L[1:] + L[:-1])

@@ -159,10 +159,10 @@ def test_tiny_run_writes_json_and_markdown(tmp_path, tool):
                 v = runs["all"]["ldr"][lv][r][h]
                 assert v is None or 0.0 <= v <= 1.0
     assert set(runs["all"]["decomposition_ldr"]) == {"second", "beyond"}
-    assert rep["preset"] == "paper" and rep["calibration"] == "v2"  # the default preset is calibration v2
+    assert rep["preset"] == "paper" and rep["calibration"] == "v3"  # the default preset is calibration v3
     md = (out / "calibration.md").read_text()
     assert "| 0 | all (40) |" in md and "### Top6 (Table VI)" in md and "second-in-lane (Top6 - Top3)" in md
-    assert "(paper preset, calibration v2)" in md
+    assert "(paper preset, calibration v3)" in md
 
 
 def test_judges_the_preset_it_is_given(tmp_path, tool):

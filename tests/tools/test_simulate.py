@@ -63,17 +63,62 @@ def test_bench_sim_small_run(tmp_path):
     assert (tmp_path / "bench_sim.md").read_text().startswith("# Simulator benchmark")
 
 
-def test_v1_preset_is_the_former_default_key_for_key():
-    # `--sim-preset v1` must reproduce calibration v1's data: its config is pinned by the digest of calibration v1's
-    # config, so an edit of the v1 preset or of a top-level key it inherits fails here
+# the keys only the blueprint world reads (vehicles.draw: blueprints); a world of types (v1, v2) is pinned without them
+BLUEPRINT_KEYS = ("draw", "blueprint_deck", "spawn_classes", "blueprints")
+
+
+def _types_config_digest(preset: str) -> str:
     import hashlib
 
     from detbench.sim import load_sim_config
 
+    cfg = load_sim_config(preset)
+    assert cfg["vehicles"]["draw"] == "types"
+    for k in BLUEPRINT_KEYS:
+        del cfg["vehicles"][k]
+    return hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()
+
+
+def test_v1_preset_is_the_former_default_key_for_key():
+    # `--sim-preset v1` must reproduce calibration v1's data: its config is pinned by the digest of calibration v1's
+    # config, so an edit of the v1 preset or of a top-level key it inherits fails here
+    from detbench.sim import load_sim_config
+
     cfg = load_sim_config("v1")
-    digest = hashlib.sha256(json.dumps(cfg, sort_keys=True).encode()).hexdigest()
+    digest = _types_config_digest("v1")
     assert digest.startswith("3e93451adc39f91c"), digest
     assert cfg != load_sim_config("paper")
+    assert _sim_digest("v1").startswith("3dc243b60e0eb195")
+
+
+def _sim_digest(preset: str) -> str:
+    """A digest of what a small run of the preset gives: per frame and LiDAR the integer outputs (hit counts, points
+    per frame, classes, track ids, lanes), which change with any change of traffic, shapes or the order of draws,
+    and no floats, whose last bits may differ between machines."""
+    import hashlib
+
+    from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
+
+    lidars = [lidar_preset(0.5, channels=16, h_samples=120), lidar_preset(1.8, channels=16, h_samples=120)]
+    h = hashlib.sha256()
+    for step in HighwaySimulator(load_sim_config(preset), 7).run(4, lidars, frames_per_scene=2):
+        for f in step:
+            h.update(np.asarray(f.hit_counts, np.int64).tobytes() + np.int64(len(f.points)).tobytes())
+            h.update(np.asarray(f.track_ids, np.int64).tobytes() + np.asarray(f.lanes, np.int64).tobytes())
+            h.update("|".join(f.classes.tolist()).encode())
+    return h.hexdigest()
+
+
+def test_v2_preset_is_calibration_v2_key_for_key_and_by_its_data():
+    # `--sim-preset v2` must reproduce calibration v2's data (the world of per-class size distributions): its config
+    # is pinned by the digest of calibration v2's config, and a small run by the digest of its integer outputs, so an
+    # edit of a key it reads, or of the code path it runs (the order of the random draws included), fails here
+    from detbench.sim import load_sim_config
+
+    assert load_sim_config("v2")["calibration"] == "v2"
+    digest = _types_config_digest("v2")
+    assert digest.startswith("6ed740dc3434e10a"), digest
+    assert _sim_digest("v2").startswith("4d8d4664aa3d1df9")
 
 
 def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
@@ -89,7 +134,7 @@ def test_a_calibration_label_with_a_note_reads_as_its_bare_id(tmp_path):
     assert sim_calibration({"config": {"calibration": long_label}}) == "v2"
     root = simulate_dataset(tmp_path / "ds", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
     info = json.loads((root / "dataset.json").read_text())
-    assert info["source"]["calibration"] == "v2"
+    assert info["source"]["calibration"] == "v3"
     info["source"]["calibration"] = info["source"]["config"]["calibration"] = long_label
     (root / "dataset.json").write_text(json.dumps(info))
     assert sim_calibration(read_info(root).source) == "v2"
@@ -101,13 +146,18 @@ def test_calibration_id_is_written_and_old_datasets_read_as_v1(tmp_path):
     from detbench.data.layout import PREVIOUS_CALIBRATION, sim_calibration
     from detbench.sim.dataset import simulate_dataset
 
-    v2 = load_sim_config("paper")["calibration"]  # the default is v2; v1 is a preset
-    assert v2 == "v2" and load_sim_config("carla-tm") == load_sim_config("paper")
+    v3 = load_sim_config("paper")["calibration"]  # the default is v3; v2 and v1 are presets
+    assert v3 == "v3" and load_sim_config("carla-tm") == load_sim_config("paper")
     assert load_sim_config("v1")["calibration"] == PREVIOUS_CALIBRATION == "v1"
     root = simulate_dataset(tmp_path / "ds", frames=4, heights=[1.0], seed=0, frames_per_scene=2, progress=False)
     info = read_info(root)
-    assert info.source["calibration"] == v2 and sim_calibration(info.source) == v2
+    assert info.source["calibration"] == v3 and sim_calibration(info.source) == v3
     assert info.source["config"]["traffic"]["platoon"]["ego_in_platoon"] is True
+    assert info.source["config"]["vehicles"]["draw"] == "blueprints"
+    v2 = simulate_dataset(tmp_path / "ds2", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False,
+                          preset="v2")
+    assert read_info(v2).source["calibration"] == "v2" and sim_calibration(read_info(v2).source) == "v2"
+    assert read_info(v2).source["config"]["vehicles"]["draw"] == "types"
     v1 = simulate_dataset(tmp_path / "ds1", frames=2, heights=[1.0], seed=0, frames_per_scene=2, progress=False,
                           preset="v1")
     assert read_info(v1).source["calibration"] == "v1"
