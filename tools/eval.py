@@ -10,7 +10,8 @@ OpenPCDet's outputs are read too: its result.pkl (`--pred .../result.pkl`) and p
 in its layouts (detbench.eval.external); `--pred-frame sensor` moves predictions made in the
 LiDAR's own frame to the ground frame with the dataset's sensor height and pitch. A constant
 height offset between predictions and vehicles is reported as a likely frame mismatch.
-Writes OUT_DIR/report.json, report.md (Table VII layout), report.csv and prints a summary.
+Writes OUT_DIR/report.json, report.md (Table VII layout), report.csv and prints a summary; with
+--misses also misses.json and misses.md (where recall goes: loose boxes or vehicles never seen).
 
 Combine several reports (models x heights) into one table and the paper's Fig. 8-10:
 
@@ -30,6 +31,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 from detbench.config import shipped_default
 from detbench.eval.prediction_files import remove_prediction_folder, write_prediction_folder
 from detbench.eval.report import summary_lines
+from detbench.utils.atomic import atomic_write_json, atomic_write_text
 from detbench.eval.run import (
     CheckpointRun,
     EvalSettings,
@@ -117,6 +119,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "AP@R40 in the report (default 1000; 0 = none)")
     p.add_argument("--no-extras", action="store_true",
                    help="skip the extra variants (BEV IoU and IoU 0.5) in the report")
+    p.add_argument("--misses", action="store_true",
+                   help="also write where recall goes (misses.json, misses.md): per range, each LiDAR-detected "
+                        "vehicle's best 3D IoU with a kept prediction, the near misses' box errors in metres, "
+                        "and recall by vehicle length and by distance (detbench.eval.misses)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     comb = p.add_argument_group("combine reports")
     comb.add_argument("--combine", nargs="+", type=Path, metavar="REPORT",
@@ -201,6 +207,19 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         args.out = run_dir_of_checkpoint(args.ckpt) / eval_dir_name(args.height, args.split, args.stage)
 
 
+def write_misses(dataset, preds, settings: EvalSettings, out: Path, title: str) -> list[Path]:
+    """misses.json and misses.md in `out`: per range, where recall goes (detbench.eval.misses)."""
+    from detbench.data.regions import RANGE_NAMES
+    from detbench.eval.misses import misses, misses_markdown
+
+    frames = [dataset[i] for i in range(len(dataset))]
+    found = {r: misses(frames, preds, r, settings.score_threshold, settings.iou_threshold).to_dict()
+             for r in RANGE_NAMES}
+    atomic_write_json(out / "misses.json", found)
+    atomic_write_text(out / "misses.md", "\n".join(misses_markdown(d, title) for d in found.values()))
+    return [out / "misses.json", out / "misses.md"]
+
+
 def check_arguments(args: argparse.Namespace) -> None:
     """UserError for a value that would zero or void the result: no frames per pass, a threshold no score or
     IoU can reach, a negative bootstrap, a height that is not a positive number of metres."""
@@ -266,6 +285,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     title = report_title(model, args.height, args.split, args.stage if args.ckpt is not None else "refined")
     with claim_output(args.out, EVAL_FOLDER):
         paths = write_report(full, args.out, title)
+        if args.misses:
+            paths += write_misses(dataset, preds, settings, args.out, title)
     for line in summary_lines(full):
         print(line)
     if skipped:

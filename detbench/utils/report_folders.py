@@ -15,7 +15,7 @@ FIGURE = r"[A-Za-z0-9_.-]+\.png"  # the figures a report folder holds
 
 # tools/eval.py: one evaluation (and with --ckpt, its predictions in pred/)
 EVAL_FOLDER = FolderKind(name="an evaluation", marker="report.json", entries=("report.json", "report.md", "report.csv",
-                                                                               "pred"),
+                                                                               "pred", "misses.json", "misses.md"),
                          foreign="written by tools/eval.py", key="eval", patterns=(FIGURE,))
 
 # tools/eval.py --combine: reports merged into one table, with the paper's Fig. 8-10

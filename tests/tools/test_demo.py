@@ -70,3 +70,22 @@ def test_demo_errors_are_one_line(smoke_run, tmp_path, capsys):
     rc = run_main(tools.demo.main, ["--ckpt", str(tmp_path), "--out", str(tmp_path / "o")])
     assert rc == 2 and "holds no checkpoint" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_eval_misses_writes_where_recall_goes_beside_the_report(smoke_run, tmp_path):
+    """tools/eval.py --misses: misses.json holds each range's vehicles (the report's LiDAR-detected count) and a
+    recall at least the report's (a vehicle counts when any kept prediction overlaps it enough, without the
+    one-to-one matching), misses.md their tables; the folder stays an evaluation's."""
+    out = tmp_path / "eval"
+    assert run_main(tools.eval.main, ["--ckpt", str(smoke_run), "--out", str(out), "--no-progress", "--bootstrap",
+                                      "0", "--misses"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    found = json.loads((out / "misses.json").read_text())
+    for r in ("small", "moderate", "large"):
+        cell = report["results"][r]["all"]
+        assert found[r]["vehicles"] == cell["lidar_detected"]
+        if cell["lidar_detected"]:
+            assert found[r]["recall"] >= cell["recall"] - 1e-4
+    assert "# Where recall goes: small range" in (out / "misses.md").read_text()
+    assert run_main(tools.eval.main, ["--ckpt", str(smoke_run), "--out", str(out), "--no-progress", "--bootstrap",
+                                      "0"]) == 0  # an evaluation's own folder, misses files and all
