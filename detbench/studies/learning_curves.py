@@ -1,12 +1,16 @@
 """Learning curves over training seeds: a metric of the per-epoch evaluations against training CPU-minutes.
 
-Each training run evaluated during training (`train.eval_every`) writes its epochs to history.json with
-their wall and CPU seconds (`seconds`, `cpu_seconds`: the training process's own, its data workers
-apart) and the evaluation's metrics. `collect_curves` groups runs by model (and a label, e.g. the
-preset), lines up their epochs, and gives per epoch the cumulative CPU-minutes and each metric's mean,
-minimum and maximum over the runs (the training seeds); `curves_markdown` and `plot_curves` turn that into
-a table and a figure. Only epochs that every run of a group evaluated are kept, so a point is always a
-mean over the same seeds.
+Each training run writes its epochs to history.json with their wall and CPU seconds (`seconds`,
+`cpu_seconds`: the training process's own, its data workers apart) and, when it evaluated during training
+(`train.eval_every`), the evaluation's metrics. A run that kept its epoch checkpoints
+(`train.keep_checkpoints: 0`, as a study's runs may) is evaluated afterwards instead
+(`evaluate_run_checkpoints`: each epoch checkpoint on evenly spaced test frames, cached in the run's
+curve_eval.json), and those metrics take the place of the training's own.
+
+`collect_curves` groups runs by model (and a label, e.g. the preset), lines up their epochs, and gives per
+epoch the cumulative CPU-minutes and each metric's mean, minimum and maximum over the runs (the training
+seeds); `curves_markdown` and `plot_curves` turn that into a table and a figure. Only epochs that every run
+of a group evaluated are kept, so a point is always a mean over the same seeds.
 
 Units: minutes of CPU time (or of wall time where a run records no CPU time); metrics are fractions.
 """
@@ -17,9 +21,14 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from detbench.utils.atomic import read_json
 
-__all__ = ["CurvePoint", "Curve", "DEFAULT_METRICS", "collect_curves", "curves_markdown", "plot_curves"]
+__all__ = ["CURVE_EVAL", "CurvePoint", "Curve", "DEFAULT_METRICS", "collect_curves", "curves_markdown",
+           "evaluate_run_checkpoints", "plot_curves"]
+
+CURVE_EVAL = "curve_eval.json"  # a run's epoch checkpoints evaluated afterwards: {checkpoint name: metrics}
 
 DEFAULT_METRICS = ("ap_r40_small", "recall_small", "recall_large")
 
@@ -56,13 +65,59 @@ def _run_facts(run: Path) -> tuple[str, str, int | None, list[dict]]:
         raise ValueError(f"{run}: not a finished training run (needs train_summary.json and history.json, "
                          f"as tools/train.py writes them)")
     s = read_json(summary)
+    epochs = list(read_json(history).get("epochs", []))
+    evaluated = read_json(run / CURVE_EVAL).get("checkpoints", {}) if (run / CURVE_EVAL).is_file() else {}
+    for e in epochs:  # metrics of the checkpoints evaluated afterwards take the place of the training's own
+        if e.get("checkpoint") in evaluated:
+            e["metrics"] = evaluated[e["checkpoint"]]
     cfg_seed = None
     config = run / "config.yaml"
     if config.is_file():
         import yaml
 
         cfg_seed = ((yaml.safe_load(config.read_text(encoding="utf-8")) or {}).get("train") or {}).get("seed")
-    return str(s.get("model")), str(s.get("preset") or ""), cfg_seed, list(read_json(history).get("epochs", []))
+    return str(s.get("model")), str(s.get("preset") or ""), cfg_seed, epochs
+
+
+def evaluate_run_checkpoints(run: str | Path, frames: int, load_model, progress=None) -> dict:
+    """Evaluate every epoch checkpoint of the training run `run` (epoch_EEE.pt in its checkpoints/) on
+    `frames` evenly spaced frames of the test split at the run's height, as the training's own evaluation
+    does (`detbench.train.run.make_eval_fn`: recall and AP@R40 of all vehicles per range). `load_model(path)`
+    returns (model in eval mode, checkpoint dict) (the registry's `load_from_checkpoint`). Results are kept in
+    RUN/curve_eval.json and reused while the frame count is the same. Returns {checkpoint name: metrics}."""
+    from detbench.data import Height3Dataset
+    from detbench.eval.evaluate import EvalConfig
+    from detbench.train.checkpoint import CheckpointManager
+    from detbench.train.run import make_eval_fn
+    from detbench.utils.atomic import atomic_write_json
+
+    run = Path(run)
+    cache = run / CURVE_EVAL
+    kept = read_json(cache) if cache.is_file() else {}
+    done = kept.get("checkpoints", {}) if kept.get("frames") == int(frames) else {}
+    files = [p for p in CheckpointManager(run / "checkpoints").list() if "_step_" not in p.name]
+    if not files:
+        raise ValueError(f"{run}: holds no epoch checkpoint to evaluate; train with --set train.keep_checkpoints=0 "
+                         f"to keep every epoch's")
+    eval_fn, ecfg = None, None
+    for path in files:
+        if path.name in done:
+            continue
+        model, ck = load_model(path)
+        if eval_fn is None:
+            from detbench.data.road import RoadConfig
+
+            ecfg = EvalConfig.from_dict({**ck["config"]["eval"], "max_frames": int(frames)})
+            test = Height3Dataset(ck["data"]["source"], float(ck["data"]["height"]), "test")
+            n = len(test)
+            picked = [test[int(i)] for i in np.linspace(0, n - 1, min(int(frames), n)).astype(int)]
+            eval_fn = make_eval_fn(picked, ecfg, ck["config"]["model"]["point_cloud_range"], "cpu", 4,
+                                   road=RoadConfig.of_run_config(ck["config"]))
+        done[path.name] = {k: float(v) for k, v in eval_fn(model, 0).items()}
+        atomic_write_json(cache, {"frames": int(frames), "checkpoints": done})
+        if progress:
+            progress(f"{run.name}: {path.name}")
+    return done
 
 
 def collect_curves(runs: Iterable[str | Path], metrics: Sequence[str] = DEFAULT_METRICS,
