@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from detbench.config import shipped_default
 from detbench.data.regions import RANGES, check_range_name, lidar_detected
 from detbench.ops import boxes_iou3d, boxes_iou_bev
 
@@ -81,12 +82,14 @@ class Misses:
                 "by_length": bands(self.length, LENGTH_BANDS), "by_distance": bands(self.distance, DISTANCE_BANDS)}
 
 
-def misses(frames: Sequence, predictions: Mapping, range_name: str = "small", score_threshold: float = 0.1,
-           iou_threshold: float = 0.7) -> Misses:
+def misses(frames: Sequence, predictions: Mapping, range_name: str = "small", score_threshold: float | None = None,
+           iou_threshold: float | None = None) -> Misses:
     """`Misses` of the LiDAR-detected vehicles whose centre lies in `range_name` over `frames` (Frames with
     points and boxes), against `predictions` ({frame_id: Detections or (boxes, scores)}) kept at
-    `score_threshold`."""
+    `score_threshold`; None: the evaluator's thresholds (configs/default.yaml `eval:`)."""
     check_range_name(range_name)
+    score_threshold = float(shipped_default("eval.score_threshold", score_threshold))
+    iou_threshold = float(shipped_default("eval.iou_threshold", iou_threshold))
     x_min, x_max, y_max = RANGES[range_name]
     iou3, iob, err, length, dist = [], [], [], [], []
     for f in frames:
