@@ -30,6 +30,7 @@ from collections.abc import Mapping, Sequence
 from functools import lru_cache
 
 import numpy as np
+from numba import njit, prange
 
 from detbench.eval.bootstrap import scene_bootstrap_weights
 
@@ -38,8 +39,6 @@ AP_RECALL_LEVELS = 40
 _DIGITS = "0123456789abcdefghijklmnopq"
 _DIGIT_VALUE = np.full(256, -1, dtype=np.int64)
 _DIGIT_VALUE[np.frombuffer(_DIGITS.encode("ascii"), dtype=np.uint8)] = np.arange(len(_DIGITS))
-# Replicates per chunk times detections: bounds the memory of `weighted_ap_r40` (~8 arrays of this many float64).
-_CHUNK_ELEMENTS = 2_000_000
 
 
 def ap_ranking(flags: np.ndarray, scores: np.ndarray, scene: np.ndarray,
@@ -110,6 +109,40 @@ def ranked_detections(report: Mapping, r: str, lv: str) -> tuple[np.ndarray, np.
     return codes[counted] == 2, scene[counted], det
 
 
+@njit(cache=True, parallel=True)
+def _level_terms(tp, scene, tp_scene, n_scene, det, weights, levels):
+    """(B, levels) float64: the interpolated precision of each recall level in each replicate (NaN rows where
+    the replicate has no LiDAR-detected vehicle). One backward pass over the ranked detections per replicate,
+    parallel over replicates: the running maximum of p_k = T_k / N_k is the best precision at rank k or later,
+    and it is the term of the levels i with L_{k-1} < i <= L_k, L_k = min(levels, levels T_k // G) the levels
+    reached after detection k (the integer form of 40 T_k >= i G)."""
+    num_b = weights.shape[0]
+    out = np.zeros((num_b, levels))
+    for b in prange(num_b):
+        g, t, n = 0, 0, 0
+        for s in range(weights.shape[1]):
+            g += weights[b, s] * det[s]
+            t += weights[b, s] * tp_scene[s]
+            n += weights[b, s] * n_scene[s]
+        if g == 0:
+            out[b, :] = np.nan
+            continue
+        reached = min(levels, (levels * t) // g)
+        best = 0.0
+        for k in range(tp.shape[0] - 1, -1, -1):
+            if n > 0 and t / n > best:
+                best = t / n
+            w = weights[b, scene[k]]
+            if tp[k]:
+                t -= w
+            n -= w
+            before = min(levels, (levels * t) // g)
+            for i in range(before, reached):
+                out[b, i] = best
+            reached = before
+    return out
+
+
 def weighted_ap_r40(tp: np.ndarray, scene: np.ndarray, lidar_detected: np.ndarray,
                     weights: np.ndarray) -> np.ndarray:
     """AP@R40 of each bootstrap replicate: (B,) float64, NaN where a replicate has no LiDAR-detected vehicle.
@@ -121,43 +154,19 @@ def weighted_ap_r40(tp: np.ndarray, scene: np.ndarray, lidar_detected: np.ndarra
     with each detection repeated. Within a run of copies precision only rises (TP) or falls (FP), so the
     interpolated precision is read at the run ends: with T_k, N_k the weighted TP and detection counts
     after detection k, p_k = T_k / N_k, and level i's term is max_{k' >= k_i} p_k' for the first k_i with
-    40 T_k >= i G_b (G_b the replicate's LiDAR-detected count), 0 when none is; integers throughout,
-    so the figure is the repeated list's to the last bit. Replicates run in chunks over one sort."""
-    tp = np.asarray(tp, dtype=bool).reshape(-1)
-    scene = np.asarray(scene, dtype=np.int64).reshape(-1)
-    w_all = np.rint(np.asarray(weights, dtype=np.float64)).astype(np.int64)
-    gt_all = w_all @ np.asarray(lidar_detected, dtype=np.int64)
-    out = np.full(len(w_all), np.nan)
-    k = len(tp)
-    has_gt = gt_all > 0
-    if k == 0:
-        out[has_gt] = 0.0
-        return out
-    levels = np.arange(1, AP_RECALL_LEVELS + 1, dtype=np.int64)
-    step = max(1, _CHUNK_ELEMENTS // k)
-    for start in range(0, len(w_all), step):
-        w = w_all[start:start + step][:, scene]  # (b, K)
-        gt = gt_all[start:start + step]
-        b = len(w)
-        count = np.cumsum(w, axis=1)
-        tp_cum = np.cumsum(w * tp, axis=1)
-        precision = np.zeros((b, k))
-        np.divide(tp_cum, count, out=precision, where=count > 0)
-        best_after = np.maximum.accumulate(precision[:, ::-1], axis=1)[:, ::-1]
-        # first k with 40 T_k >= i G: one searchsorted over the rows laid end to end (each row's keys
-        # 40 T_k < span, so offsetting row j by j * span keeps the whole key list sorted)
-        span = AP_RECALL_LEVELS * int(gt.max(initial=0)) + 1
-        offset = np.arange(b, dtype=np.int64) * span
-        keys = (tp_cum * AP_RECALL_LEVELS + offset[:, None]).reshape(-1)
-        need = levels[None, :] * gt[:, None] + offset[:, None]
-        first = np.searchsorted(keys, need.reshape(-1), side="left").reshape(b, -1) \
-            - (np.arange(b, dtype=np.int64) * k)[:, None]
-        reached = first < k
-        rows = np.arange(b)[:, None]
-        interp = np.where(reached, best_after[rows, np.minimum(first, k - 1)], 0.0)
-        ap = interp.sum(axis=1) / AP_RECALL_LEVELS
-        out[start:start + b] = np.where(gt > 0, ap, np.nan)
-    return out
+    40 T_k >= i G_b (G_b the replicate's LiDAR-detected count), 0 when none is. Counts are integers and
+    the 40 terms are summed as `ap_r40_ranked` sums them, so the figure is the repeated list's to the last
+    bit. A numba kernel, parallel over replicates, with no array of replicates x detections."""
+    tp = np.ascontiguousarray(tp, dtype=np.bool_).reshape(-1)
+    scene = np.ascontiguousarray(scene, dtype=np.int64).reshape(-1)
+    det = np.ascontiguousarray(lidar_detected, dtype=np.int64).reshape(-1)
+    w = np.ascontiguousarray(np.rint(np.asarray(weights, dtype=np.float64)), dtype=np.int64).reshape(-1, len(det))
+    if len(scene) and (scene.min() < 0 or scene.max() >= len(det)):
+        raise ValueError(f"scene indices must lie in [0, {len(det)}), got {scene.min()}..{scene.max()}")
+    tp_scene = np.bincount(scene[tp], minlength=len(det)).astype(np.int64)
+    n_scene = np.bincount(scene, minlength=len(det)).astype(np.int64)
+    terms = _level_terms(tp, scene, tp_scene, n_scene, det, w, AP_RECALL_LEVELS)
+    return terms.sum(axis=1) / AP_RECALL_LEVELS
 
 
 @lru_cache(maxsize=512)

@@ -7,7 +7,6 @@ import copy
 import numpy as np
 import pytest
 
-import detbench.eval.ap_bootstrap as ap_bootstrap
 from detbench.eval.ap_bootstrap import (
     ap_replicates, has_ap_ranking, paired_ap_difference, ranked_detections, weighted_ap_r40,
 )
@@ -76,16 +75,6 @@ def test_weighted_ap_equals_ap_of_the_list_with_each_detection_repeated():
             num_gt = int(w[b] @ det)
             want = ap_r40_ranked(np.repeat(tp, copies), num_gt) if num_gt else None
             assert (np.isnan(got[b]) if want is None else got[b] == want), (trial, b, got[b], want)
-
-
-def test_replicates_in_chunks_are_the_replicates_at_once(monkeypatch):
-    rng = np.random.default_rng(6)
-    tp, scene = rng.random(50) < 0.6, rng.integers(0, 7, 50)
-    det = np.bincount(scene[tp], minlength=7) + 1
-    w = scene_bootstrap_weights(7, 100, 2)
-    whole = weighted_ap_r40(tp, scene, det, w)
-    monkeypatch.setattr(ap_bootstrap, "_CHUNK_ELEMENTS", 120)  # two replicates per chunk
-    assert np.array_equal(weighted_ap_r40(tp, scene, det, w), whole, equal_nan=True)
 
 
 def test_the_reports_ap_interval_is_the_stored_rankings_bootstrap():
