@@ -2,6 +2,7 @@
 
     python tools/bench_eval.py --out bench/eval            # 2290 frames, ~8 GT, ~30 predictions
     python tools/bench_eval.py --frames 500 --repeats 3    # quicker
+    python tools/bench_eval.py --frames 600 --bootstrap 1000   # the scene bootstrap and report.json's size
 
 The load: per frame a random number of vehicles (mean --gt-per-frame) on the lanes of a
 straight highway (ego carriageway lanes -2..2 and the opposite carriageway), about 80 %
@@ -10,7 +11,8 @@ LiDAR-detected (fewer far away); predictions are jittered copies of most detecte
 [0, 1] (some under the 0.1 threshold). The timed call is `detbench.eval.evaluate(frames)`
 (3D IoU 0.7, nine range/level pairs) after one warm-up call, so numba compilation and
 cache loading are excluded. Reports the median wall time in seconds and the per-stage split;
-writes bench_eval.json and bench_eval.md to --out.
+with --bootstrap B also the time of `evaluate(frames, bootstrap=B)` (frames in scenes of 10) and the
+size of its report.json; writes bench_eval.json and bench_eval.md to --out.
 """
 from __future__ import annotations
 
@@ -41,6 +43,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="random seed of the synthetic load")
     p.add_argument("--extras", action="store_true",
                    help="also time evaluate(..., extras=True) (BEV IoU and IoU 0.5 variants)")
+    p.add_argument("--bootstrap", type=int, default=0, metavar="B",
+                   help="also time evaluate(..., bootstrap=B) over scenes of 10 frames and measure its report.json "
+                        "(bytes, with and without the AP ranking); 0 = not")
     p.add_argument("--out", type=Path, default=None,
                    help="folder for bench_eval.json and bench_eval.md (nothing written when omitted)")
     return p
@@ -53,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
         require(v >= 1, f"{flag} {v}: must be an integer >= 1")
     require(args.gt_per_frame >= 0, f"--gt-per-frame {args.gt_per_frame}: must be >= 0 (mean vehicles per frame)")
     require(args.preds_per_frame >= 0, f"--preds-per-frame {args.preds_per_frame}: must be >= 0")
+    require(args.bootstrap >= 0, f"--bootstrap {args.bootstrap}: must be an integer >= 0 (0 = no bootstrap)")
     if args.out is not None:
         check_out_dir(args.out)
     os.environ["NUMBA_NUM_THREADS"] = str(args.threads)
@@ -63,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
 
     numba.set_num_threads(args.threads)
     result = run_eval_bench(args.frames, args.gt_per_frame, args.preds_per_frame, repeats=args.repeats,
-                            threads=args.threads, seed=args.seed, extras=args.extras)
+                            threads=args.threads, seed=args.seed, extras=args.extras, bootstrap=args.bootstrap)
     n_gt, n_pred, stage_median = result["gt_boxes"], result["predictions"], result["seconds_by_stage_median"]
     print(f"evaluate: {args.frames} frames, {n_gt} GT ({n_gt / args.frames:.1f}/frame), {n_pred} predictions "
           f"({n_pred / args.frames:.1f}/frame), {args.threads} threads")
@@ -72,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
           + ", ".join(f"{k} {v:.3f} s" for k, v in stage_median.items()))
     if args.extras:
         print(f"  with extras (BEV 0.7, 3D 0.5, BEV 0.5): median {result['extras_seconds_median']:.3f} s")
+    if args.bootstrap:
+        print(f"  with a scene bootstrap ({args.bootstrap} replicates, {result['bootstrap_scenes']} scenes): median "
+              f"{result['bootstrap_seconds_median']:.3f} s; report.json {result['report_json_bytes'] / 1024:.0f} KiB "
+              f"({result['report_json_bytes_without_ap_ranking'] / 1024:.0f} KiB without the AP ranking of "
+              f"{result['ranked_detections']} detections)")
     if args.out is not None:
         atomic_write_json(args.out / "bench_eval.json", result)
         atomic_write_text(args.out / "bench_eval.md", eval_bench_markdown(result))

@@ -1,5 +1,6 @@
 """The evaluator benchmark (tools/bench_eval.py): wall time of detbench.eval.evaluate, by stage, on a
-synthetic test set of the paper's size (vehicles on lanes, jittered detections and false positives)."""
+synthetic test set of the paper's size (vehicles on lanes, jittered detections and false positives), and
+with a scene bootstrap its time and the size of the report.json it writes."""
 from __future__ import annotations
 
 import os
@@ -12,8 +13,11 @@ import numpy as np
 
 from detbench.data.frame import LANE_OPPOSITE
 from detbench.eval import EvalFrame, evaluate
+from detbench.utils.atomic import to_json
 
 __all__ = ["eval_bench_markdown", "run_eval_bench", "synthetic_frames"]
+
+FRAMES_PER_SCENE = 10  # a simulated test scene: 200 frames at 2 Hz, every 20th kept (configs: data.frame_stride)
 
 
 def synthetic_frames(num_frames: int, gt_per_frame: float, preds_per_frame: int, seed: int):
@@ -21,7 +25,8 @@ def synthetic_frames(num_frames: int, gt_per_frame: float, preds_per_frame: int,
 
     Units: metres and radians. Vehicles: lanes -2..2 of the ego carriageway (3.5 m wide) and
     the opposite carriageway (lane 99), x in [-10, 170] m; 10 % trucks (10 x 2.5 x 3.5 m),
-    the rest cars (about 4.6 x 1.9 x 1.6 m).
+    the rest cars (about 4.6 x 1.9 x 1.6 m). Frames come in scenes of FRAMES_PER_SCENE (the scene
+    bootstrap's clusters).
     """
     rng = np.random.default_rng(seed)
     frames = []
@@ -57,14 +62,33 @@ def synthetic_frames(num_frames: int, gt_per_frame: float, preds_per_frame: int,
                                    rng.uniform(-np.pi, np.pi)]))
             scores.append(rng.uniform(0.0, 0.5))
         frames.append(EvalFrame(gt, points, lane, np.array(preds[:preds_per_frame]).reshape(-1, 7),
-                                np.array(scores[:preds_per_frame]), frame_id=f"{f:06d}"))
+                                np.array(scores[:preds_per_frame]), frame_id=f"{f:06d}",
+                                scene_id=f"{f // FRAMES_PER_SCENE:04d}"))
     return frames
 
 
+def _bootstrap_bench(frames: list, replicates: int, repeats: int) -> dict:
+    """Seconds of `evaluate(frames, bootstrap=replicates)` (median of `repeats`) and the size of its report.json
+    (indented, as tools/eval.py writes it), with and without the AP ranking."""
+    runs = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        report = evaluate(frames, bootstrap=replicates)
+        runs.append(time.perf_counter() - t)
+    unc = report["uncertainty"]
+    bare = {**report, "uncertainty": {k: v for k, v in unc.items() if k != "ap_ranking"}}
+    return {"bootstrap_replicates": replicates, "bootstrap_scenes": unc["num_clusters"],
+            "bootstrap_seconds_median": statistics.median(runs),
+            "ranked_detections": len(unc["ap_ranking"]["scene"].split()),
+            "report_json_bytes": len(to_json(report).encode()),
+            "report_json_bytes_without_ap_ranking": len(to_json(bare).encode())}
+
+
 def run_eval_bench(num_frames: int, gt_per_frame: float, preds_per_frame: int, *, repeats: int = 5,
-                   threads: int = 2, seed: int = 0, extras: bool = False) -> dict:
+                   threads: int = 2, seed: int = 0, extras: bool = False, bootstrap: int = 0) -> dict:
     """Time `evaluate` on `synthetic_frames(...)`: the results dict of bench_eval.json (seconds; median of
-    `repeats` runs after one warm-up call). `threads` is recorded; the caller sets numba's thread count."""
+    `repeats` runs after one warm-up call). `threads` is recorded; the caller sets numba's thread count.
+    `bootstrap` > 0 also times `evaluate(..., bootstrap=bootstrap)` and measures its report.json."""
     t0 = time.perf_counter()
     frames = synthetic_frames(num_frames, gt_per_frame, preds_per_frame, seed)
     gen_s = time.perf_counter() - t0
@@ -112,6 +136,8 @@ def run_eval_bench(num_frames: int, gt_per_frame: float, preds_per_frame: int, *
         warm_x, runs_x, stage_x, _ = timed(True)
         result["extras_seconds_median"] = statistics.median(runs_x)
         result["extras_seconds_by_stage_median"] = stage_x
+    if bootstrap:
+        result.update(_bootstrap_bench(frames, bootstrap, repeats))
     return result
 
 
@@ -132,6 +158,12 @@ def eval_bench_markdown(r: dict) -> str:
     ]
     if "extras_seconds_median" in r:
         md.append(f"| total with extras (BEV 0.7, 3D 0.5, BEV 0.5) | {r['extras_seconds_median']:.3f} |")
+    if "bootstrap_seconds_median" in r:
+        md += [f"| total with a scene bootstrap ({r['bootstrap_replicates']} replicates, {r['bootstrap_scenes']} "
+               f"scenes) | {r['bootstrap_seconds_median']:.3f} |", "",
+               f"report.json with the bootstrap: {r['report_json_bytes'] / 1024:.0f} KiB, of which the AP ranking "
+               f"of {r['ranked_detections']} detections "
+               f"{(r['report_json_bytes'] - r['report_json_bytes_without_ap_ranking']) / 1024:.0f} KiB."]
     md += ["", f"Machine: {r['machine']}, {r['cpu_count']} CPUs visible, Python {r['python']}, "
                f"numba {r['numba']}."]
     return "\n".join(md) + "\n"

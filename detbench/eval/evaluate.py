@@ -42,6 +42,7 @@ from detbench.data.regions import (
     DETECTED_MIN_POINTS, LEVELS, RANGE_NAMES, importance_mask, in_range,
 )
 from detbench.data.detections import Detections
+from detbench.eval.ap_bootstrap import AP_RECALL_LEVELS, ap_ranking, weighted_ap_r40
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.eval.eval_frame import EvalFrame, as_eval_frames, eval_frame_from_frame
 
@@ -51,7 +52,6 @@ IOU_KINDS: tuple[str, ...] = ("3d", "bev")
 # has IoU 0.5) is computed with rounding errors of ~1e-15; the tolerance makes such cases
 # deterministic without changing any IoU that is meaningfully below the threshold.
 IOU_EPS = 1e-9
-AP_RECALL_LEVELS = 40
 # Extra variants computed by `evaluate(..., extras=True)`: (iou_kind, iou_threshold).
 DEFAULT_EXTRAS: tuple[tuple[str, float], ...] = (("3d", 0.7), ("bev", 0.7), ("3d", 0.5), ("bev", 0.5))
 
@@ -326,18 +326,14 @@ def _results(prep: _Prepared, flags: np.ndarray) -> dict:
     return out
 
 
-def _weighted_ap_r40(tp_ranked: np.ndarray, weights: np.ndarray, num_gt: int) -> float:
-    """AP@R40 of ranked predictions each repeated `weights[k]` times (copies kept adjacent)."""
-    return ap_r40_ranked(np.repeat(tp_ranked, weights), num_gt) if num_gt else float("nan")
-
-
 def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicates: int, seed: int,
                confidence: float = 0.95) -> dict:
     """Percentile bootstrap over clusters (scenes) of recall and AP@R40 for each range/level.
 
     A replicate draws as many clusters as there are, with replacement; a frame drawn k times
     counts its ground truth and its predictions k times. Also returns the per-cluster TP and
-    LiDAR-detected counts, so that two reports on the same frames can be compared in pairs.
+    LiDAR-detected counts and the ranked detections of AP@R40 (detbench.eval.ap_bootstrap), so that
+    two reports on the same frames can be compared in pairs.
     """
     labels = [str(c) for c in clusters]
     names = sorted(set(labels))
@@ -357,6 +353,7 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
                  "clusters": names,
                  "per_cluster": {r: {lv: {"tp": tp_cluster[:, p].tolist(), "lidar_detected": det_cluster[:, p].tolist()}
                                      for lv in LEVELS for p in [PAIRS.index((r, lv))]} for r in RANGE_NAMES},
+                 "ap_ranking": ap_ranking(flags, prep.pred_scores, frame_cluster[pred_frame], PAIRS),
                  "results": {r: {} for r in RANGE_NAMES}}
     ok = n >= 2 and replicates > 0
     if not ok:
@@ -374,11 +371,7 @@ def _bootstrap(prep: _Prepared, flags: np.ndarray, clusters: Sequence, replicate
         tp_ranked = col[order] == TP
         cl_ranked = frame_cluster[pred_frame[order]]
         recalls = bootstrap_ratios(draws, tp_cluster[:, p], det_cluster[:, p])
-        aps = np.full(len(draws), np.nan)
-        for b, w in enumerate(draws):
-            num_gt = int(w @ det_cluster[:, p])
-            if num_gt:
-                aps[b] = _weighted_ap_r40(tp_ranked, w[cl_ranked], num_gt)
+        aps = weighted_ap_r40(tp_ranked, cl_ranked, det_cluster[:, p], draws)
         out["results"][r][lv] = {"recall_ci95": interval(recalls), "ap_r40_ci95": interval(aps)}
     return out
 
@@ -435,8 +428,9 @@ def evaluate(
         without one is its own cluster) of the main variant's recall and AP@R40; 0 = none.
         The report then has "uncertainty" = {"method", "num_clusters", "replicates", "seed",
         "confidence", "clusters", "per_cluster": {range: {level: {"tp", "lidar_detected"}}},
-        "results": {range: {level: {"recall_ci95", "ap_r40_ci95"}}}} (intervals [lo, hi] or
-        null when fewer than 2 scenes).
+        "ap_ranking": {"scene", "outcome": {range: {level: text}}} (the counted detections in AP
+        order with their scenes and outcomes, detbench.eval.ap_bootstrap), "results": {range:
+        {level: {"recall_ci95", "ap_r40_ci95"}}}} (intervals [lo, hi] or null when fewer than 2 scenes).
 
     Returns {"iou_threshold", "iou_kind", "score_threshold", "num_frames",
     "results": {range_name: {level: {"total", "lidar_detected", "ldr", "tp", "fp", "recall",

@@ -1,9 +1,9 @@
 """study.md's sections on training seeds, rendered from the statistics of detbench.studies.seeds.
 
 The renderers take the JSON layouts that study.json holds (`seed_statistics`: "by_height",
-"by_model", "pairs", "table"; heights as keys in metres or as their text), so the report renders
-from study.json alone; `seed_markdown`, `pairwise_markdown` and `detector_table` also take a study's
-{(model, height): [eval report of each seed]} directly. Fractions to three decimals, or two where
+"by_model", "pairs", "height_pairs", "table"; heights as keys in metres or as their text), so the
+report renders from study.json alone; `seed_markdown`, `pairwise_markdown` and `detector_table` also
+take a study's {(model, height): [eval report of each seed]} directly. Fractions to three decimals, or two where
 the README's tables give two.
 """
 from __future__ import annotations
@@ -90,6 +90,35 @@ def pairwise_markdown(leads: Mapping) -> list[str]:
     return lines
 
 
+def _answer(p: Mapping) -> str:
+    """A height pair's verdict in words."""
+    if p["answer"] == "resolved":
+        return f"resolved: {float(p['leader']):g} m leads"
+    if p["answer"] == "bounded":
+        return f"bounded: the two differ by less than {_f(p['margin'])}"
+    return "no interval (evaluate with --bootstrap)"
+
+
+def height_pairs_markdown(height_pairs: Mapping) -> list[str]:
+    """study.md's height answer per detector (`seed_height_pairs`): per model a table of every pair of its heights,
+    the difference of the seed means with its 95 % interval and the verdict. Nothing without such a model."""
+    if not height_pairs:
+        return []
+    lines = ["**The height answer, per model**: every pair of a model's heights, the difference of the seed means "
+             "(the higher first; All vehicles) with its 95 % interval (test scenes paired, both heights' seed spread). "
+             "Resolved: the interval excludes 0, so that height leads. Bounded: the interval holds 0, so the two "
+             "heights differ by less than its larger end, in either direction (not: they are equal).", ""]
+    for m, by_metric in height_pairs.items():
+        lines += [f"*{m}*", "", "| Metric | Pair | Difference [95 %] | Verdict |", "|---|---|---|---|"]
+        for metric, entry in by_metric.items():
+            what = f"{METRIC_WORDS[metric]} {entry['range']}"
+            for p in entry["pairs"]:
+                lines.append(f"| {what} | {float(p['height']):g} m - {float(p['over']):g} m | "
+                             f"{_f(p['diff'], signed=True)} {_ci(p['ci95'], signed=True)} | {_answer(p)} |")
+        lines.append("")
+    return lines
+
+
 def detector_table(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> list[str]:
     """`detector_table_markdown` of {(model, height): [eval report of each seed]} (detbench.studies.seeds)
     with train_minutes: {(model, height): minutes per training} or None."""
@@ -119,14 +148,15 @@ def detector_table_markdown(rows: Sequence[Mapping]) -> list[str]:
 def seed_markdown(groups: Mapping, pool: bool = True) -> list[str]:
     """`seed_markdown_lines` of {(model, height): [eval report of each seed]} (detbench.studies.seeds)."""
     stats = seed_statistics(groups, pool=pool)
-    return seed_markdown_lines(stats["by_height"], stats["by_model"])
+    return seed_markdown_lines(stats["by_height"], stats["by_model"], stats["height_pairs"])
 
 
-def seed_markdown_lines(summary: Mapping, by_model: Mapping) -> list[str]:
+def seed_markdown_lines(summary: Mapping, by_model: Mapping, height_pairs: Mapping | None = None) -> list[str]:
     """Markdown lines for study.md: per height a table of every model's seed mean per range (All
     vehicles) for recall and AP@R40 with the interval of scenes and seeds, the seed spread and the
     scene-only interval beside it, then the sentences of `seed_summary` (`summary`, keyed by height) and,
-    for models tested at two or more heights, of `seed_height_summary` (`by_model`)."""
+    for models tested at two or more heights, of `seed_height_summary` (`by_model`) and the height answer
+    of `seed_height_pairs` (`height_pairs`, when given)."""
     seeds_used = sorted({s for h in summary.values() for c in h["models"].values() for s in c["seeds"]},
                         key=lambda s: (not isinstance(s, int), s if isinstance(s, int) else 0, str(s)))
     counts = sorted({c["num_seeds"] for h in summary.values() for c in h["models"].values()})
@@ -172,11 +202,13 @@ def seed_markdown_lines(summary: Mapping, by_model: Mapping) -> list[str]:
         for m, cell in by_model.items():
             lines += [_lead_sentence(f"For {m}", "height", metric, cell[metric]) for metric in METRICS]
         lines.append("")
+    lines += height_pairs_markdown(height_pairs or {})
     lines.append("A model (or height) is called ahead only where the 95 % interval of its lead excludes 0: the "
-                 "scene term (paired over the same test scenes for recall; for AP@R40 the two scene intervals in "
-                 "quadrature) plus both sides' seed spread with a Student-t factor.")
+                 "scene term (paired over the same test scenes: recall from each scene's counts, AP@R40 re-ranked "
+                 "in each draw where the reports keep their AP ranking, else the two scene intervals in quadrature) "
+                 "plus both sides' seed spread with a Student-t factor.")
     return lines
 
 
-__all__ = ["METRIC_WORDS", "detector_table", "detector_table_markdown", "pairwise_markdown", "seed_markdown",
-           "seed_markdown_lines"]
+__all__ = ["METRIC_WORDS", "detector_table", "detector_table_markdown", "height_pairs_markdown", "pairwise_markdown",
+           "seed_markdown", "seed_markdown_lines"]

@@ -17,10 +17,9 @@ The combination, and why:
   counts of the report's "uncertainty" block: replicate b gives (w_b . mean_s tp_s) / (w_b . det),
   drawn with `scene_bootstrap_weights` and the report's own scene count, replicates and seed, so
   one seed reproduces the report's interval to the digit. AP@R40 pools the ranked predictions of
-  every frame, which the report does not keep (only each seed's interval), so its scene interval of
-  the seed mean is the mean of the seeds' interval ends: exact for one seed and for identical seeds,
-  and otherwise on the wide side (seeds see the same scenes, so their replicates move together,
-  and the spread of a mean is at most the mean of the spreads).
+  every frame; its scene interval of the seed mean is the mean of the seeds' interval ends: exact
+  for one seed and for identical seeds, and otherwise on the wide side (seeds see the same scenes,
+  so their replicates move together, and the spread of a mean is at most the mean of the spreads).
 - **Seed term.** The seeds' standard deviation s (n - 1 in the denominator) is measured on fixed
   test frames, so it is training randomness alone. The seed mean carries s^2 / n of it; its 95 %
   half-width is q = t(0.975, n - 1) * s / sqrt(n) with Student's t, because s from 2 or 3 values is
@@ -49,9 +48,12 @@ The combination, and why:
 - **Leads between models** (`seed_summary`): the difference of the seed means. Its scene term for
   recall is paired over the same scenes (one draw applies to both models' mean per-scene TP);
   with one seed each it is, digit for digit, the lead of
-  `detbench.studies.study_summary.paired_recall_difference`. AP@R40 cannot be resampled in pairs
-  from the reports, so the two models' scene half-widths add in quadrature, as if the models erred
-  independently over scenes: wider than the paired interval, since a hard scene is hard for both.
+  `detbench.studies.study_summary.paired_recall_difference`. AP@R40 is paired the same way where
+  every report of both sides keeps its AP ranking (`uncertainty["ap_ranking"]`,
+  detbench.eval.ap_bootstrap): one draw of scenes re-ranks each report's pooled detections with those
+  scene weights, and the draw's difference of the two seed means of AP@R40 is one replicate. Reports
+  that lack the ranking fall back to the two models' scene half-widths in quadrature, as if the models
+  erred independently over scenes: wider than the paired interval, since a hard scene is hard for both.
   The seed term is Welch's: q = t(0.975, df) * sqrt(s_a^2 / n_a + s_b^2 / n_b), df by
   Welch-Satterthwaite; a model with one seed takes the other's seed variance (the df of the one
   measured); with one seed each there is no seed term. A model is called ahead only when the
@@ -59,15 +61,20 @@ The combination, and why:
 - **Leads between heights** (`seed_height_summary`): one model at two heights, the same way. The
   heights of a study share their test scenes (the same traffic), so recall is still paired over
   scenes, each height over its own LiDAR-detected vehicles: replicate b gives the difference of
-  the two heights' resampled ratios. The trainings at two heights count as independent (Welch),
-  which errs wide where a seed starts both from the same weights.
+  the two heights' resampled ratios (AP@R40: of the two heights' re-ranked AP). The trainings at two
+  heights count as independent (Welch), which errs wide where a seed starts both from the same weights.
+- **The height answer** (`seed_height_pairs`): every pair of a model's heights, not only the leader
+  over the runner-up, for AP@R40 (small range) and recall (large range), each lead as above. A pair is
+  "resolved" when its interval excludes 0, else "bounded": the two heights differ by less than
+  max(|lo|, |hi|) either way, an equivalence statement at that margin rather than "no difference".
 
 The reports are checked by detbench.studies.seed_checks (one test split, one evaluation setting);
 the Student-t quantile is detbench.studies.student_t's. `seed_statistics` computes everything a
 study reports of its seeds once: the combined cells per model and height, the leader per height
-and per model, every pair of models, the detector table's rows; the Markdown of it is
-detbench.studies.seed_markdown's. The cells are typed (`MetricCell`, `SeedCombined`, `Lead`,
-`Leader`); the public functions return their JSON layouts (`to_dict`), as study.json holds them.
+and per model, every pair of models, every pair of each model's heights, the detector table's rows;
+the Markdown of it is detbench.studies.seed_markdown's. The cells are typed (`MetricCell`,
+`SeedCombined`, `Lead`, `Leader`); the public functions return their JSON layouts (`to_dict`), as
+study.json holds them.
 """
 from __future__ import annotations
 
@@ -79,6 +86,7 @@ from itertools import combinations
 import numpy as np
 
 from detbench.data.regions import LEVELS, RANGE_NAMES
+from detbench.eval.ap_bootstrap import has_ap_ranking, paired_ap_difference
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 from detbench.eval.paper import paper_recall
 from detbench.studies.seed_cells import Lead, Leader, MetricCell, SeedCombined, SeedPool
@@ -314,6 +322,17 @@ def _paired_recall(rep_a: Sequence[dict], rep_b: Sequence[dict], r: str, lv: str
     return diff, percentile_interval(boot, confidence), method
 
 
+def _paired_ap(rep_a: Sequence[dict], rep_b: Sequence[dict], r: str, lv: str,
+               confidence: float) -> tuple[list | None, str | None]:
+    """(scene interval, method) of the AP@R40 lead over the same scenes: every report of both sides re-ranked in
+    each draw (detbench.eval.ap_bootstrap), each side's seed mean per draw."""
+    if len(rep_a[0]["uncertainty"]["clusters"]) < 2:
+        return None, None
+    boot = paired_ap_difference(rep_a, rep_b, r, lv, LEAD_REPLICATES, LEAD_SEED)
+    return (percentile_interval(boot, confidence),
+            "paired scene bootstrap (the same scenes for both and every seed; AP@R40 re-ranked in each draw)")
+
+
 def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: SeedCombined, comb_b: SeedCombined, r: str, lv: str,
           metric: str) -> Lead | None:
     """mean_a - mean_b in one cell with its scene term, seed term and combined interval. a and b are
@@ -329,10 +348,12 @@ def _lead(rep_a: Sequence[dict], rep_b: Sequence[dict], comb_a: SeedCombined, co
     paired = bool(ua) and bool(ub) and list(ua["clusters"]) == list(ub["clusters"])
     if metric == "recall" and paired:
         diff, scene_ci, method = _paired_recall(rep_a, rep_b, r, lv, confidence)
+    elif metric == "ap_r40" and paired and all(has_ap_ranking(x) for x in (*rep_a, *rep_b)):
+        scene_ci, method = _paired_ap(rep_a, rep_b, r, lv, confidence)
     else:
         scene_ci, method = _scene_quadrature(diff, ca, cb), None
         if scene_ci is not None:
-            why = "AP needs per-frame ranks" if metric == "ap_r40" else "the test scenes differ"
+            why = "the reports keep no AP ranking" if metric == "ap_r40" and paired else "the test scenes differ"
             method = f"the two scene intervals in quadrature (unpaired: {why}; errs wide)"
     t, q = _welch(ca, cb, comb_a.num_seeds, comb_b.num_seeds, confidence)
     ci = _add_seed_term(diff, scene_ci, q, (-1.0, 1.0))
@@ -387,14 +408,46 @@ def _height_leaders(combined: Mapping) -> dict:
             for h, items in combined.items()}
 
 
-def _model_leaders(combined: Mapping) -> dict:
-    """{model: {"recall": leader, "ap_r40": leader}} over its heights (`seed_height_summary`)."""
+def _by_model(combined: Mapping) -> dict[str, dict[float, tuple]]:
+    """{model: {height: (reports, SeedCombined)}} of the models tested at two or more heights."""
     by_model: dict[str, dict[float, tuple]] = {}
     for h, items in combined.items():
         for m, pair in items.items():
             by_model.setdefault(m, {})[h] = pair
+    return {m: items for m, items in by_model.items() if len(items) > 1}
+
+
+def _model_leaders(combined: Mapping) -> dict:
+    """{model: {"recall": leader, "ap_r40": leader}} over its heights (`seed_height_summary`)."""
     return {m: {metric: _leader("height", items, cell, metric, other).to_dict() for metric, cell, other in WHAT}
-            for m, items in by_model.items() if len(items) > 1}
+            for m, items in _by_model(combined).items()}
+
+
+def _height_answer(lead: Lead, a: float, b: float) -> dict:
+    """"resolved" (the interval excludes 0: "leader" is the height ahead) or "bounded" (it holds 0: the heights
+    differ by less than "margin" = max(|lo|, |hi|) either way), or "no interval"."""
+    if lead.ci95 is None:
+        return {"answer": "no interval", "leader": None, "margin": None}
+    lo, hi = lead.ci95
+    if lo > 0 or hi < 0:
+        return {"answer": "resolved", "leader": a if lo > 0 else b, "margin": None}
+    return {"answer": "bounded", "leader": None, "margin": _r6(max(abs(lo), abs(hi)))}
+
+
+def _height_pairs(combined: Mapping) -> dict:
+    """{model: {metric: {"range", "level", "pairs"}}} (`seed_height_pairs`)."""
+    out: dict[str, dict] = {}
+    for m, items in _by_model(combined).items():
+        out[m] = {}
+        for metric, cell, other in WHAT:
+            ranking = _ranking("height", items, cell, metric, other)
+            pairs = []
+            for a, b in combinations([e["height"] for e in ranking], 2):
+                lead = _lead(items[a][0], items[b][0], items[a][1], items[b][1], *cell, metric)
+                if lead is not None:
+                    pairs.append({"height": a, "over": b, **lead.to_dict(), **_height_answer(lead, a, b)})
+            out[m][metric] = {"range": cell[0], "level": cell[1], "pairs": pairs}
+    return out
 
 
 def _pairs(combined: Mapping) -> dict:
@@ -443,14 +496,14 @@ def _table(combined: Mapping, train_minutes: Mapping | None) -> list[dict]:
 def seed_statistics(groups: Mapping, train_minutes: Mapping | None = None, pool: bool = True) -> dict:
     """Everything a study reports of its training seeds, computed once from {(model, height): [eval report of
     each seed]}: {"by_height": `seed_summary`'s layout, "by_model": `seed_height_summary`'s, "pairs":
-    `pairwise_leads`'s, "table": the detector table's rows [{"model", "height", "num_seeds", "ap_r40_small":
-    {"mean", "ci95"}, "recall_small": {"mean", "ci95"}, "recall_moderate", "recall_large", "recall_large_top3",
-    "recall_large_top6" (seed means), "paper_recall" (Table VII: small / moderate / large, or None),
-    "train_minutes" (from `train_minutes`: {(model, height): minutes per training}, or None)}]}. Heights as keys
-    in metres."""
+    `pairwise_leads`'s, "height_pairs": `seed_height_pairs`'s, "table": the detector table's rows [{"model",
+    "height", "num_seeds", "ap_r40_small": {"mean", "ci95"}, "recall_small": {"mean", "ci95"}, "recall_moderate",
+    "recall_large", "recall_large_top3", "recall_large_top6" (seed means), "paper_recall" (Table VII: small /
+    moderate / large, or None), "train_minutes" (from `train_minutes`: {(model, height): minutes per training}, or
+    None)}]}. Heights as keys in metres."""
     combined = combined_groups(groups, pool)
     return {"by_height": _height_leaders(combined), "by_model": _model_leaders(combined), "pairs": _pairs(combined),
-            "table": _table(combined, train_minutes)}
+            "height_pairs": _height_pairs(combined), "table": _table(combined, train_minutes)}
 
 
 def seed_summary(groups: Mapping, pool: bool = True) -> dict:
@@ -483,6 +536,21 @@ def seed_height_summary(groups: Mapping, pool: bool = True) -> dict:
     return _model_leaders(combined_groups(groups, pool))
 
 
+def seed_height_pairs(groups: Mapping, pool: bool = True) -> dict:
+    """The height answer per detector: for each model tested at two or more heights, EVERY pair of its heights in
+    AP@R40 (small range) and recall (large range), All vehicles, each a lead as in `seed_height_summary` (scenes
+    paired: recall from each scene's counts, AP@R40 re-ranked in each draw where the reports keep their AP
+    ranking; both heights' seed spread, Welch's) with its answer.
+
+    Returns {model: {metric: {"range", "level", "pairs": [{"height", "over", "diff", "scene_ci95", "scene_method",
+    "seed_t", "seed_half_width", "ci95", "ahead", "verdict", "answer", "leader", "margin"}]}}}: one entry per pair,
+    the height with the higher seed mean first (ranked as `seed_height_summary` ranks). "answer" is "resolved"
+    when the 95 % interval excludes 0 ("leader": the height ahead), "bounded" when it holds 0 (the two heights
+    differ by less than "margin" = max(|lo|, |hi|), either way: an equivalence statement at that margin), or "no
+    interval" (no scene bootstrap). Heights in metres, differences of fractions."""
+    return _height_pairs(combined_groups(groups, pool))
+
+
 def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
     """Every pair of models at each height, in every range, for recall and AP@R40 (All vehicles).
 
@@ -496,5 +564,5 @@ def pairwise_leads(groups: Mapping, pool: bool = True) -> dict:
 
 __all__ = ["AP_CELL", "CONFIDENCE", "LEAD_REPLICATES", "LEAD_SEED", "Lead", "Leader", "METRICS", "MetricCell",
            "RECALL_CELL", "SeedCombined", "SeedPool", "combine_seeds", "combined_groups", "pairwise_leads",
-           "pool_seed_spread", "pooled", "seed_combined", "seed_height_summary", "seed_statistics", "seed_summary",
-           "student_t_quantile"]
+           "pool_seed_spread", "pooled", "seed_combined", "seed_height_pairs", "seed_height_summary", "seed_statistics",
+           "seed_summary", "student_t_quantile"]

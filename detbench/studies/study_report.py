@@ -139,7 +139,7 @@ def _seed_lines(study: Mapping) -> list[str]:
             f"**Which detector** (seed means; {_rules(study)[2]}; training minutes: the mean over seeds of each "
             f"run's training epochs):", "",
             *detector_table_markdown(seeds["table"]), "", *pairwise_markdown(seeds["pairs"]), "",
-            *seed_markdown_lines(seeds["by_height"], seeds["by_model"]), ""]
+            *seed_markdown_lines(seeds["by_height"], seeds["by_model"], seeds.get("height_pairs")), ""]
 
 
 def _summary(study: Mapping) -> list[str]:

@@ -111,6 +111,7 @@ def _seed_section(plan: StudyPlan, train_min: dict) -> dict:
     stats = seed_statistics(groups, minutes)
     return {"seeds": list(plan.seeds), "by_height": {f"{h:g}": c for h, c in stats["by_height"].items()},
             "by_model": stats["by_model"], "pairs": {f"{h:g}": c for h, c in stats["pairs"].items()},
+            "height_pairs": stats["height_pairs"],
             "train_minutes": {f"{m} {h:g}": round(t, 2) for (m, h), t in minutes.items()},
             "table": stats["table"]}
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from detbench.eval.evaluate import PAIRS, EvalFrame, _weighted_ap_r40, ap_r40_ranked, evaluate
+from detbench.eval.evaluate import PAIRS, EvalFrame, evaluate
 
 
 def _frame(rng, fid, scene, n_gt=4, hit=3, extra_fp=1, score_base=0.0):
@@ -76,15 +76,6 @@ def test_frames_without_scene_are_their_own_clusters():
     rng = np.random.default_rng(4)
     frames = [_frame(rng, f"f{i}", None) for i in range(5)]
     assert evaluate(frames, bootstrap=20)["uncertainty"]["num_clusters"] == 5
-
-
-def test_weighted_ap_equals_ap_of_duplicated_predictions():
-    rng = np.random.default_rng(5)
-    tp = rng.random(30) < 0.6
-    w = rng.integers(0, 4, 30)
-    expanded = np.concatenate([[t] * k for t, k in zip(tp, w)]).astype(bool)
-    num_gt = int(expanded.sum()) + 3
-    assert _weighted_ap_r40(tp, w, num_gt) == pytest.approx(ap_r40_ranked(expanded, num_gt))
 
 
 def test_negative_replicates_is_an_error():

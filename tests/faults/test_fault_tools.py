@@ -72,6 +72,7 @@ def test_benchmark_refuses_an_unknown_model_and_a_missing_study(tool, tmp_path):
 
 @pytest.mark.parametrize("name, argv, named", [
     ("bench_eval", ["--frames", "0"], "--frames 0: must be an integer >= 1"),
+    ("bench_eval", ["--bootstrap", "-1"], "--bootstrap -1: must be an integer >= 0"),
     ("bench_eval", ["--out", "{file}"], "is a file, not a folder; choose another --out"),
     ("bench_sim", ["--frames", "0"], "--frames 0: must be an integer >= 1"),
     ("bench_sim", ["--set", "traffic.densty=3"], "unknown config key 'traffic.densty'"),

@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+from itertools import combinations
 
 import numpy as np
 import pytest
@@ -17,7 +18,8 @@ from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.evaluate import EvalFrame, evaluate
 from detbench.studies.seed_markdown import detector_table, pairwise_markdown, seed_markdown
 from detbench.studies.seeds import (
-    LEAD_REPLICATES, METRICS, pairwise_leads, pool_seed_spread, seed_combined, seed_height_summary, seed_summary,
+    LEAD_REPLICATES, METRICS, pairwise_leads, pool_seed_spread, seed_combined, seed_height_pairs, seed_height_summary,
+    seed_statistics, seed_summary,
 )
 from detbench.studies.student_t import student_t_quantile
 from detbench.studies.study_summary import paired_recall_difference
@@ -34,16 +36,17 @@ def _box(x: float, y: float) -> list[float]:
 
 @functools.cache
 def _report(model: str, skill: float, seed: int, scenes: tuple[str, ...] = tuple(f"s{i}" for i in range(8)),
-            height: float = 1.8, hidden: tuple[int, ...] = ()) -> dict:
+            height: float = 1.8, hidden: tuple[int, ...] = (), hard: float = 0.0) -> dict:
     """One seed's eval report: each vehicle found with probability `skill` (score in [0.3, 1)), one
     false positive per frame (score in [0.1, 0.6)); 3 frames per scene. The vehicles numbered in
-    `hidden` get no LiDAR point (as from a lower mounting height)."""
+    `hidden` get no LiDAR point (as from a lower mounting height). Every second scene is hard: `skill - hard`
+    there (for every model alike, so the models' figures move together over scenes)."""
     rng = np.random.default_rng([int(skill * 1000), seed])
     frames = []
-    for scene in scenes:
+    for i, scene in enumerate(scenes):
         for k in range(3):
             gt = np.array([_box(x, y) for x, y, _ in VEHICLES])
-            found = rng.random(len(VEHICLES)) < skill
+            found = rng.random(len(VEHICLES)) < skill - (hard if i % 2 else 0.0)
             pred = [_box(x, y) for (x, y, _), f in zip(VEHICLES, found) if f] + [_box(45.0, 0.0)]
             scores = np.concatenate([rng.uniform(0.3, 1.0, int(found.sum())), rng.uniform(0.1, 0.6, 1)])
             points = np.array([0 if i in hidden else 20 for i in range(len(VEHICLES))])
@@ -246,7 +249,8 @@ def test_markdown_names_every_model_height_and_seed_with_units():
     assert "Training seeds: 0, 1" in text and "fractions in [0, 1]" in text
     for h in ("1 m", "1.8 m"):
         assert f"**{h}**" in text and f"At {h}, Recall (large range" in text and f"At {h}, AP@R40 (small range" in text
-    rows = [ln for ln in lines if ln.startswith("| ") and not ln.startswith("| Model")]
+    rows = [ln for ln in lines if ln.startswith("| ") and not ln.startswith(("| Model", "| Metric", "| Recall large",
+                                                                                "| AP@R40 small"))]
     assert len(rows) == 2 * 3 * 3  # heights x models x ranges
     for m in ("second", "pillarnet", "ct3d"):
         assert sum(ln.startswith(f"| {m} | 0, 1 |") for ln in rows) == 6, m
@@ -394,3 +398,83 @@ def test_the_detector_table_sets_the_papers_table_vii_beside_each_cell():
     assert "| 0.97 / 0.90 / 0.85 | 4.2 |" in rows[("second", "0.5 m")]  # Table VII: SECOND at 0.5 m
     assert "| 0.97 / 0.91 / 0.85 | 5.0 |" in rows[("second", "1.8 m")]
     assert rows[("mymodel", "1.8 m")].endswith("| - | - |")  # not in the paper, no training time given
+
+
+def _without_ranking(reps: list[dict]) -> list[dict]:
+    """The reports as an evaluation without the AP ranking lays them out."""
+    out = copy.deepcopy(reps)
+    for rep in out:
+        del rep["uncertainty"]["ap_ranking"]
+    return out
+
+
+def test_the_ap_lead_is_paired_over_scenes_and_narrower_than_the_quadrature_on_correlated_scenes():
+    """Hard scenes are hard for both models: the paired bootstrap sees the two APs move together, the two
+    separate intervals in quadrature do not. Reports without the AP ranking keep the quadrature, as it was."""
+    from detbench.eval.ap_bootstrap import paired_ap_difference
+    from detbench.eval.bootstrap import percentile_interval
+
+    a = _seeds("second", (0.95, 0.9), hard=0.6)
+    b = _seeds("pillarnet", (0.85, 0.8), hard=0.6)
+    paired = seed_summary({("second", 1.8): a, ("pillarnet", 1.8): b})[1.8]["ap_r40"]
+    old = seed_summary({("second", 1.8): _without_ranking(a), ("pillarnet", 1.8): _without_ranking(b)})[1.8]["ap_r40"]
+    lead, quad = paired["lead"], old["lead"]
+    assert paired["best"] == old["best"] == "second"
+    assert lead["scene_method"].startswith("paired scene bootstrap") and "re-ranked" in lead["scene_method"]
+    assert quad["scene_method"].startswith("the two scene intervals in quadrature")
+    assert lead["diff"] == quad["diff"] and lead["seed_half_width"] == quad["seed_half_width"] > 0
+    assert lead["scene_ci95"] == percentile_interval(paired_ap_difference(a, b, "small", "all", LEAD_REPLICATES, 0))
+    assert _width(lead["scene_ci95"]) < 0.6 * _width(quad["scene_ci95"]), (lead["scene_ci95"], quad["scene_ci95"])
+    # the quadrature of the two models' scene intervals of the seed mean, unchanged for reports without the ranking
+    ca, cb = (seed_combined(x)["results"]["small"]["all"]["ap_r40"] for x in (a, b))
+    lo = quad["diff"] - math.hypot(ca["mean"] - ca["scene_ci95"][0], cb["scene_ci95"][1] - cb["mean"])
+    hi = quad["diff"] + math.hypot(ca["scene_ci95"][1] - ca["mean"], cb["mean"] - cb["scene_ci95"][0])
+    assert quad["scene_ci95"] == pytest.approx([lo, hi], abs=2e-6)
+    # one side without the ranking: the quadrature too
+    mixed = seed_summary({("second", 1.8): a, ("pillarnet", 1.8): _without_ranking(b)})[1.8]["ap_r40"]["lead"]
+    assert mixed["scene_ci95"] == quad["scene_ci95"]
+
+
+def test_the_height_answer_holds_every_pair_of_a_models_heights_resolved_or_bounded():
+    """second: 1.8 m and 1 m alike, 0.5 m far behind (fewer vehicles found and two of them hidden)."""
+    mid, low = dict(height=1.0, hidden=(5,)), dict(height=0.5, hidden=(3, 5))
+    groups = {("second", 1.8): _seeds("second", (0.9, 0.88)), ("second", 1.0): _seeds("second", (0.89, 0.9), **mid),
+              ("second", 0.5): _seeds("second", (0.3, 0.32), **low),
+              ("pillarnet", 1.8): _seeds("pillarnet", (0.6, 0.62))}
+    answer = seed_height_pairs(groups)
+    assert set(answer) == {"second"}  # pillarnet has one height: no pair
+    summary = seed_height_summary(groups)["second"]
+    for metric, (r, lv) in (("recall", ("large", "all")), ("ap_r40", ("small", "all"))):
+        entry = answer["second"][metric]
+        assert (entry["range"], entry["level"]) == (r, lv)
+        pairs = {(p["height"], p["over"]): p for p in entry["pairs"]}
+        ranking = [e["height"] for e in summary[metric]["ranking"]]
+        assert list(pairs) == list(combinations(ranking, 2)), metric  # every pair once, the higher mean first
+        # the leader over the runner-up is the lead seed_height_summary reports
+        top = pairs[tuple(ranking[:2])]
+        assert {k: top[k] for k in summary[metric]["lead"]} == summary[metric]["lead"]
+        for p in entry["pairs"]:
+            lo, hi = p["ci95"]
+            assert p["scene_method"].startswith("paired scene bootstrap"), (metric, p)
+            if lo > 0 or hi < 0:
+                assert p["answer"] == "resolved" and p["leader"] == (p["height"] if lo > 0 else p["over"])
+                assert p["margin"] is None and p["ahead"]
+            else:
+                assert p["answer"] == "bounded" and p["leader"] is None and not p["ahead"]
+                assert p["margin"] == round(max(abs(lo), abs(hi)), 6) > 0
+        far = pairs[(1.8, 0.5)] if (1.8, 0.5) in pairs else pairs[(1.0, 0.5)]
+        assert far["answer"] == "resolved" and far["leader"] != 0.5, (metric, far)
+        near = pairs[(1.8, 1.0)] if (1.8, 1.0) in pairs else pairs[(1.0, 1.8)]
+        assert near["answer"] == "bounded" and near["margin"] < 0.5, (metric, near)
+    stats = seed_statistics(groups)
+    assert stats["height_pairs"] == answer  # computed once, with the rest of a study's seed figures
+    text = "\n".join(seed_markdown(groups))
+    assert "**The height answer, per model**" in text and "*second*" in text and "*pillarnet*" not in text
+    rows = [ln for ln in text.splitlines() if ln.startswith(("| Recall large |", "| AP@R40 small |"))]
+    assert len(rows) == 6
+    p = answer["second"]["recall"]["pairs"][0]
+    assert (f"| Recall large | {p['height']:g} m - {p['over']:g} m | {p['diff']:+.3f} [{p['ci95'][0]:+.3f}, "
+            f"{p['ci95'][1]:+.3f}] |") in text
+    assert any(ln.endswith("| resolved: 1.8 m leads |") or ln.endswith("| resolved: 1 m leads |") for ln in rows)
+    bounded = [q for e in answer["second"].values() for q in e["pairs"] if q["answer"] == "bounded"]
+    assert all(f"| bounded: the two differ by less than {q['margin']:.3f} |" in text for q in bounded)

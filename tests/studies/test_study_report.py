@@ -176,6 +176,46 @@ def test_the_pairs_rank_by_seed_mean_and_resolve_only_where_the_interval_exclude
     assert resolved > 0  # the fixture's models differ enough for some leads to be resolved
 
 
+def test_the_height_answer_holds_every_pair_of_each_models_heights_with_its_paired_interval(written):
+    """study.json's "height_pairs": per model every pair of heights in AP@R40 (small) and recall (large), the
+    higher seed mean first, the difference of the seed means, the AP@R40 scene interval from the paired scene
+    bootstrap of the reports themselves, and the answer; study.md renders it as a table per model."""
+    from detbench.eval.ap_bootstrap import paired_ap_difference
+    from detbench.eval.bootstrap import percentile_interval
+    from detbench.studies.seeds import LEAD_REPLICATES, LEAD_SEED
+
+    seeds = written.study["seeds"]
+    answer = seeds["height_pairs"]
+    assert sorted(answer) == MODELS
+    for m in MODELS:
+        reps = {h: [_report(written.out, m, h, s) for s in SEEDS] for h in HEIGHTS}
+        for metric, (r, lv) in (("recall", ("large", "all")), ("ap_r40", ("small", "all"))):
+            entry = answer[m][metric]
+            assert (entry["range"], entry["level"]) == (r, lv)
+            means = {h: seeds["by_height"][f"{h:g}"]["models"][m]["results"][r][lv][metric]["mean"] for h in HEIGHTS}
+            assert len(entry["pairs"]) == 3 and {frozenset((p["height"], p["over"])) for p in entry["pairs"]} == {
+                frozenset(pair) for pair in combinations(HEIGHTS, 2)}
+            for p in entry["pairs"]:
+                assert means[p["height"]] >= means[p["over"]]
+                assert p["diff"] == pytest.approx(means[p["height"]] - means[p["over"]], abs=2e-6)
+                lo, hi = p["ci95"]
+                if lo > 0 or hi < 0:
+                    assert p["answer"] == "resolved" and p["leader"] in (p["height"], p["over"])
+                else:
+                    assert p["answer"] == "bounded" and p["margin"] == round(max(abs(lo), abs(hi)), 6)
+                assert p["scene_method"].startswith("paired scene bootstrap"), p
+                if metric == "ap_r40":
+                    boot = paired_ap_difference(reps[p["height"]], reps[p["over"]], r, lv, LEAD_REPLICATES, LEAD_SEED)
+                    assert p["scene_ci95"] == percentile_interval(boot)
+                verdict = (f"resolved: {p['leader']:g} m leads" if p["answer"] == "resolved"
+                           else f"bounded: the two differ by less than {p['margin']:.3f}")
+                row = (f"| {'Recall large' if metric == 'recall' else 'AP@R40 small'} | {p['height']:g} m - "
+                       f"{p['over']:g} m | {p['diff']:+.3f} [{lo:+.3f}, {hi:+.3f}] | {verdict} |")
+                assert row in written.md, row
+    section = written.md.split("**The height answer, per model**")[1].split("A model (or height) is called")[0]
+    assert [ln for ln in section.splitlines() if ln.startswith("*") and ln.endswith("*")] == [f"*{m}*" for m in MODELS]
+
+
 def test_the_seed_summary_names_the_leader_per_height_and_per_model(written):
     seeds = written.study["seeds"]
     for h in HEIGHTS:

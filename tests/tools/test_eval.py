@@ -197,6 +197,14 @@ def test_bench_eval_small_run(tmp_path, capsys):
     la = res["large_all"]
     assert la["tp"] > 0 and la["fp"] > 0 and la["lidar_detected"] < la["total"]
     assert "| **total** |" in (tmp_path / "bench_eval.md").read_text()
+    # with a scene bootstrap: its time and report.json's size, the AP ranking a part of it
+    assert bench.main(["--frames", "40", "--repeats", "1", "--bootstrap", "20", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "bench_eval.json").read_text())
+    assert res["bootstrap_scenes"] == 4 and res["bootstrap_seconds_median"] > 0
+    assert res["ranked_detections"] >= la["tp"] + la["fp"]
+    assert res["report_json_bytes_without_ap_ranking"] < res["report_json_bytes"] < \
+        res["report_json_bytes_without_ap_ranking"] + 8 * res["ranked_detections"]
+    assert "of which the AP ranking" in (tmp_path / "bench_eval.md").read_text()
 
 
 # ------------------------------------------------------------------ --ckpt RUN_DIR: the run's newest checkpoint
