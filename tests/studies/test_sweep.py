@@ -174,9 +174,9 @@ def test_sweep_tool_tiny_run_structure_and_physics(tmp_path):
     # the tall LiDAR sees over the vehicles ahead: in dense traffic it hits far more vehicles than at 0.5 m
     # (0.91 against 0.76 in the large range on these 24 frames; 12 frames gave only 0.84 against 0.80)
     assert ab["2.2"]["large"]["all"]["ldr"] > ab["0.5"]["large"]["all"]["ldr"] + 0.1
-    # every figure title names the world it was measured in (the dense preset is calibration v2's world)
+    # every figure title names the world it was measured in (the dense preset is the default calibration v3's world)
     from detbench.studies.sweep_plots import _world
-    assert _world(rep) == "simulator calibration v2"
+    assert _world(rep) == "simulator calibration v3"
     assert _world({"ability": {"extras": {"source": {"kind": "dataset", "root": "/data"}}}}) == "data on disk"
     md = (out / "sweep.md").read_text()
     assert "the paper's Table IV, heights as rows" in md and "| 2.2 |" in md and "S-MIG" not in md.split("##")[0]
