@@ -115,6 +115,8 @@ def check_arguments(args: argparse.Namespace) -> None:
     require(args.rigs is None or args.heights is None, "--rigs and --heights: give one of them")
     require(args.rig_file is None or args.rigs is not None, "--rig-file needs --rigs NAME [NAME ...]")
     require(not args.small_objects or args.rigs is not None, "--small-objects needs --rigs NAME [NAME ...]")
+    require(args.rigs is None or not (args.points or args.example_frame),
+            "--points and --example-frame: not with --rigs (rigs count with the simulator's hit counts, no figures)")
     require(args.lane_width is None or (math.isfinite(args.lane_width) and args.lane_width > 0),
             f"--lane-width {args.lane_width}: must be a positive number of metres (e.g. 3.5)")
     require(math.isfinite(args.distance_bin) and args.distance_bin > 0,

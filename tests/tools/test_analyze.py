@@ -26,6 +26,7 @@ def test_rigs_write_cells_and_near_field_per_rig(tmp_path, capsys):
     (["--simulate", "2", "--rigs", "plate", "--heights", "1.0"], "give one of them"),
     (["--simulate", "2", "--small-objects"], "--small-objects needs --rigs"),
     (["--simulate", "2", "--rigs", "nowhere"], "known: paper-0.5"),
+    (["--simulate", "2", "--rigs", "plate", "--points"], "not with --rigs"),
 ])
 def test_rig_argument_errors(tmp_path, argv, message):
     with pytest.raises(UserError, match=message):
