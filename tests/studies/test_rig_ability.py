@@ -98,3 +98,16 @@ def test_near_field_bins():
 def test_unknown_rig_is_a_user_error():
     with pytest.raises(UserError, match="--rigs nope: not in configs/rigs.yaml; known: paper-0.5"):
         run_rig_ability(RigAbilityOptions(simulate=2, rigs=["nope"]))
+
+
+def test_paper_rigs_give_the_heights_cells():
+    # the paper's rigs alone are the single-sensor study: the same cells as --heights 0.5 1.0 1.8
+    from detbench.studies.ability_run import AbilityOptions, run_ability
+
+    rigs, _ = run_rig_ability(RigAbilityOptions(simulate=30, rigs=["paper-0.5", "paper-1.0", "paper-1.8"],
+                                                frames_per_scene=10, bootstrap=0, no_progress=True))
+    heights, _, _ = run_ability(AbilityOptions(simulate=30, frames_per_scene=10, bootstrap=0, no_progress=True,
+                                               no_figures=True))
+    for h in ("0.5", "1.0", "1.8"):
+        cells = {r: rigs["rigs"][f"paper-{h}"][r] for r in RANGE_NAMES}
+        assert cells == heights["heights"][h], h
