@@ -9,6 +9,7 @@ level (all/top3/top6).
 Examples:
   python tools/analyze.py --simulate 8000 --heights 0.5 1.0 1.8 --seed 0 --out runs/ability
   python tools/analyze.py --data data/sim --split all --out runs/ability_disk
+  python tools/analyze.py --simulate 2000 --rigs paper-1.8 forehead headlights --small-objects --out runs/rigs
 
 Writes OUT/ability.json (or --json PATH), OUT/ability.md (tables like the paper's Tables
 IV-VI) and PNG figures (Fig. 5-7 and LDR against distance) into OUT.
@@ -55,6 +56,15 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--heights", type=float, nargs="+", default=None, metavar="H",
                     help="LiDAR mounting heights in metres (default: 0.5 1.0 1.8 for --simulate, every height of "
                          "the dataset for --data)")
+    ap.add_argument("--rigs", nargs="+", default=None, metavar="NAME",
+                    help="(--simulate) LiDAR rigs by name instead of heights (configs/rigs.yaml or --rig-file): "
+                         "their LDR cells, ground blind zone, rays taken by the ego's body and near-field LDR by "
+                         "distance and bearing, all rigs on the same instants; writes no figures")
+    ap.add_argument("--rig-file", default=None, metavar="PATH",
+                    help="(--rigs) a rig file with the keys of configs/rigs.yaml (default configs/rigs.yaml)")
+    ap.add_argument("--small-objects", action="store_true",
+                    help="(--rigs) place the small-object probe (cones, lost tyres, child-sized boxes) on the "
+                         "carriageway and shoulder and report their LDR and points per object by distance")
     ap.add_argument("--seed", type=int, default=0, help="simulator seed (--simulate; default 0)")
     add_sim_preset_argument(ap)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -101,6 +111,12 @@ def check_arguments(args: argparse.Namespace) -> None:
     for h in args.heights or ():
         require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
     require_distinct(args.heights, "--heights", key=height_key, what="height")
+    require(args.rigs is None or args.simulate is not None, "--rigs needs --simulate N (rigs are simulated)")
+    require(args.rigs is None or args.heights is None, "--rigs and --heights: give one of them")
+    require(args.rig_file is None or args.rigs is not None, "--rig-file needs --rigs NAME [NAME ...]")
+    require(not args.small_objects or args.rigs is not None, "--small-objects needs --rigs NAME [NAME ...]")
+    require(args.rigs is None or not (args.points or args.example_frame),
+            "--points and --example-frame: not with --rigs (rigs count with the simulator's hit counts, no figures)")
     require(args.lane_width is None or (math.isfinite(args.lane_width) and args.lane_width > 0),
             f"--lane-width {args.lane_width}: must be a positive number of metres (e.g. 3.5)")
     require(math.isfinite(args.distance_bin) and args.distance_bin > 0,
@@ -119,6 +135,8 @@ def check_arguments(args: argparse.Namespace) -> None:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     check_arguments(args)
+    if args.rigs is not None:
+        return main_rigs(args)
     opts = AbilityOptions(
         data=args.data, simulate=args.simulate, heights=args.heights, seed=args.seed, preset=args.sim_preset,
         overrides=args.overrides, frames_per_scene=args.frames_per_scene, split=args.split,
@@ -131,6 +149,29 @@ def main(argv=None) -> int:
         written = write_ability(args, opts, out, report, example)
     print("\n".join(summary_lines(report, seconds)))
     print("wrote: " + ", ".join(str(p) for p in written))
+    return 0
+
+
+def main_rigs(args: argparse.Namespace) -> int:
+    """--rigs: the ability study per rig (detbench.studies.rig_ability), OUT/ability.json and ability.md."""
+    from detbench.studies.rig_ability import RigAbilityOptions, rig_markdown, run_rig_ability
+
+    opts = RigAbilityOptions(
+        simulate=args.simulate, rigs=args.rigs, rig_file=args.rig_file, seed=args.seed, preset=args.sim_preset,
+        overrides=args.overrides, frames_per_scene=args.frames_per_scene, thresholds=args.thresholds,
+        distance_bin=args.distance_bin, bootstrap=args.bootstrap, small_objects=args.small_objects,
+        no_progress=args.no_progress)
+    report, seconds = run_rig_ability(opts)
+    with claim_output(args.out, ABILITY_FOLDER) as out:
+        json_path = Path(args.json) if args.json else out / "ability.json"
+        atomic_write_json(json_path, report)
+        atomic_write_text(out / "ability.md", rig_markdown(report))
+    print(f"{report['num_frames']} frames in {seconds:.1f} s; LDR of all vehicles and ground blind zone ahead:")
+    for name, cell in report["rigs"].items():
+        ahead = cell["blind_zone_m"]["ahead"]
+        print(f"{name:<16}" + "".join(f"{r} {cell[r]['all']['ldr']:.2f}  " if cell[r]["all"]["total"] else f"{r} -  "
+                                      for r in RANGES) + f"blind ahead {'-' if ahead is None else f'{ahead:.2f} m'}")
+    print("wrote: " + ", ".join(str(p) for p in (json_path, out / "ability.md")))
     return 0
 
 

@@ -8,6 +8,7 @@ Examples:
   python tools/simulate.py --out data/sim --frames 2000 --heights 0.5 1.0 1.8 --seed 0
   python tools/simulate.py --out data/sim_small --scenes 2 --frames-per-scene 50 --set traffic.density_per_km_lane=15
   python tools/simulate.py --out data/table1 --frames 400 --lidars ideal-l8 xpeng-g9 arcfox-as-hi
+  python tools/simulate.py --out data/rigs --frames 400 --rigs forehead headlights
 
 Writes the dataset into OUT plus OUT/simulate_run.json (machine-readable summary) and
 OUT/simulate_run.md (the same for humans).
@@ -50,6 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--lidars", nargs="+", default=None, metavar="NAME",
                     help="LiDAR presets instead of --heights, e.g. h3-1.8 ideal-l8 xpeng-g9 (Table I); their "
                          "heights must differ")
+    ap.add_argument("--rigs", nargs="+", default=None, metavar="NAME",
+                    help="LiDAR rigs instead of --heights (configs/rigs.yaml or --rig-file; docs/rigs.md): one points "
+                         "folder per rig, its sensors' returns merged in the ego frame, with each point's sensor in "
+                         "sensor_index/<rig>/; train on one with --height NAME")
+    ap.add_argument("--rig-file", default=None, metavar="PATH",
+                    help="(--rigs) a rig file with the keys of configs/rigs.yaml (default configs/rigs.yaml)")
     ap.add_argument("--seed", type=int, default=0, help="random seed (same seed and config: identical files)")
     add_sim_preset_argument(ap)
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -77,7 +84,7 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.sim import HighwaySimulator, load_sim_config
     from detbench.sim.dataset import check_space, estimate_dataset_bytes, human_bytes, plan_frames, write_simulation
-    from detbench.sim.run import RunSummary, run_lidars, simulation_source
+    from detbench.sim.run import RunSummary, run_lidars, run_rigs, simulation_source
 
     from detbench.data.frame import height_key
 
@@ -90,14 +97,23 @@ def main(argv=None) -> int:
         cfg = load_sim_config(args.sim_preset, overrides=tuple(args.overrides))
         frames, fps = plan_frames(args.frames, args.scenes, args.frames_per_scene,
                                   int(cfg["scene"]["frames_per_scene"]))
-        if args.lidars and args.heights:
-            raise ValueError("give --heights or --lidars, not both")
-        lidars = run_lidars(args.lidars or args.heights, range_noise=args.range_noise, dropout=args.dropout)
+        if sum(bool(v) for v in (args.lidars, args.heights, args.rigs)) > 1:
+            raise ValueError("give one of --heights, --lidars and --rigs")
+        if args.rig_file and not args.rigs:
+            raise ValueError("--rig-file needs --rigs NAME [NAME ...]")
+        if args.rigs and (args.range_noise is not None or args.dropout is not None):
+            raise ValueError("--range-noise and --dropout: set them per sensor in the rig file (range_noise_m, "
+                             "dropout) for --rigs")
+        if args.rigs:
+            lidars = run_rigs(args.rigs, args.rig_file)
+        else:
+            lidars = run_lidars(args.lidars or args.heights, range_noise=args.range_noise, dropout=args.dropout)
         sim = HighwaySimulator(cfg, seed=args.seed)
     except (ConfigError, ValueError) as e:
         raise UserError(str(e)) from None
 
     out = Path(args.out)
+    what = "rigs" if args.rigs else "heights"
     source = simulation_source(cfg, lidars, preset=args.sim_preset, seed=args.seed, overrides=args.overrides,
                                frames=frames, frames_per_scene=fps)
     summary = RunSummary(out, lidars, frames=frames, frames_per_scene=fps, seed=args.seed, preset=args.sim_preset,
@@ -106,12 +122,12 @@ def main(argv=None) -> int:
         print(f"note: {note}", file=sys.stderr)
     size = estimate_dataset_bytes(lidars, frames)
     try:
-        free = check_space(out, size, what=f"the dataset ({frames} frames x {len(lidars)} heights)",
+        free = check_space(out, size, what=f"the dataset ({frames} frames x {len(lidars)} {what})",
                            fix="free some space there, give --out on a larger filesystem, or simulate fewer "
                                "--frames or --heights")
     except DiskFullError as e:
         raise UserError(f"--out {e}") from None
-    print(f"simulating {frames} frames x {len(lidars)} heights into {out}: about {human_bytes(size)} on disk "
+    print(f"simulating {frames} frames x {len(lidars)} {what} into {out}: about {human_bytes(size)} on disk "
           f"({human_bytes(free)} free)")
     try:
         write_simulation(out, sim, lidars, frames, source=source, frames_per_scene=fps,
@@ -124,7 +140,7 @@ def main(argv=None) -> int:
                         f"beside {out}, and that folder is removed, so {out} is unchanged; free some space in "
                         f"{out.parent} (or raise the limit), then run the same command again") from None
     seconds = time.perf_counter() - summary.t0
-    print(f"wrote {frames} frames x {len(lidars)} heights to {out} in {seconds:.1f} s "
+    print(f"wrote {frames} frames x {len(lidars)} {what} to {out} in {seconds:.1f} s "
           f"(summary: {out / 'simulate_run.md'})")
     return 0
 

@@ -32,6 +32,7 @@ import torch
 
 import models
 from detbench.config import ConfigError
+from detbench.data.frame import key_label, key_value
 from detbench.data.errors import DatasetError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
@@ -42,11 +43,21 @@ from detbench.utils.atomic import DiskFullError
 from detbench.utils.folder_ownership import FolderNotReplaceable
 
 
+def height_or_rig(text: str) -> float | str:
+    """--height: a mounting height in metres, or a rig's name."""
+    try:
+        return key_value(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--model", default="second", help=f"detector: {', '.join(sorted(models.REGISTRY))} "
                                                       f"(default second)")
-    ap.add_argument("--height", type=float, required=True, help="LiDAR mounting height in metres, e.g. 1.8")
+    ap.add_argument("--height", type=height_or_rig, required=True,
+                    help="LiDAR mounting height in metres, e.g. 1.8, or the name of a rig the dataset holds "
+                         "(tools/simulate.py --rigs; docs/rigs.md), e.g. headlights")
     ap.add_argument("--data", default=None, metavar="ROOT",
                     help="dataset root (docs/data-format.md); default: the simulated default dataset")
     ap.add_argument("--preset", default="cpu", choices=preset_names(),
@@ -197,7 +208,7 @@ def train_in(args, cfg: dict, out: Path, held: ExitStack) -> int:
         print(f"initialised {init['loaded_tensors']} weight tensors from {init['path']} ({init['model']}); "
               f"{init['new_tensors']} start from scratch")
     if info.is_main:
-        print(f"{model_name} at {args.height:g} m: {len(train_set)} training frames from {root}; "
+        print(f"{model_name} at {key_label(args.height)}: {len(train_set)} training frames from {root}; "
               f"{sum(p.numel() for p in model.parameters()) / 1e6:.2f} M parameters; device {info.device}; "
               f"out {out}")
     t0 = time.perf_counter()

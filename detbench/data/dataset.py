@@ -17,7 +17,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from detbench.data.errors import DatasetError, MissingFileError
-from detbench.data.frame import Frame, Sensor, height_key, lanes_from_lateral
+from detbench.data.frame import Frame, Sensor, height_key, is_rig_key, lanes_from_lateral
 from detbench.data.layout import (
     INFO_FILE, SPLIT_CHOICES, DatasetInfo, HeightInfo, imageset_path, label_path, meta_path, points_path,
     read_info,
@@ -68,7 +68,7 @@ class Height3Dataset:
 
     Args:
         root: dataset folder (holds dataset.json).
-        height: mounting height in metres (or its key "1.8"); must be one of `heights`.
+        height: mounting height in metres (or its key "1.8"), or a rig's name; must be one of `heights`.
         split: "train", "test" or "all".
         lane_width: metres, for datasets without meta files (lanes from the lateral offset);
             default: dataset.json's lane_width (3.5 m).
@@ -86,7 +86,8 @@ class Height3Dataset:
         self.info: DatasetInfo = read_info(self.root)
         self.height_info: HeightInfo = self.info.height(height, self.root / INFO_FILE)
         self.height_key = self.height_info.key
-        self.height = float(self.height_key)
+        # metres; a rig's key is its name, and its height that of its first sensor
+        self.height = float(self.height_key) if self.height_info.rig is None else float(self.height_info.sensor.height)
         self.split = split
         self.lane_width = float(lane_width) if lane_width is not None else self.info.lane_width
         if not self.lane_width > 0:
@@ -108,9 +109,9 @@ class Height3Dataset:
         return list(self._ids)
 
     @property
-    def heights(self) -> list[float]:
-        """Every mounting height the dataset holds (metres)."""
-        return [float(k) for k in self.info.heights]
+    def heights(self) -> list[float | str]:
+        """Every mounting height the dataset holds (metres), and its rigs by name."""
+        return [k if is_rig_key(k) else float(k) for k in self.info.heights]
 
     @property
     def info_file(self) -> Path:
@@ -175,7 +176,7 @@ class Height3Dataset:
             meta = read_meta(mpath, frame_id, m, root=self.root)
             if self.height_key in meta["sensors"]:
                 sensor = meta["sensors"][self.height_key]
-                if height_key(sensor.height) != self.height_key:
+                if self.height_info.rig is None and height_key(sensor.height) != self.height_key:
                     raise DatasetError(f"sensors.{self.height_key}.height is {sensor.height}; it must be "
                                        f"{self.height_key} m", path=mpath)
             scene_id, ts, ego = meta["scene_id"], meta["timestamp"], meta["ego"]

@@ -15,6 +15,7 @@ Conventions (docs/architecture.md):
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,6 +26,7 @@ DEFAULT_LANE_WIDTH = 3.5  # metres
 
 BOX_DIM = 7
 POINT_DIM = 4
+RIG_NAME = re.compile(r"[A-Za-z][A-Za-z0-9._-]*")
 
 
 def height_key(height: float) -> str:
@@ -41,6 +43,45 @@ def height_key(height: float) -> str:
         raise ValueError(f"mounting height {height!r} m is below 1 mm, the resolution heights are written in; "
                          f"give a height of at least 0.001 m")
     return s + "0" if s.endswith(".") else s
+
+
+def data_key(value: float | str) -> str:
+    """The key a dataset files one sensor set under: a mounting height's `height_key` for a number (or a
+    numeric string), a rig's name (docs/rigs.md: a letter, then letters, digits, '.', '_' or '-') otherwise.
+
+    >>> data_key(1.8), data_key("0.50"), data_key("headlights")
+    ('1.8', '0.5', 'headlights')
+    """
+    if isinstance(value, str):
+        try:
+            float(value)
+        except ValueError:
+            if not RIG_NAME.fullmatch(value):
+                raise ValueError(f"{value!r} is neither a mounting height in metres nor a rig name (a letter, then "
+                                 f"letters, digits, '.', '_' or '-')") from None
+            return value
+    return height_key(float(value))
+
+
+def key_value(value: float | str) -> float | str:
+    """A height as a float (metres), a rig as its name: the value a run records for its data's sensors."""
+    key = data_key(value)
+    return key if is_rig_key(key) else float(key)
+
+
+def key_label(value: float | str) -> str:
+    """"1.8 m" for a height, "rig headlights" for a rig: how reports name the sensors a run used."""
+    key = data_key(value)
+    return f"rig {key}" if is_rig_key(key) else f"{float(key):g} m"
+
+
+def is_rig_key(key: str) -> bool:
+    """True when a dataset key names a rig rather than a mounting height."""
+    try:
+        float(key)
+    except ValueError:
+        return True
+    return False
 
 
 def lanes_from_lateral(y: np.ndarray, lane_width: float = DEFAULT_LANE_WIDTH, ego_offset: float = 0.0) -> np.ndarray:

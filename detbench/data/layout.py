@@ -3,7 +3,9 @@
 ```
 ROOT/
   dataset.json                  format, version, heights with their sensors, source, classes, split
-  points/<height_key>/<id>.npy  (N, 4) float32 x y z intensity (or KITTI-style <id>.bin)
+  points/<height_key>/<id>.npy  (N, 4) float32 x y z intensity (or KITTI-style <id>.bin); a rig's
+                                points under points/<rig name>/, ground frame, all its sensors merged
+  sensor_index/<rig name>/<id>.npy  (N,) int16 the rig sensor of each point (rigs only)
   labels/<id>.txt               one vehicle a line: x y z dx dy dz heading class (ground frame)
   meta/<id>.json                per-frame extras: scene, timestamp, ego, track ids, lanes, sensors
   ImageSets/train.txt           frame ids, one a line
@@ -24,7 +26,7 @@ from pathlib import Path
 
 from detbench.config import shipped_default
 from detbench.data.errors import DatasetError, MissingFileError
-from detbench.data.frame import DEFAULT_LANE_WIDTH, Sensor, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, RIG_NAME, Sensor, height_key, is_rig_key
 from detbench.utils.atomic import read_json
 from detbench.utils.folder_ownership import FolderKind
 from detbench.utils.untrusted import clip, excerpt, outside_folder
@@ -69,6 +71,11 @@ def points_path(root: str | os.PathLike, height: float | str, frame_id: str, ext
     return Path(root) / POINTS_DIR / hk / f"{frame_id}{ext}"
 
 
+def sensor_index_path(root: str | os.PathLike, rig: str, frame_id: str) -> Path:
+    """ROOT/sensor_index/<rig name>/<frame_id>.npy: the rig sensor of each point of points/<rig name>/<frame_id>."""
+    return Path(root) / "sensor_index" / rig / f"{frame_id}.npy"
+
+
 def label_path(root: str | os.PathLike, frame_id: str) -> Path:
     """ROOT/labels/<frame_id>.txt (shared by every height)."""
     return Path(root) / LABELS_DIR / f"{frame_id}.txt"
@@ -95,10 +102,14 @@ class HeightInfo:
     points_frame: str = "ground"  # "ground" (ego ground frame) or "sensor" (converted on load)
     points_ext: str = ".npy"  # ".npy" or ".bin"
     bin_columns: int = 4  # float32 values per point in .bin files (first 4 are x y z intensity)
+    rig: dict | None = None  # a rig's key (its name): the rig (detbench.sim.rigs.Rig.describe); sensor is its first
 
     def to_dict(self) -> dict:
-        return {"sensor": self.sensor.to_dict(), "points_frame": self.points_frame,
-                "points_ext": self.points_ext, "bin_columns": self.bin_columns}
+        d = {"sensor": self.sensor.to_dict(), "points_frame": self.points_frame,
+             "points_ext": self.points_ext, "bin_columns": self.bin_columns}
+        if self.rig is not None:
+            d["rig"] = self.rig
+        return d
 
 
 @dataclass
@@ -206,15 +217,22 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
     heights: dict[str, HeightInfo] = {}
     for key, h in raw_heights.items():
         where = f"heights.{key}."
-        try:
-            hval = float(key)
-            canon = height_key(hval)
-        except ValueError:
-            raise DatasetError(f"height key {excerpt(key)} is not a positive number of metres (e.g. \"1.8\")",
-                               path=path) from None
-        if canon != key:
-            raise DatasetError(f"height key {excerpt(key)} must be written {canon!r} (the folder name under "
-                               f"points/)", path=path)
+        rig = h.get("rig") if isinstance(h, dict) else None
+        if is_rig_key(key):
+            if not RIG_NAME.fullmatch(key) or not isinstance(rig, dict):
+                raise DatasetError(f"height key {excerpt(key)} is not a positive number of metres (e.g. \"1.8\") nor a "
+                                   f"rig name with a 'rig' object (docs/rigs.md)", path=path)
+        else:
+            try:
+                canon = height_key(float(key))
+            except ValueError:
+                canon = None
+            if canon is None:
+                raise DatasetError(f"height key {excerpt(key)} is not a positive number of metres (e.g. \"1.8\")",
+                                   path=path)
+            if canon != key:
+                raise DatasetError(f"height key {excerpt(key)} must be written {canon!r} (the folder name under "
+                                   f"points/)", path=path)
         if not isinstance(h, dict):
             raise DatasetError(f"heights.{key} must be an object with at least a 'sensor'", path=path)
         sensor_d = _need(h, "sensor", dict, path, where)
@@ -222,9 +240,12 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
             sensor = Sensor.from_dict(sensor_d)
         except (TypeError, ValueError) as e:
             raise DatasetError(f"{where}sensor is invalid: {clip(e)}", path=path) from None
-        if abs(float(sensor.height) - hval) > 1e-6:
+        if rig is None and abs(float(sensor.height) - float(key)) > 1e-6:
             raise DatasetError(f"{where}sensor.height is {sensor.height} but the key says {key} m; make them agree",
                                path=path)
+        if rig is not None and h.get("points_frame", "ground") != "ground":
+            raise DatasetError(f"{where}points_frame must be 'ground' for a rig (its sensors' points are merged in "
+                               f"the ego frame)", path=path)
         pf = h.get("points_frame", "ground")
         if pf not in POINTS_FRAMES:
             raise DatasetError(f"{where}points_frame is {excerpt(pf)}; use one of {', '.join(POINTS_FRAMES)}",
@@ -236,7 +257,7 @@ def parse_info(d: dict, path: str | os.PathLike = INFO_FILE) -> DatasetInfo:
         if not isinstance(cols, int) or isinstance(cols, bool) or cols < 4:
             raise DatasetError(f"{where}bin_columns is {excerpt(cols)}; it must be an integer >= 4 "
                                f"(x y z intensity, then any extra columns)", path=path)
-        heights[key] = HeightInfo(key=key, sensor=sensor, points_frame=pf, points_ext=ext, bin_columns=cols)
+        heights[key] = HeightInfo(key=key, sensor=sensor, points_frame=pf, points_ext=ext, bin_columns=cols, rig=rig)
     classes = d.get("classes", list(DEFAULT_CLASSES))
     if not isinstance(classes, list) or not all(isinstance(c, str) and c and " " not in c for c in classes):
         raise DatasetError("'classes' must be a list of class names without spaces", path=path)

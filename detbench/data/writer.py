@@ -27,10 +27,10 @@ import numpy as np
 
 from detbench.config import shipped_default
 from detbench.data.errors import DatasetError
-from detbench.data.frame import DEFAULT_LANE_WIDTH, Frame, Sensor, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, Frame, Sensor, data_key, height_key, is_rig_key
 from detbench.data.layout import (
     DATASET_FOLDER, DEFAULT_CLASSES, FORMAT_NAME, FORMAT_VERSION, INFO_FILE, POINT_EXTS, DatasetInfo, HeightInfo,
-    SceneRule, assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path,
+    SceneRule, assign_splits, check_frame_id, imageset_path, label_path, meta_path, points_path, sensor_index_path,
 )
 from detbench.data.readers import format_labels, meta_dict
 from detbench.data.regions import check_range_name, in_range
@@ -58,8 +58,8 @@ class DatasetWriter:
 
     Args:
         root: output folder (created).
-        heights: mounting heights in metres, e.g. [0.5, 1.0, 1.8]; each `add` gets one frame
-            per height.
+        heights: mounting heights in metres, e.g. [0.5, 1.0, 1.8], or rig names (docs/rigs.md); each
+            `add` gets one frame per height (a rig's frame carries its name in `rig`).
         source: provenance stored in dataset.json, e.g. {"kind": "simulator", "preset": "paper",
             "config": {...}, "seed": 0} or {"kind": "external", ...}.
         test_fraction: share of scenes in the test split, in [0, 1) (default: configs/default.yaml
@@ -80,12 +80,16 @@ class DatasetWriter:
     def __init__(self, root: str | os.PathLike, heights: list[float], source: dict,
                  test_fraction: float | None = None, *, overwrite: bool = False, classes: list[str] | None = None,
                  points_ext: str = ".npy", lane_width: float | None = None,
-                 drop_frames_without: str | None = None):
+                 drop_frames_without: str | None = None, rigs: dict[str, dict] | None = None):
         self.root = Path(root)
+        self.rigs = dict(rigs or {})  # rig name -> its description, stored in dataset.json
         test_fraction = shipped_default("data.test_fraction", test_fraction)
         if not heights:
             raise ValueError("heights is empty; give at least one mounting height in metres")
-        self.height_keys = [height_key(h) for h in heights]
+        self.height_keys = [data_key(h) for h in heights]
+        unknown = [k for k in self.height_keys if is_rig_key(k) and k not in self.rigs]
+        if unknown:
+            raise ValueError(f"rigs {unknown}: give their descriptions in rigs= (detbench.sim.rigs.Rig.describe)")
         if len(set(self.height_keys)) != len(self.height_keys):
             raise ValueError(f"duplicate heights {self.height_keys}")
         if not isinstance(source, dict):
@@ -146,6 +150,8 @@ class DatasetWriter:
             write_owner(self._dir, DATASET_FOLDER)  # first: even an unfinished dataset is known to be one
         for hk in self.height_keys:
             (self._dir / "points" / hk).mkdir(parents=True, exist_ok=True)
+            if is_rig_key(hk):
+                sensor_index_path(self._dir, hk, "x").parent.mkdir(parents=True, exist_ok=True)
         for sub in ("labels", "meta", "ImageSets"):
             (self._dir / sub).mkdir(parents=True, exist_ok=True)
         self._open = True
@@ -179,7 +185,7 @@ class DatasetWriter:
         for f in frames:
             if not isinstance(f, Frame):
                 raise TypeError(f"add() takes Frame objects, got {type(f).__name__}")
-            hk = height_key(f.sensor.height)
+            hk = getattr(f, "rig", "") or height_key(f.sensor.height)
             if hk in by_key:
                 raise ValueError(f"frame {f.frame_id}: two frames for height {hk} m")
             by_key[hk] = f
@@ -216,6 +222,11 @@ class DatasetWriter:
             pts = np.ascontiguousarray(by_key[hk].points, dtype=np.float32)
             saver = _save_npy(pts) if self.points_ext == ".npy" else _save_bin(pts)
             atomic_save(points_path(self._dir, hk, fid, self.points_ext), saver)
+            if is_rig_key(hk):  # the sensor of each point, beside the rig's points
+                index = np.asarray(getattr(by_key[hk], "sensor_index", np.zeros(len(pts))), dtype=np.int16)
+                if index.shape != (len(pts),):
+                    raise ValueError(f"frame {fid}: rig {hk} has {len(index)} sensor indices for {len(pts)} points")
+                atomic_save(sensor_index_path(self._dir, hk, fid), _save_npy(index))
         atomic_write_text(label_path(self._dir, fid), format_labels(ref.boxes, ref.classes))
         sensors = {hk: by_key[hk].sensor for hk in self.height_keys}
         atomic_write_json(meta_path(self._dir, fid), meta_dict(ref, sensors), indent=None)
@@ -267,7 +278,8 @@ class DatasetWriter:
             heights = {}
             for hk in self.height_keys:
                 sensor = self.sensors.get(hk) or Sensor(height=float(hk))
-                heights[hk] = HeightInfo(key=hk, sensor=sensor, points_frame="ground", points_ext=self.points_ext)
+                heights[hk] = HeightInfo(key=hk, sensor=sensor, points_frame="ground", points_ext=self.points_ext,
+                                         rig=self.rigs.get(hk))
             rule = dict(rule, num_train=len(train), num_test=len(test))
             info = DatasetInfo(heights=heights, source=self.source, classes=self.classes, split=rule, has_meta=True,
                                lane_width=self.lane_width, scene_rule=SceneRule("prefix", "_"),

@@ -34,6 +34,7 @@ from detbench.data.frame import height_key
 from detbench.data.layout import DATASET_FOLDER, sim_calibration
 from detbench.data.writer import DatasetWriter
 from detbench.sim.lidar import lidar_preset
+from detbench.sim.rigs import Rig
 from detbench.sim.simulator import HighwaySimulator, load_sim_config
 from detbench.utils.atomic import DiskFullError
 from detbench.utils.cli import UserError
@@ -99,9 +100,14 @@ def estimate_dataset_bytes(lidars: Sequence, frames: int) -> int:
     per instant, each LiDAR's channels x h_samples rays times the measured `RETURN_FRACTION` times 16 bytes,
     plus the labels and meta of the instant (`INSTANT_BYTES`). A LiDAR cannot write more than its rays, so
     `RETURN_FRACTION` = 1 would be an upper bound."""
-    per_instant = INSTANT_BYTES + sum(
-        POINTS_FILE_BYTES + POINT_BYTES * math.ceil(RETURN_FRACTION * int(lid.channels) * int(lid.h_samples))
-        for lid in lidars)
+    per_instant = INSTANT_BYTES
+    for lid in lidars:
+        if isinstance(lid, Rig):  # every sensor's returns in one points file, and a 2-byte sensor index a point
+            rays = sum(int(s.lidar.channels) * int(s.lidar.h_samples) for s in lid.sensors)
+            per_instant += 2 * POINTS_FILE_BYTES + (POINT_BYTES + 2) * math.ceil(RETURN_FRACTION * rays)
+        else:
+            per_instant += POINTS_FILE_BYTES + POINT_BYTES * math.ceil(RETURN_FRACTION * int(lid.channels)
+                                                                       * int(lid.h_samples))
     return int(frames) * per_instant
 
 
@@ -145,6 +151,9 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
                      wait: Callable[[str], None] | None = None) -> Path:
     """Stream `frames` time steps of `sim` (a HighwaySimulator) at every LiDAR into a DatasetWriter.
 
+    `lidars` holds LidarConfigs (one points folder per height) or rigs (detbench.sim.rigs.Rig: one points
+    folder per rig, named after it, and its sensor indices; dataset.json records each rig).
+
     The dataset is built in a sibling folder `.tmp-new-<name>-<pid>` and swapped in whole when
     complete (`detbench.utils.staged_folders.staged_folder`): an interrupted or failed run leaves `root` as it
     was (the old dataset, with `overwrite`, or nothing), and the next run removes its leftovers.
@@ -158,12 +167,14 @@ def write_simulation(root: str | os.PathLike, sim, lidars: Sequence, frames: int
     `drop_frames_without`: see `DatasetWriter`.
     """
     root = Path(root)
-    heights = [float(lid.height) for lid in lidars]
+    heights = [lid.name if isinstance(lid, Rig) else float(lid.height) for lid in lidars]
+    rigs = {lid.name: lid.describe() for lid in lidars if isinstance(lid, Rig)}
     recover_staged(root)
     check_replaceable(root, overwrite, DATASET_FOLDER)
     with staged_folder(root, what="a simulation", check=lambda: check_replaceable(root, overwrite, DATASET_FOLDER),
                        wait=wait) as staged:
-        with DatasetWriter(staged, heights, source, test_fraction, drop_frames_without=drop_frames_without) as writer:
+        with DatasetWriter(staged, heights, source, test_fraction, drop_frames_without=drop_frames_without,
+                           rigs=rigs) as writer:
             stream = sim.run(int(frames), list(lidars), frames_per_scene=frames_per_scene, with_points=True)
             for step in tqdm(stream, total=int(frames), desc="simulate", unit="frame", disable=not progress,
                              dynamic_ncols=True):

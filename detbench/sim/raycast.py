@@ -88,7 +88,8 @@ class CastResult:
       were not requested);
     point_box: (N,) int64 row of `boxes` containing each point (bottom lift applied) or -1;
     counts: (M,) int64 points inside each box with the bottom raised by `bottom_lift`;
-    rays_cast: number of rays traced; timings: seconds per stage.
+    rays_cast: number of rays traced; timings: seconds per stage;
+    self_hits: rays whose first hit is the ego (of the rays traced: all of them with points).
     """
 
     points: np.ndarray
@@ -96,6 +97,7 @@ class CastResult:
     counts: np.ndarray
     rays_cast: int
     timings: dict = field(default_factory=dict)
+    self_hits: int = 0
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -119,8 +121,8 @@ def boxes_from_objects(pose: np.ndarray, label: np.ndarray) -> np.ndarray:
 class _RayTable:
     """Per-LiDAR constants: ray directions and the world azimuth span of each column."""
 
-    def __init__(self, lidar: LidarConfig):
-        d = lidar.ray_directions()  # (C, W, 3)
+    def __init__(self, lidar: LidarConfig, roll_deg: float = 0.0):
+        d = lidar.ray_directions() if roll_deg == 0.0 else rolled_directions(lidar, roll_deg)  # (C, W, 3)
         C, W, _ = d.shape
         self.dirs = np.ascontiguousarray(d.reshape(C * W, 3))
         az_sensor = lidar.azimuths()
@@ -139,14 +141,33 @@ class _RayTable:
 _TABLES: dict = {}
 
 
-def _table(lidar: LidarConfig) -> _RayTable:
-    key = (lidar.vfov_deg, lidar.channels, lidar.hfov_deg, lidar.h_samples, lidar.pitch_deg)
+def _table(lidar: LidarConfig, roll_deg: float = 0.0) -> _RayTable:
+    key = (lidar.vfov_deg, lidar.channels, lidar.hfov_deg, lidar.h_samples, lidar.pitch_deg, roll_deg)
     t = _TABLES.get(key)
     if t is None:
         if len(_TABLES) > 32:
             _TABLES.clear()
-        t = _TABLES[key] = _RayTable(lidar)
+        t = _TABLES[key] = _RayTable(lidar, roll_deg)
     return t
+
+
+def rolled_directions(lidar: LidarConfig, roll_deg: float) -> np.ndarray:
+    """(channels, h_samples, 3) ray directions of a LiDAR rolled by `roll_deg` about its +x axis (positive: the
+    left side up) before its pitch: world d = R_y(pitch) R_x(roll) d_sensor, in the sensor's yawed ground frame."""
+    d = lidar.replace(pitch_deg=0.0).ray_directions()
+    r = math.radians(roll_deg)
+    c, s = math.cos(r), math.sin(r)
+    rolled = np.empty_like(d)
+    rolled[..., 0] = d[..., 0]
+    rolled[..., 1] = c * d[..., 1] - s * d[..., 2]
+    rolled[..., 2] = s * d[..., 1] + c * d[..., 2]
+    p = math.radians(lidar.pitch_deg)
+    c, s = math.cos(p), math.sin(p)
+    out = np.empty_like(d)
+    out[..., 0] = c * rolled[..., 0] + s * rolled[..., 2]
+    out[..., 1] = rolled[..., 1]
+    out[..., 2] = -s * rolled[..., 0] + c * rolled[..., 2]
+    return out
 
 
 # ---------------------------------------------------------------------------- kernels
@@ -355,8 +376,8 @@ def _hash(key, r, stream):
 
 @njit(cache=True, parallel=True)
 def _post(dirs, height, max_range, t_hit, hit, cosi, kind, refl, ground_refl, key, noise, dropout,
-          drop_limit, drop_zero, attenuation, incidence_weight, nblocks):
-    """Noisy points (R, 4) float32 and a keep flag (R,) per ray."""
+          drop_limit, drop_zero, attenuation, incidence_weight, keep_ego, nblocks):
+    """Noisy points (R, 4) float32 and a keep flag (R,) per ray; hits on the ego give points only with keep_ego."""
     R = dirs.shape[0]
     pts = np.zeros((R, 4), dtype=np.float32)
     keep = np.zeros(R, dtype=np.bool_)
@@ -366,7 +387,7 @@ def _post(dirs, height, max_range, t_hit, hit, cosi, kind, refl, ground_refl, ke
             h = hit[r]
             if h == HIT_NONE:
                 continue
-            if h >= 0 and kind[h] == KIND_EGO:
+            if h >= 0 and kind[h] == KIND_EGO and not keep_ego:
                 continue
             t = t_hit[r]
             if dropout > 0.0 and _hash(key, r, 1) < dropout:
@@ -457,7 +478,7 @@ def point_in_box(x, y, z, table, m):
 # ---------------------------------------------------------------------------- driver
 def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_points: bool = True,
                bottom_lift: float = DETECTED_BOTTOM_LIFT, ground_reflectivity: float = 0.3,
-               timings: dict | None = None) -> CastResult:
+               timings: dict | None = None, roll_deg: float = 0.0, keep_ego: bool = False) -> CastResult:
     """Cast one LiDAR over a scene; see the module doc for the stages.
 
     key: 64-bit seed of this sweep's noise/drop-off (same key, same bytes).
@@ -466,8 +487,11 @@ def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_point
     bottom_lift: metres the box bottom is raised for counting (default: the study's DETECTED_BOTTOM_LIFT).
     timings: if a dict is given, seconds per stage are added to it
       ("prepare", "cull", "cast", "post", "count").
+    roll_deg: the sensor's roll about its +x axis (see `rolled_directions`); the scene is in the frame of the
+      sensor's column (origin on the road under it, x along its yaw).
+    keep_ego: hits on KIND_EGO objects give points (a rig without its self-filter); by default they give none.
     """
-    tab = _table(lidar)
+    tab = _table(lidar, float(roll_deg))
     nblocks = 64
     tm = timings if timings is not None else {}
     t0 = time.perf_counter()
@@ -497,7 +521,7 @@ def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_point
     pts, keep = _post(tab.dirs, height, float(lidar.max_range), t_hit, hit, cosi, scene.kind, scene.reflectivity,
                       float(ground_reflectivity), np.uint64(key & 0xFFFFFFFFFFFFFFFF), float(lidar.range_noise_m),
                       float(lidar.dropout), float(lidar.dropoff_intensity_limit), float(lidar.dropoff_zero_intensity),
-                      float(lidar.attenuation_per_m), float(lidar.incidence_weight), nblocks)
+                      float(lidar.attenuation_per_m), float(lidar.incidence_weight), bool(keep_ego), nblocks)
     t4 = time.perf_counter()
     table = count_table(scene.boxes, float(bottom_lift))
     box_of_ray = _count(pts, keep, tab.width, col_start, col_obj, scene.kind, dmin, scene.box_index, table, nblocks)
@@ -513,7 +537,9 @@ def cast_lidar(lidar: LidarConfig, scene: SceneObjects, key: int = 0, with_point
     t5 = time.perf_counter()
     for name, dt in (("prepare", t1 - t0), ("cull", t2 - t1), ("cast", t3 - t2), ("post", t4 - t3), ("count", t5 - t4)):
         tm[name] = tm.get(name, 0.0) + dt
-    return CastResult(points, point_box, counts, rays, tm)
+    hit_obj = hit[hit >= 0]
+    self_hits = int(np.count_nonzero(scene.kind[hit_obj] == KIND_EGO)) if hit_obj.size else 0
+    return CastResult(points, point_box, counts, rays, tm, self_hits)
 
 
 # ---------------------------------------------------------------------------- hand-made scenes

@@ -11,9 +11,10 @@ import numpy as np
 from detbench.data.frame import height_key
 from detbench.data.layout import sim_calibration
 from detbench.sim.lidar import LidarConfig, lidar_preset
+from detbench.sim.rigs import Rig, load_rigs
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
 
-__all__ = ["RunSummary", "run_lidars", "simulation_source"]
+__all__ = ["RunSummary", "run_lidars", "run_rigs", "simulation_source"]
 
 DEFAULT_HEIGHTS = [0.5, 1.0, 1.8]  # the paper's Table II sensors
 
@@ -34,12 +35,37 @@ def run_lidars(names=None, *, range_noise: float | None = None, dropout: float |
     return lidars
 
 
-def simulation_source(cfg: dict, lidars: list[LidarConfig], *, preset: str, seed: int, overrides, frames: int,
+def run_rigs(names, rig_file=None) -> list[Rig]:
+    """Rigs by name from a rig file (configs/rigs.yaml by default); ValueError names the unknown ones."""
+    known = load_rigs(rig_file)
+    missing = [n for n in names if n not in known]
+    if missing:
+        raise ValueError(f"--rigs {' '.join(missing)}: not in {rig_file or 'configs/rigs.yaml'}; known: "
+                         f"{', '.join(known)}")
+    if len(set(names)) != len(names):
+        raise ValueError(f"--rigs {' '.join(names)}: each rig once")
+    return [known[n] for n in names]
+
+
+def _key(lid) -> str:
+    return lid.name if isinstance(lid, Rig) else height_key(lid.height)
+
+
+def _described(lid) -> dict:
+    return lid.describe() if isinstance(lid, Rig) else lid.to_dict()
+
+
+def simulation_source(cfg: dict, lidars: list, *, preset: str, seed: int, overrides, frames: int,
                       frames_per_scene: int) -> dict:
-    """The `source` of dataset.json: what simulated the data, with which config and LiDARs."""
-    return {"kind": "simulator", "preset": preset, "calibration": sim_calibration(cfg), "seed": seed,
-            "overrides": list(overrides), "frames": frames, "frames_per_scene": frames_per_scene,
-            "lidars": [lid.to_dict() for lid in lidars], "config": cfg}
+    """The `source` of dataset.json: what simulated the data, with which config and LiDARs (or rigs)."""
+    src = {"kind": "simulator", "preset": preset, "calibration": sim_calibration(cfg), "seed": seed,
+           "overrides": list(overrides), "frames": frames, "frames_per_scene": frames_per_scene}
+    rigs = [lid for lid in lidars if isinstance(lid, Rig)]
+    src["lidars"] = [lid.to_dict() for lid in lidars if not isinstance(lid, Rig)]
+    if rigs:
+        src["rigs"] = {r.name: r.describe() for r in rigs}
+    src["config"] = cfg
+    return src
 
 
 class RunSummary:
@@ -73,8 +99,8 @@ class RunSummary:
             "preset": self.preset, "overrides": list(self.overrides), "seconds": round(seconds, 2),
             "frames_per_second": round(frames / max(seconds, 1e-9), 2),
             "boxes_per_frame": round(self.n_boxes / max(frames, 1), 3),
-            "heights": {height_key(lid.height): {
-                "lidar": lid.to_dict(),
+            "heights": {_key(lid): {
+                "lidar": _described(lid),
                 "points_per_frame": round(float(self.n_points[i]) / max(frames, 1), 1),
                 "hit_boxes_per_frame": round(float(self.n_detected[i]) / max(frames, 1), 3),
             } for i, lid in enumerate(self.lidars)},

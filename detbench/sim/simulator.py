@@ -22,9 +22,12 @@ from detbench.data.frame import LANE_OPPOSITE, Frame
 from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim.lidar import LidarConfig
 from detbench.sim.raycast import KIND_EGO, KIND_OCCLUDER, KIND_VEHICLE, cast_lidar, pack_scene, wrap_angle
+from detbench.sim.probes import PROBE_KINDS, PROBE_PLACES, PROBE_REFLECTIVITY, Probes, probe_parts
+from detbench.sim.rig_cast import cast_rig
+from detbench.sim.rigs import Rig
 from detbench.sim.road import Road, RoadLayout
 from detbench.sim.traffic import Traffic, lane_profile
-from detbench.sim.vehicles import VehicleCatalog
+from detbench.sim.vehicles import VehicleCatalog, label_box_local
 
 SIM_CONFIG = CONFIG_DIR / "sim.yaml"
 
@@ -165,13 +168,26 @@ class SimFrame(Frame):
       simulator ran with `with_points=False` (then `points` is empty);
     point_box: (N,) int64 row of `boxes` containing each point under the same rule, or -1
       (empty without points);
-    rays_cast: rays traced for this frame.
+    rays_cast: rays traced for this frame;
+    rig: the rig's name for a frame of a `Rig` ("" for a single LiDAR);
+    sensor_index: (N,) int64 index of the rig sensor of each point (empty for a single LiDAR);
+    self_hits: (S,) int64 rays of each rig sensor whose first hit is the ego (of the rays traced);
+    probe_boxes, probe_kinds, probe_places, probe_counts: the small-object probe's objects in the frame
+      ((P, 7) float32 boxes, (P,) kind and place names, (P,) points inside each with the bottom lift), empty
+      without the probe.
     """
 
     hit_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     point_box: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     count_bottom_lift: float = DETECTED_BOTTOM_LIFT
     rays_cast: int = 0
+    rig: str = ""
+    sensor_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    self_hits: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    probe_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 7), np.float32))
+    probe_kinds: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype="<U5"))
+    probe_places: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype="<U11"))
+    probe_counts: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
 
 def _mix64(*vals: int) -> int:
@@ -220,20 +236,27 @@ class HighwaySimulator:
         self.timings: dict[str, float] = {}
 
     # ------------------------------------------------------------------ public
-    def run(self, num_frames: int, lidars: Sequence[LidarConfig], frames_per_scene: int | None = None,
-            with_points: bool = True) -> Iterator[list[SimFrame]]:
-        """Yield `num_frames` time steps; each is a list of `SimFrame`, one per LiDAR in `lidars`.
+    def run(self, num_frames: int, lidars: Sequence[LidarConfig | Rig], frames_per_scene: int | None = None,
+            with_points: bool = True, small_objects: bool = False) -> Iterator[list[SimFrame]]:
+        """Yield `num_frames` time steps; each is a list of `SimFrame`, one per LiDAR or rig in `lidars`.
+
+        A `Rig` (detbench.sim.rigs) gives one frame of its sensors' merged returns (`rig`, `sensor_index`,
+        `self_hits` set); a rig of one sensor at the reference point without the body gives exactly that
+        sensor's frame.
 
         Scenes hold `frames_per_scene` frames (config `scene.frames_per_scene` when None);
         frame ids are f"{scene:04d}_{index:03d}", scene ids f"{scene:04d}".
         with_points=False returns frames without points (empty (0, 4)) but with
         `hit_counts`, which are identical to those of a run with points.
+        small_objects: place the small-object probe's objects on the road (detbench.sim.probes); each frame
+        then carries their boxes and counts (`probe_*`) apart from the vehicles'.
         """
         if int(num_frames) != num_frames or num_frames < 0:
             raise ValueError(f"num_frames must be a non-negative integer, got {num_frames!r}")
         lidars = list(lidars)
-        if not lidars or not all(isinstance(lidar, LidarConfig) for lidar in lidars):
-            raise ValueError("lidars must be a non-empty list of LidarConfig (see detbench.sim.lidar_preset)")
+        if not lidars or not all(isinstance(lidar, (LidarConfig, Rig)) for lidar in lidars):
+            raise ValueError("lidars must be a non-empty list of LidarConfig or Rig (see detbench.sim.lidar_preset, "
+                             "detbench.sim.rigs)")
         fps = int(frames_per_scene if frames_per_scene is not None else self.config["scene"]["frames_per_scene"])
         if fps < 1:
             raise ValueError(f"frames_per_scene must be >= 1, got {frames_per_scene!r}")
@@ -241,12 +264,13 @@ class HighwaySimulator:
         scene = 0
         while done < num_frames:
             n = min(fps, num_frames - done)
-            yield from self._scene(scene, n, fps, lidars, with_points)
+            yield from self._scene(scene, n, fps, lidars, with_points, small_objects)
             done += n
             scene += 1
 
     # ------------------------------------------------------------------ scenes
-    def _scene(self, scene: int, n_frames: int, fps: int, lidars: list[LidarConfig], with_points: bool):
+    def _scene(self, scene: int, n_frames: int, fps: int, lidars: list[LidarConfig | Rig], with_points: bool,
+               small_objects: bool = False):
         cfg = self.config
         sc, rd, tr, out = cfg["scene"], cfg["road"], cfg["traffic"], cfg["output"]
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, scene, 1]))  # takes big integers whole
@@ -256,7 +280,7 @@ class HighwaySimulator:
         substeps = max(1, int(round(dt_frame / float(sc["sim_dt_s"]))))
         dt = dt_frame / substeps
         duration = float(sc["warmup_s"]) + fps * dt_frame
-        max_range = max(lidar.max_range for lidar in lidars)
+        max_range = max(lidar.reach_m if isinstance(lidar, Rig) else lidar.max_range for lidar in lidars)
         behind = float(tr["window_behind_m"]) + 50.0
         # the fastest anyone can go: the ego's factor or 1.3 (largest individual factor) plus the platoon boost,
         # in the fastest lane
@@ -267,6 +291,10 @@ class HighwaySimulator:
         road = Road.random(self.layout, rng, -behind, length, float(rd["curve_fraction"]), tuple(rd["curve_radius_m"]),
                            tuple(rd["curve_length_m"]), tuple(rd["straight_length_m"]), float(rd["transition_m"]))
         traffic = Traffic(tr, self.layout, self.catalog, rng, first_track=1)
+        probes = None
+        if small_objects:  # a stream of its own: the traffic is the same with and without the probe
+            probes = Probes.random(self.layout, np.random.default_rng(np.random.SeedSequence([self.seed, scene, 3])),
+                                   0.0, road.s_end - 10.0)
         s_ego = 0.0
         for _ in range(int(round(float(sc["warmup_s"]) / dt))):
             s_ego += traffic.step(dt)
@@ -274,7 +302,7 @@ class HighwaySimulator:
         x_lo, x_hi = (float(u) for u in out["region_x_m"])
         x_hi = max(x_hi, max_range + 10.0)
         y_max = float(out["region_abs_y_m"])
-        keys = [lidar.key() for lidar in lidars]
+        keys = [[s.key() for s in lidar.sensors] if isinstance(lidar, Rig) else lidar.key() for lidar in lidars]
         for index in range(n_frames):
             if index > 0:
                 t0 = time.perf_counter()
@@ -282,28 +310,63 @@ class HighwaySimulator:
                     s_ego += traffic.step(dt)
                 self._add_time("traffic", time.perf_counter() - t0)
             t0 = time.perf_counter()
-            objects, meta = self._objects(road, traffic, s_ego, x_lo, x_hi, y_max, max_range)
+            objects, meta = self._objects(road, traffic, s_ego, x_lo, x_hi, y_max, max_range, probes)
             self._add_time("transform", time.perf_counter() - t0)
             frames = []
             for lidar, lkey in zip(lidars, keys):
+                if isinstance(lidar, Rig):
+                    frames.append(self._rig_frame(lidar, lkey, objects, meta, scene, index, dt_frame, with_points))
+                    continue
                 key = _mix64(_seed64(self.seed), scene, index, lkey)
                 res = cast_lidar(lidar, objects, key=key, with_points=with_points,
                                  bottom_lift=float(out["count_bottom_lift_m"]),
                                  ground_reflectivity=float(out["ground_reflectivity"]), timings=self.timings)
-                frames.append(SimFrame(
-                    frame_id=f"{scene:04d}_{index:03d}", scene_id=f"{scene:04d}", points=res.points,
-                    boxes=objects.boxes.copy(), classes=meta["classes"].copy(), track_ids=meta["track_ids"].copy(),
-                    lanes=meta["lanes"].copy(), sensor=lidar.sensor, ego=dict(meta["ego"]),
-                    timestamp=index * dt_frame, hit_counts=res.counts, point_box=res.point_box,
-                    count_bottom_lift=float(out["count_bottom_lift_m"]), rays_cast=res.rays_cast))
+                frames.append(self._frame(scene, index, dt_frame, objects, meta, lidar.sensor, res.points,
+                                          res.counts, res.point_box, res.rays_cast))
             yield frames
+
+    def _frame(self, scene: int, index: int, dt_frame: float, objects, meta: dict, sensor, points, counts, point_box,
+               rays_cast: int, **rig) -> SimFrame:
+        m = meta["num_vehicles"]
+        probe = {}
+        if len(objects.boxes) > m:  # the probe's objects follow the vehicles in the box table
+            probe = {"probe_boxes": objects.boxes[m:].copy(), "probe_kinds": meta["probe_kinds"].copy(),
+                     "probe_places": meta["probe_places"].copy(), "probe_counts": counts[m:]}
+            counts = counts[:m]
+            point_box = np.where(point_box < m, point_box, -1)
+        return SimFrame(
+            frame_id=f"{scene:04d}_{index:03d}", scene_id=f"{scene:04d}", points=points,
+            boxes=objects.boxes[:m].copy(), classes=meta["classes"].copy(), track_ids=meta["track_ids"].copy(),
+            lanes=meta["lanes"].copy(), sensor=sensor, ego=dict(meta["ego"]),
+            timestamp=index * dt_frame, hit_counts=counts, point_box=point_box,
+            count_bottom_lift=float(self.config["output"]["count_bottom_lift_m"]), rays_cast=rays_cast, **rig,
+            **probe)
+
+    def _rig_frame(self, rig: Rig, keys: list[int], objects, meta: dict, scene: int, index: int, dt_frame: float,
+                   with_points: bool) -> SimFrame:
+        """One frame of a rig's merged returns (a single reference sensor without body: exactly its own frame)."""
+        out = self.config["output"]
+        keys = [_mix64(_seed64(self.seed), scene, index, k) for k in keys]
+        lift, refl = float(out["count_bottom_lift_m"]), float(out["ground_reflectivity"])
+        if rig.is_single_reference:
+            res = cast_lidar(rig.sensors[0].lidar, objects, key=keys[0], with_points=with_points, bottom_lift=lift,
+                             ground_reflectivity=refl, timings=self.timings)
+            return self._frame(scene, index, dt_frame, objects, meta, rig.sensors[0].lidar.sensor, res.points,
+                               res.counts, res.point_box, res.rays_cast, rig=rig.name,
+                               sensor_index=np.zeros(len(res.points), np.int64),
+                               self_hits=np.array([res.self_hits], np.int64))
+        rc = cast_rig(rig, objects, keys, with_points=with_points, bottom_lift=lift, ground_reflectivity=refl,
+                      timings=self.timings)
+        return self._frame(scene, index, dt_frame, objects, meta, rig.sensors[0].lidar.sensor, rc.points, rc.counts,
+                           rc.point_box, rc.rays_cast, rig=rig.name, sensor_index=rc.sensor_index,
+                           self_hits=rc.self_hits)
 
     def _add_time(self, name: str, dt: float) -> None:
         self.timings[name] = self.timings.get(name, 0.0) + dt
 
     # ------------------------------------------------------------------ geometry
     def _objects(self, road: Road, traffic: Traffic, s_ego: float, x_lo: float, x_hi: float, y_max: float,
-                 max_range: float):
+                 max_range: float, probes: Probes | None = None):
         """SceneObjects (vehicles, barriers, ego) in the ego ground frame, plus frame metadata."""
         layout = self.layout
         own, opp = traffic.own, traffic.opp
@@ -342,6 +405,21 @@ class HighwaySimulator:
             kinds.append(KIND_VEHICLE)
             refl.append(shp.reflectivity)
             bidx.append(m)
+        probe_kinds, probe_places = np.zeros(0, dtype="<U5"), np.zeros(0, dtype="<U11")
+        if probes is not None:  # counted like vehicles, in box rows after them
+            ppose, pidx = probes.in_frame(road, ox, oy, eh, x_lo, x_hi, y_max)
+            for j, (pose, i) in enumerate(zip(ppose, pidx)):
+                kind = PROBE_KINDS[probes.kind[i]]
+                pp = probe_parts(kind)
+                lb = label_box_local(pp, 0.0)
+                poses.append(tuple(pose))
+                labels.append((lb[0], lb[1], lb[2], lb[3] / 2, lb[4] / 2, lb[5] / 2))
+                parts.append(pp)
+                kinds.append(KIND_VEHICLE)
+                refl.append(PROBE_REFLECTIVITY)
+                bidx.append(len(idx) + j)
+            probe_kinds = np.array([PROBE_KINDS[k] for k in probes.kind[pidx]], dtype="<U5")
+            probe_places = np.array([PROBE_PLACES[k] for k in probes.place[pidx]], dtype="<U11")
         # barriers within the LiDAR's reach
         rb = self.config["road"]["barriers"]
         offsets_h_w = []
@@ -381,6 +459,7 @@ class HighwaySimulator:
                     "lanes_per_direction": int(layout.lanes_per_direction), "s_m": float(s_lidar),
                     "road_curvature_1pm": float(kappa[0]), "type": traffic.ego_type,
                     "length_m": float(eg.length), "width_m": float(eg.width), "height_m": float(eg.height)},
+            "num_vehicles": int(idx.size), "probe_kinds": probe_kinds, "probe_places": probe_places,
         }
         return objects, meta
 

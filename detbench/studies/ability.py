@@ -182,26 +182,32 @@ class AbilityStudy:
         self._cache = (boxes.copy(), np.asarray(frame.lanes).copy(), masks, bins)
         return masks, bins
 
-    def add(self, frames: Frame | Iterable[Frame], counts: np.ndarray | Sequence[np.ndarray] | None = None) -> None:
+    def add(self, frames: Frame | Iterable[Frame], counts: np.ndarray | Sequence[np.ndarray] | None = None,
+            keys: Sequence[str] | None = None) -> None:
         """Count one frame, or the frames of one instant (one per height).
 
         `counts` (optional): precomputed (M,) points-per-box counts (with the 0.05 m lift) for
         each frame, e.g. from a simulator that counts while ray casting; by default they are
-        computed with points_in_boxes.
+        computed with points_in_boxes. `keys` (optional): the name each frame is counted under
+        (a rig's name) instead of its sensor's height.
         """
         if isinstance(frames, Frame):
             frames = [frames]
             counts = None if counts is None else [counts]
+            keys = None if keys is None else [keys] if isinstance(keys, str) else keys
         frames = list(frames)
         if counts is not None and len(counts) != len(frames):
             raise ValueError(f"{len(counts)} count arrays for {len(frames)} frames")
+        if keys is not None and len(keys) != len(frames):
+            raise ValueError(f"{len(keys)} keys for {len(frames)} frames")
         for i, f in enumerate(frames):
-            self._add_one(f, None if counts is None else np.asarray(counts[i], dtype=np.int64))
+            self._add_one(f, None if counts is None else np.asarray(counts[i], dtype=np.int64),
+                          None if keys is None else str(keys[i]))
 
-    def _add_one(self, frame: Frame, counts: np.ndarray | None) -> None:
+    def _add_one(self, frame: Frame, counts: np.ndarray | None, key: str | None = None) -> None:
         if not isinstance(frame, Frame):
             raise TypeError(f"AbilityStudy.add takes Frame objects, got {type(frame).__name__}")
-        hk = height_key(frame.sensor.height)
+        hk = key if key is not None else height_key(frame.sensor.height)
         if counts is None:
             counts = detected_point_counts(frame.points, frame.boxes, self.bottom_lift)
         elif counts.shape != (frame.num_boxes,):
@@ -273,8 +279,11 @@ class AbilityStudy:
     # ------------------------------------------------------------------ results
     @property
     def heights(self) -> list[str]:
-        """Height keys seen so far, ascending."""
-        return sorted(self._total, key=float)
+        """Height keys seen so far, ascending (names given as keys: in the order first seen)."""
+        try:
+            return sorted(self._total, key=float)
+        except ValueError:
+            return list(self._total)
 
     @property
     def num_frames(self) -> int:
@@ -425,7 +434,7 @@ class AbilityStudy:
         else:
             pairs = [(a, b) for a in range(len(heights)) for b in range(a + 1, len(heights))]
         for a, b in pairs:
-            key = f"{heights[b]}-{heights[a]}"
+            key = f"{heights[b]}-{heights[a]}" if _numeric(heights) else f"{heights[b]} - {heights[a]}"
             cells = {}
             for r in RANGE_NAMES:
                 cells[r] = {}
@@ -437,6 +446,15 @@ class AbilityStudy:
                                     "ci95": interval(boot[:, b, k] - boot[:, a, k]) if ok else None}
             out["differences"][key] = cells
         return out
+
+
+def _numeric(keys: Sequence[str]) -> bool:
+    """True when every key is a height (a number), False when some are names (rigs)."""
+    try:
+        [float(k) for k in keys]
+    except ValueError:
+        return False
+    return True
 
 
 # ---------------------------------------------------------------------------- decomposition

@@ -31,7 +31,7 @@ from torch.utils.data.distributed import DistributedSampler
 from detbench.data import Height3Dataset
 from detbench.data.augment import AugmentConfig, augment_frame, check_point_cloud_range
 from detbench.data.batch import Sample
-from detbench.data.frame import Frame, height_key
+from detbench.data.frame import Frame, data_key, key_value
 from detbench.data.gt_database import GTDatabase, GTSampler, build_or_load_gt_database
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, DETECTED_MIN_POINTS, lidar_detected
 from detbench.data.road import RoadConfig, crop_model_input
@@ -42,7 +42,7 @@ __all__ = ["EpochBatches", "TrainingSet", "default_database_dir"]
 
 def default_database_dir(root: str | os.PathLike, height: float) -> Path:
     """ROOT/gt_database/<height_key>: where `TrainingSet.from_dataset` keeps the ground-truth database."""
-    return Path(root) / "gt_database" / height_key(height)
+    return Path(root) / "gt_database" / data_key(height)
 
 
 def cached_database_dir(root: str | os.PathLike, height: float) -> Path:
@@ -51,7 +51,7 @@ def cached_database_dir(root: str | os.PathLike, height: float) -> Path:
     from detbench.sim.dataset import cache_root
 
     digest = hashlib.sha1(str(Path(root).resolve()).encode("utf-8", "surrogateescape")).hexdigest()[:12]
-    return cache_root() / "gt_database" / digest / height_key(height)
+    return cache_root() / "gt_database" / digest / data_key(height)
 
 
 class TrainingSet(Dataset):
@@ -108,7 +108,7 @@ class TrainingSet(Dataset):
         if augment.gt_sampling.enabled and split != "test":
             train_frames = frames if split == "train" else Height3Dataset(root, height, "train")
             where = database_dir or augment.gt_sampling.database_dir
-            source = {"root": str(Path(root).resolve()), "height": float(height), "split": "train"}
+            source = {"root": str(Path(root).resolve()), "height": key_value(height), "split": "train"}
             try:
                 db = build_or_load_gt_database(train_frames, where or default_database_dir(root, height),
                                                progress=progress, source=source)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from detbench.data import Height3Dataset
+from detbench.data.frame import key_label, key_value
 from detbench.data.gt_database import frames_fingerprint
 from detbench.data.regions import RANGE_NAMES
 from detbench.data.validate import check_frames
@@ -67,7 +68,7 @@ def training_data_info(root: Path, height: float, train_set: TrainingSet) -> dic
     computed when it has one), so a dataset re-simulated or edited in place is told from the one trained on."""
     db = train_set.sampler.db if train_set.sampler is not None else None
     sha1 = (db.info.get("frames_sha1") if db is not None else None) or frames_fingerprint(train_set.frames)
-    info = {"source": str(root), "height": float(height), "frames_sha1": str(sha1)}
+    info = {"source": str(root), "height": key_value(height), "frames_sha1": str(sha1)}
     return {**info, **dataset_identity(root, train_set.frames)}
 
 
@@ -145,14 +146,14 @@ def write_summary(out: Path, model_name: str, height: float, preset: str, root: 
     """OUT/train_summary.json and .md of a run of `model_name` at `height` metres with `preset` (`frames_sha1`:
     the training frames' content fingerprint, from `training_data_info`)."""
     last = result.history[-1] if result.history else {}
-    summary = {"model": model_name, "height": float(height), "preset": preset, "data": str(root),
+    summary = {"model": model_name, "height": key_value(height), "preset": preset, "data": str(root),
                "frames_sha1": frames_sha1,
                "epochs_completed": result.epochs_completed, "global_step": result.global_step,
                "interrupted": result.interrupted, "train_seconds": round(seconds, 1),
                "checkpoint": str(result.last_checkpoint) if result.last_checkpoint else None,
                "init_from": init, "last_epoch": last}
     atomic_write_json(out / "train_summary.json", summary)
-    lines = [f"# Training summary: {model_name} at {height:g} m ({preset} preset)", "",
+    lines = [f"# Training summary: {model_name} at {key_label(height)} ({preset} preset)", "",
              "| item | value |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in summary.items() if k != "last_epoch"]
     lines += [f"| last epoch: {k} | {v:.4g} |" if isinstance(v, float) else f"| last epoch: {k} | {v} |"

@@ -18,7 +18,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from detbench.data.frame import height_key
+from detbench.data.frame import data_key
 from detbench.train.checkpoint import CheckpointError, CheckpointManager
 from detbench.utils.atomic import read_json
 from detbench.utils.folder_ownership import FolderKind
@@ -49,7 +49,7 @@ STUDY_FOLDER = FolderKind(
 def model_run_name(model: str, height: float, seed: int | None = None) -> str:
     """The folder of model `model` trained at `height` inside a study: "second_h1.8"; with `seed` (a
     training seed other than the config's own) "second_h1.8_s1"."""
-    return f"{model}_h{height_key(height)}" + ("" if seed is None else f"_s{int(seed)}")
+    return f"{model}_h{data_key(height)}" + ("" if seed is None else f"_s{int(seed)}")
 
 
 def default_train_dir(model: str, height: float, preset: str) -> Path:
@@ -70,7 +70,7 @@ def study_run_dir(study: str | os.PathLike, model: str, height: float, seed: int
 def eval_dir_name(height: float, split: str = "test", stage: str = "refined") -> str:
     """The folder of an evaluation at test height `height` on `split`: "eval_h1.8_test"; a stage
     other than the final ("refined") one is appended: "eval_h1.8_test_proposals"."""
-    return f"eval_h{height_key(height)}_{split}" + ("" if stage == "refined" else f"_{stage}")
+    return f"eval_h{data_key(height)}_{split}" + ("" if stage == "refined" else f"_{stage}")
 
 
 def eval_report_path(run_dir: str | os.PathLike, height: float, split: str = "test") -> Path:
@@ -80,12 +80,12 @@ def eval_report_path(run_dir: str | os.PathLike, height: float, split: str = "te
 
 def precision_dir_name(height: float, split: str) -> str:
     """The folder of tools/precision.py's comparison at `height` on `split`: "precision_h1.8_test"."""
-    return f"precision_h{height_key(height)}_{split}"
+    return f"precision_h{data_key(height)}_{split}"
 
 
 def demo_dir_name(height: float, split: str) -> str:
     """The folder of tools/demo.py's drawings at `height` on `split`: "demo_h1.8_test"."""
-    return f"demo_h{height_key(height)}_{split}"
+    return f"demo_h{data_key(height)}_{split}"
 
 
 def run_dir_of_checkpoint(ckpt: str | os.PathLike) -> Path:

@@ -514,3 +514,20 @@ def test_simulated_frames_round_trip(tmp_path):
             assert f.track_ids.tolist() == ref.track_ids.tolist() and f.ego == ref.ego and f.sensor == ref.sensor
     assert read_info(tmp_path).split["test_scenes"] == ["0002"]
 
+
+
+def test_rig_keys_in_dataset_json(tmp_path):
+    from detbench.data.frame import data_key, key_label, key_value
+    from detbench.data.layout import parse_info
+
+    assert data_key(1.8) == "1.8" and data_key("headlights") == "headlights" and key_value("1.80") == 1.8
+    assert key_label("roof-360") == "rig roof-360" and key_label(0.5) == "0.5 m"
+    with pytest.raises(ValueError, match="neither a mounting height"):
+        data_key("2nd rig")
+    sensor = {"height": 0.6, "pitch_deg": 0.0}
+    ok = parse_info({"heights": {"headlights": {"sensor": sensor, "rig": {"name": "headlights"}}}}, tmp_path / "d.json")
+    assert ok.heights["headlights"].rig == {"name": "headlights"}
+    with pytest.raises(DatasetError, match="nor a rig name with a 'rig' object"):
+        parse_info({"heights": {"headlights": {"sensor": sensor}}}, tmp_path / "d.json")
+    with pytest.raises(DatasetError, match="points_frame must be 'ground' for a rig"):
+        parse_info({"heights": {"h": {"sensor": sensor, "rig": {}, "points_frame": "sensor"}}}, tmp_path / "d.json")

@@ -181,3 +181,38 @@ def test_run_lidars_default_to_the_papers_heights_and_refuse_a_shared_height():
     assert noisy[0].range_noise_m == 0.02 and noisy[0].dropout == 0.1
     with pytest.raises(ValueError, match="heights must differ"):
         run_lidars([1.8, "h3-1.8"])
+
+
+def test_simulate_rigs_writes_rig_folders_and_sensor_indices(tmp_path):
+    from detbench.data import Height3Dataset, read_info
+    from detbench.data.layout import sensor_index_path
+    from detbench.sim import HighwaySimulator, load_sim_config
+    from detbench.sim.rigs import load_rigs
+
+    out = tmp_path / "rigs"
+    assert tools.simulate.main(["--out", str(out), "--scenes", "2", "--frames-per-scene", "2", "--rigs", "headlights",
+                                "paper-1.8", "--seed", "4", "--no-progress"]) == 0
+    info = read_info(out)
+    assert list(info.heights) == ["headlights", "paper-1.8"]
+    rig = info.heights["headlights"].rig
+    assert [s["name"] for s in rig["sensors"]] == ["left", "right"] and rig["ego_body"] is True
+    assert set(json.loads((out / "dataset.json").read_text())["source"]["rigs"]) == {"headlights", "paper-1.8"}
+    ds = Height3Dataset(out, "headlights", split="all")
+    assert len(ds) == 4 and ds.heights == ["headlights", "paper-1.8"]
+    rigs = load_rigs()
+    fresh = list(HighwaySimulator(load_sim_config(), 4).run(1, [rigs["headlights"]], frames_per_scene=2))[0][0]
+    f = ds.load(fresh.frame_id)
+    assert f.points.tobytes() == fresh.points.tobytes()
+    index = np.load(sensor_index_path(out, "headlights", fresh.frame_id))
+    assert np.array_equal(index, fresh.sensor_index) and set(np.unique(index)) == {0, 1}
+    # the paper's rig under its name holds the single sensor's points
+    assert Height3Dataset(out, "paper-1.8", split="all").load(fresh.frame_id).points.shape[1] == 4
+
+
+def test_simulate_rigs_argument_errors(tmp_path):
+    from detbench.utils.cli import UserError
+
+    with pytest.raises(UserError, match="one of --heights, --lidars and --rigs"):
+        tools.simulate.main(["--out", str(tmp_path / "a"), "--frames", "2", "--rigs", "plate", "--heights", "1.0"])
+    with pytest.raises(UserError, match="known: paper-0.5"):
+        tools.simulate.main(["--out", str(tmp_path / "b"), "--frames", "2", "--rigs", "bonnet"])

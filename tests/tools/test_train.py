@@ -220,3 +220,23 @@ def test_a_run_whose_checkpoint_stores_an_earlier_versions_model_config_resumes(
     proc = subprocess.run([sys.executable, *args, "--epochs", "1", "--resume"], cwd=ROOT, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 2 and "model.head.focal_gamma: 3.0 (checkpoint) vs 2.0 (now)" in proc.stderr
+
+
+@pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
+def test_train_on_a_rig(tmp_path, model):
+    # a headlight-pair dataset trains through the same command as a height, --height naming the rig
+    import tools.train
+    from detbench.sim.dataset import write_simulation
+    from detbench.sim import HighwaySimulator, load_sim_config
+    from detbench.sim.rigs import load_rigs
+
+    data = tmp_path / "rigs"
+    write_simulation(data, HighwaySimulator(load_sim_config(), 7), [load_rigs()["headlights"]], 6,
+                     source={"kind": "simulator"}, frames_per_scene=3, progress=False)
+    out = tmp_path / "run"
+    assert run_main(tools.train.main, ["--model", model, "--height", "headlights", "--preset", "smoke", "--data",
+                                       str(data), "--out", str(out), "--epochs", "1", "--no-progress",
+                                       "--set", "train.tensorboard=false"]) == 0
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["height"] == "headlights" and summary["epochs_completed"] == 1
+    assert "at rig headlights" in (out / "train_summary.md").read_text()
