@@ -37,7 +37,7 @@ The `ego` dict holds speed_mps, lane_index (0 = the inner lane next to the media
 lanes_per_direction, s_m (arc length of the LiDAR along the road), road_curvature_1pm,
 type and its length_m/width_m/height_m.
 
-Hand-made scenes for tests and experiments: `detbench.sim.raycast.make_scene` builds a
+Hand-made scenes for tests and experiments: `detbench.sim.scene_objects.make_scene` builds a
 scene from explicit vehicles (parts), occluders and an ego body; `cast_lidar` casts one
 LiDAR on it. `detbench.sim.vehicles.build_parts` makes the parts of a shape.
 
@@ -46,7 +46,8 @@ layout; `default_dataset(data_cfg)` is the cached simulated dataset every comman
 without `--data`.
 """
 from detbench.sim.lidar import PRESETS as LIDAR_PRESETS, LidarConfig, lidar_preset
-from detbench.sim.raycast import CastResult, SceneObjects, cast_lidar, make_scene
+from detbench.sim.raycast import CastResult, cast_lidar
+from detbench.sim.scene_objects import SceneObjects, make_scene
 from detbench.sim.simulator import HighwaySimulator, SimFrame, check_sim_config, load_sim_config, sim_presets
 from detbench.sim.vehicles import VehicleCatalog, build_parts
 from detbench.sim.dataset import default_dataset, simulate_dataset

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from detbench.sim.raycast import wrap_angle
+from detbench.sim.scene_objects import wrap_angle
 from detbench.sim.road import Road, RoadLayout
 
 PROBES_PER_KM = 40.0

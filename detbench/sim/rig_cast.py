@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from detbench.data.regions import DETECTED_BOTTOM_LIFT
-from detbench.sim.raycast import KIND_EGO, SceneObjects, cast_lidar, wrap_angle
+from detbench.sim.raycast import cast_lidar
+from detbench.sim.scene_objects import KIND_EGO, SceneObjects, wrap_angle
 from detbench.sim.rigs import EgoBody, Rig, RigSensor
 
 

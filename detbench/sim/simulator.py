@@ -21,7 +21,8 @@ from detbench.config import CONFIG_DIR, ConfigError, apply_overrides, deep_merge
 from detbench.data.frame import LANE_OPPOSITE, Frame
 from detbench.data.regions import DETECTED_BOTTOM_LIFT
 from detbench.sim.lidar import LidarConfig
-from detbench.sim.raycast import KIND_EGO, KIND_OCCLUDER, KIND_VEHICLE, cast_lidar, pack_scene, wrap_angle
+from detbench.sim.raycast import cast_lidar
+from detbench.sim.scene_objects import KIND_EGO, KIND_OCCLUDER, KIND_VEHICLE, pack_scene, wrap_angle
 from detbench.sim.probes import PROBE_KINDS, PROBE_PLACES, PROBE_REFLECTIVITY, Probes, probe_parts
 from detbench.sim.rig_cast import cast_rig
 from detbench.sim.rigs import Rig

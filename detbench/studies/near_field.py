@@ -22,7 +22,8 @@ import math
 import numpy as np
 
 from detbench.data.regions import DETECTED_MIN_POINTS
-from detbench.sim.raycast import KIND_EGO, cast_lidar, pack_scene
+from detbench.sim.raycast import cast_lidar
+from detbench.sim.scene_objects import KIND_EGO, pack_scene
 from detbench.sim.rig_cast import rig_scene, to_ego_frame, to_sensor_frame
 from detbench.sim.rigs import EgoBody, Rig
 

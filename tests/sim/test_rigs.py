@@ -7,7 +7,8 @@ import pytest
 
 from detbench.config import ConfigError
 from detbench.sim import HighwaySimulator, lidar_preset, load_sim_config
-from detbench.sim.raycast import cast_lidar, make_scene
+from detbench.sim.raycast import cast_lidar
+from detbench.sim.scene_objects import make_scene
 from detbench.sim.rig_cast import cast_rig
 from detbench.sim.rigs import RIGS_CONFIG, Rig, RigSensor, load_rigs, parse_rigs
 
