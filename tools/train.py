@@ -32,7 +32,7 @@ import torch
 
 import models
 from detbench.config import ConfigError
-from detbench.data.frame import key_label, key_value
+from detbench.data.frame import height_or_rig_arg, key_label
 from detbench.data.errors import DatasetError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
@@ -43,19 +43,11 @@ from detbench.utils.atomic import DiskFullError
 from detbench.utils.folder_ownership import FolderNotReplaceable
 
 
-def height_or_rig(text: str) -> float | str:
-    """--height: a mounting height in metres, or a rig's name."""
-    try:
-        return key_value(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--model", default="second", help=f"detector: {', '.join(sorted(models.REGISTRY))} "
                                                       f"(default second)")
-    ap.add_argument("--height", type=height_or_rig, required=True,
+    ap.add_argument("--height", type=height_or_rig_arg, required=True,
                     help="LiDAR mounting height in metres, e.g. 1.8, or the name of a rig the dataset holds "
                          "(tools/simulate.py --rigs; docs/rigs.md), e.g. headlights")
     ap.add_argument("--data", default=None, metavar="ROOT",
