@@ -254,6 +254,12 @@ def test_train_then_eval_on_a_rig(rig_dataset, tmp_path, model, capsys):
     assert "at rig headlights (test split)" in (out / "eval_hheadlights_test" / "report.md").read_text()
     if model != "second":
         return
+    # the drawing of a prediction on a rig's frame (tools/demo.py) takes the rig from the checkpoint too
+    import tools.demo
+
+    assert run_main(tools.demo.main, ["--ckpt", str(out), "--frame", "0"]) == 0
+    drawn = json.loads(next((out / "demo_hheadlights_test").glob("*.json")).read_text())
+    assert drawn["height_m"] == "headlights" and drawn["ground_truth"]
     # another rig is a cross-rig evaluation, as another height is a cross-height one
     assert run_main(tools.eval.main, ["--ckpt", str(out), "--test-height", "forehead", "--bootstrap", "0",
                                       "--no-progress"]) == 0
