@@ -31,7 +31,7 @@ from pathlib import Path
 
 from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key
+from detbench.data.frame import height_key, is_rig_key
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
 from detbench.studies.cpu_load import MachineLoad
@@ -150,21 +150,26 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
 
 def study_heights(data: str | None, heights: list[float] | None, preset_heights: list) -> list[float]:
     """The study's mounting heights (metres): `heights` (--heights) when given, else with `data` (--data) every
-    height that dataset holds, else the preset's data.heights. UserError for a dataset whose dataset.json
-    cannot be read, or that lacks a height of `heights` (before anything is created)."""
+    height that dataset holds (its rigs go with --rigs), else the preset's data.heights. UserError for a dataset
+    whose dataset.json cannot be read, that holds rigs only, or that lacks a height of `heights` (before anything
+    is created)."""
     if not data:
         return list(heights) if heights else [float(h) for h in preset_heights]
     try:
-        held = {height_key(k): float(k) for k in read_info(data).heights}
+        keys = list(read_info(data).heights)
     except DatasetError as e:
         raise UserError(f"--data {data}: {e}") from None
+    held = {height_key(k): float(k) for k in keys if not is_rig_key(k)}  # a rig is studied with --rigs
+    if not held and not heights:
+        raise UserError(f"--data {data}: holds the rigs {', '.join(keys)} and no height; study them with --rigs "
+                        f"{' '.join(keys)}")
     if not heights:
         return sorted(held.values())
     missing = [h for h in heights if height_key(h) not in held]
     if missing:
-        raise UserError(f"--heights {' '.join(f'{h:g}' for h in missing)}: the dataset {data} holds "
-                        f"{', '.join(f'{h:g} m' for h in sorted(held.values()))}; give heights among them, or leave "
-                        f"--heights out to study every height it holds")
+        have = ", ".join(f"{h:g} m" for h in sorted(held.values())) or "no height"
+        raise UserError(f"--heights {' '.join(f'{h:g}' for h in missing)}: the dataset {data} holds {have}; give "
+                        f"heights among them, or leave --heights out to study every height it holds")
     return list(heights)
 
 

@@ -106,7 +106,10 @@ def test_study_rig_arguments_are_checked_before_anything_is_created(rig_data, tm
              (dict(rigs=["headlights", "headlights"]), "headlights is given twice"),
              (dict(rigs=["nowhere"]), "--rigs nowhere: not in rigs.yaml"),
              (dict(rigs=["plate"], data=str(rig_data)), "--rigs plate: not in the dataset"),
-             (dict(rigs=["headlights"], seeds=[0, 1]), "--seeds and --rigs")]
+             (dict(rigs=["headlights"], seeds=[0, 1]), "--seeds and --rigs"),
+             (dict(data=str(rig_data)), "holds the rigs headlights, forehead and no height; study them with --rigs "
+                                        "headlights forehead"),
+             (dict(data=str(rig_data), heights=[1.8]), "holds no height; give heights among them")]
     for kw, words in cases:
         with pytest.raises(UserError, match=words.replace("(", r"\(")):
             run_study(StudyOptions(preset="smoke", out=str(out), **kw), registry=models, repo=ROOT)
