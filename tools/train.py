@@ -18,6 +18,7 @@ OUT/tensorboard/, OUT/history.json, OUT/config.yaml and OUT/train_summary.{json,
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from functools import partial
@@ -133,6 +134,10 @@ def check_device(name: str) -> None:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.train import run_layout
+
+    if not isinstance(args.height, str) and not (math.isfinite(args.height) and args.height > 0):
+        raise UserError(f"--height {args.height:g}: a mounting height is a positive number of metres (or give a "
+                        f"rig's name)")
 
     check_device(args.device)  # before any folder, data or model: a device this machine lacks is one line
     if args.deterministic:

@@ -94,7 +94,12 @@ def key_order(value: float | str) -> tuple:
 
 
 def height_or_rig_arg(text: str) -> float | str:
-    """argparse type of an option that takes a mounting height in metres or a rig's name."""
+    """argparse type of an option that takes a mounting height in metres or a rig's name: a number as a float (as
+    type=float, so the tool's own check names a bad height), anything else as a rig's name."""
+    try:
+        return float(text)
+    except ValueError:
+        pass
     try:
         return key_value(text)
     except ValueError as e:
