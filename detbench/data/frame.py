@@ -82,6 +82,11 @@ def key_text(value: float | str) -> str:
     return key if is_rig_key(key) else f"{float(value):g}"
 
 
+def height_or_rig(value: float | str) -> float | str:
+    """A report's or a run's height as a key: metres as a float, a rig by its name (unchanged)."""
+    return value if isinstance(value, str) and is_rig_key(value) else float(value)
+
+
 def key_heading(key: str) -> str:
     """A dataset key as a column heading: "1.8 m" for a height's key (as written), the name for a rig."""
     return key if is_rig_key(key) else f"{key} m"

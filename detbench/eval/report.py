@@ -21,7 +21,7 @@ from pathlib import Path
 from collections.abc import Sequence
 from typing import Any
 
-from detbench.data.frame import height_key, is_rig_key, key_label, key_order
+from detbench.data.frame import height_key, height_or_rig, is_rig_key, key_label, key_order
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_LABELS, RANGE_NAMES
 from detbench.utils.figures import save_figure
 
@@ -44,11 +44,6 @@ def _height_str(h: Any) -> str:
     if h is None:
         return "?"
     return key_label(h) if isinstance(h, str) and is_rig_key(h) else f"{height_key(h)} m"
-
-
-def _key(h: Any) -> float | str:
-    """A report's height as a key: metres as a float, a rig by its name."""
-    return h if isinstance(h, str) and is_rig_key(h) else float(h)
 
 
 def _x(comb: dict, h: Any) -> float:
@@ -185,7 +180,7 @@ def report_rows(report: dict) -> list[dict]:
             for lv in LEVELS:
                 row = {
                     "model": report.get("model") or "",
-                    "height_m": "" if report.get("height") is None else _key(report["height"]),
+                    "height_m": "" if report.get("height") is None else height_or_rig(report["height"]),
                     "split": report.get("split") or "",
                     "variant": name,
                     "iou_kind": kind,
@@ -296,7 +291,7 @@ def _entries(reports: Sequence[dict], sources: Sequence[str] | None = None) -> l
         if not rep.get("model"):
             raise ValueError(f"{where}: no 'model' name; set it (tools/eval.py --model NAME) before "
                              f"combining")
-        key = (str(rep["model"]), _key(rep["height"]))
+        key = (str(rep["model"]), height_or_rig(rep["height"]))
         if key in seen:
             seeds = (seen[key][1], rep.get("train_seed"))
             why = ""

@@ -11,7 +11,7 @@ import math
 from pathlib import Path
 from collections.abc import Sequence
 
-from detbench.data.frame import is_rig_key, key_label, key_order, key_text
+from detbench.data.frame import height_or_rig, key_label, key_order, key_text
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.report import source_label
 from detbench.utils.figures import save_figure
@@ -39,7 +39,7 @@ def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_n
         if rep.get("trained_height") is None:
             raise ValueError(f"report {i} ({rep.get('model')!r} at {rep.get('height')}) has no trained_height; "
                              f"cross-height reports come from tools/eval.py --ckpt")
-        m, tr, te = str(rep["model"]), _height(rep["trained_height"]), _height(rep["height"])
+        m, tr, te = str(rep["model"]), height_or_rig(rep["trained_height"]), height_or_rig(rep["height"])
         if (m, tr, te) in cells:
             raise ValueError(f"two reports for {m} trained at {key_label(tr)} and tested at {key_label(te)}")
         cells[(m, tr, te)] = rep["results"][range_name][level][metric]
@@ -50,11 +50,6 @@ def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_n
     values = {m: [[cells.get((m, tr, te)) for te in hs] for tr in hs] for m in models}
     return {"metric": metric, "range": range_name, "level": level, "heights": hs, "models": models,
             "values": values, "data": source_label(reports)}
-
-
-def _height(h) -> float | str:
-    """A report's height: metres as a float, a rig by its name."""
-    return h if isinstance(h, str) and is_rig_key(h) else float(h)
 
 
 def cross_height_markdown(mat: dict) -> list[str]:

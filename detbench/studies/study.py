@@ -128,7 +128,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
     require_distinct(args.heights, "--heights", key=height_key, what="height")
     if args.rigs:
-        heights = study_rigs(args.data, args.rigs, args.heights, args.seeds)
+        heights = study_rigs(args.data, args.rigs, args.heights)
     else:
         heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
     _check_executor_options(args)
@@ -173,18 +173,14 @@ def study_heights(data: str | None, heights: list[float] | None, preset_heights:
     return list(heights)
 
 
-def study_rigs(data: str | None, rigs: list[str], heights: list[float] | None, seeds: list[int] | None = None
-               ) -> list[str]:
+def study_rigs(data: str | None, rigs: list[str], heights: list[float] | None) -> list[str]:
     """The study's rigs (--rigs), each studied where a height would be: with `data` (--data) rigs it holds, else
-    rigs of configs/rigs.yaml (the study simulates them). UserError before anything is created for --heights or
-    --seeds beside them, a rig named twice, an unknown rig or one the dataset lacks."""
+    rigs of configs/rigs.yaml (the study simulates them). UserError before anything is created for --heights
+    beside them, a rig named twice, an unknown rig or one the dataset lacks."""
     from detbench.data.frame import RIG_NAME, is_rig_key
 
     if heights:
         raise UserError("--heights and --rigs: give one of them (a study compares heights or rigs)")
-    if seeds:
-        raise UserError("--seeds and --rigs: the seed statistics compare heights in metres; study the rigs with the "
-                        "config's train.seed (leave --seeds out)")
     require_distinct(rigs, "--rigs", what="rig")
     bad = [r for r in rigs if not (RIG_NAME.fullmatch(r) and is_rig_key(r))]
     if bad:

@@ -20,7 +20,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from detbench.data.frame import is_rig_key, key_label, key_order
+from detbench.data.frame import height_or_rig, key_label, key_order
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
@@ -151,16 +151,11 @@ def paired_recall_difference(rep_a: dict, rep_b: dict, r: str, lv: str, replicat
     return {"diff": round(diff, 6), "ci95": ci}
 
 
-def _height(h) -> float | str:
-    """A report's height: metres as a float, a rig by its name."""
-    return h if isinstance(h, str) and is_rig_key(h) else float(h)
-
-
 def detector_summary(reports: Sequence[dict], range_name: str = "large", level: str = "all") -> dict:
     """{height: {"ranking": [(model, recall, ap)], "best", "runner_up", "lead": {"diff", "ci95"}}}."""
     by_height: dict[float | str, list[dict]] = {}
     for rep in reports:
-        by_height.setdefault(_height(rep["height"]), []).append(rep)
+        by_height.setdefault(height_or_rig(rep["height"]), []).append(rep)
     out = {}
     for h in sorted(by_height, key=key_order):
         reps = by_height[h]
@@ -222,7 +217,7 @@ def unlearned_models(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP,
     for rep in reports:
         ap = rep["results"][range_name][level].get("ap_r40")
         if ap is not None:  # no AP (no LiDAR-detected vehicle in the range) says nothing about learning
-            aps.setdefault(str(rep.get("model")), []).append((_height(rep["height"]), float(ap)))
+            aps.setdefault(str(rep.get("model")), []).append((height_or_rig(rep["height"]), float(ap)))
     return {m: [a for _, a in sorted(v, key=lambda ha: (key_order(ha[0]), ha[1]))]
             for m, v in sorted(aps.items()) if v and all(a < threshold for _, a in v)}
 

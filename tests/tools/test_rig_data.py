@@ -106,7 +106,6 @@ def test_study_rig_arguments_are_checked_before_anything_is_created(rig_data, tm
              (dict(rigs=["headlights", "headlights"]), "headlights is given twice"),
              (dict(rigs=["nowhere"]), "--rigs nowhere: not in rigs.yaml"),
              (dict(rigs=["plate"], data=str(rig_data)), "--rigs plate: not in the dataset"),
-             (dict(rigs=["headlights"], seeds=[0, 1]), "--seeds and --rigs"),
              (dict(data=str(rig_data)), "holds the rigs headlights, forehead and no height; study them with --rigs "
                                         "headlights forehead"),
              (dict(data=str(rig_data), heights=[1.8]), "holds no height; give heights among them")]
@@ -116,7 +115,7 @@ def test_study_rig_arguments_are_checked_before_anything_is_created(rig_data, tm
         assert not out.exists()
 
 
-@pytest.mark.slow  # a smoke study of one model at two rigs with the cross-rig matrix: about two minutes on 2 cores
+@pytest.mark.slow  # a smoke study of one model at two rigs, two seeds, the cross-rig matrix: a minute or two on 2 cores
 def test_a_smoke_study_of_two_rigs(tmp_path, monkeypatch):
     # tools/study.py --rigs headlights forehead: the rigs simulated, counted, trained, evaluated and crossed
     import tools.study
@@ -124,7 +123,8 @@ def test_a_smoke_study_of_two_rigs(tmp_path, monkeypatch):
     monkeypatch.setenv("DETBENCH_CACHE", str(tmp_path / "cache"))
     out = tmp_path / "study"
     assert run_main(tools.study.main, ["--preset", "smoke", "--rigs", *RIGS, "--models", "second", "--cross-height",
-                                       "--out", str(out), "--no-progress", "--set", "train.epochs=1"]) == 0
+                                       "--seeds", "0", "1", "--out", str(out), "--no-progress",
+                                       "--set", "train.epochs=1"]) == 0
     study = json.loads((out / "study.json").read_text())
     assert study["heights"] == RIGS and list(study["ability"]["heights"]) == RIGS
     info = json.loads((next((tmp_path / "cache").glob("sim-*")) / "dataset.json").read_text())
@@ -141,3 +141,6 @@ def test_a_smoke_study_of_two_rigs(tmp_path, monkeypatch):
     assert "| rig headlights | second |" in md and "| trained \\ tested | rig forehead | rig headlights |" in md
     assert (out / "cross_height" / "cross_height_recall_large.png").is_file()
     assert (out / "combined" / "fig8_by_height.png").is_file()
+    # two seeds per rig: the seed statistics keyed by rig
+    assert sorted(study["seeds"]["by_height"]) == sorted(RIGS) and (out / "second_hheadlights_s1").is_dir()
+    assert "| second | rig headlights | 2 |" in md
