@@ -72,14 +72,16 @@ def key_value(value: float | str) -> float | str:
 
 def key_label(value: float | str) -> str:
     """"1.8 m" for a height, "rig headlights" for a rig: how reports name the sensors a run used."""
-    key = data_key(value)
-    return f"rig {key}" if is_rig_key(key) else f"{float(value):g} m"
+    if isinstance(value, str) and is_rig_key(value):
+        return f"rig {data_key(value)}"
+    return f"{float(value):g} m"
 
 
 def key_text(value: float | str) -> str:
     """"1.8" (`:g`) for a height, the name for a rig: the short form study keys and stage names use."""
-    key = data_key(value)
-    return key if is_rig_key(key) else f"{float(value):g}"
+    if isinstance(value, str) and is_rig_key(value):
+        return data_key(value)
+    return f"{float(value):g}"
 
 
 def height_or_rig(value: float | str) -> float | str:

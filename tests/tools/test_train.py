@@ -260,6 +260,13 @@ def test_train_then_eval_on_a_rig(rig_dataset, tmp_path, model, capsys):
     assert run_main(tools.demo.main, ["--ckpt", str(out), "--frame", "0"]) == 0
     drawn = json.loads(next((out / "demo_hheadlights_test").glob("*.json")).read_text())
     assert drawn["height_m"] == "headlights" and drawn["ground_truth"]
+    # and so does the precision check (tools/precision.py)
+    import tools.precision
+
+    assert run_main(tools.precision.main, ["--ckpt", str(next((out / "checkpoints").glob("*.pt"))), "--frames", "2",
+                                           "--precisions", "float32", "--no-progress"]) == 0
+    checked = json.loads(next(out.glob("precision_hheadlights_test/precision.json")).read_text())
+    assert checked["height"] == "headlights"
     # another rig is a cross-rig evaluation, as another height is a cross-height one
     assert run_main(tools.eval.main, ["--ckpt", str(out), "--test-height", "forehead", "--bootstrap", "0",
                                       "--no-progress"]) == 0
