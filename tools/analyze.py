@@ -29,7 +29,7 @@ from detbench.studies.ability import DEFAULT_THRESHOLDS
 from detbench.studies.ability_tables import ability_markdown
 from detbench.studies.ability_run import AbilityOptions, dataset_split_check, run_ability, summary_lines
 from detbench.studies.split_check import split_check_markdown, split_check_warnings
-from detbench.data.frame import height_key
+from detbench.data.frame import data_key, height_or_rig_arg
 from detbench.utils.cli import (
     add_sim_preset_argument, check_out_dir, claim_output, output_folder, require, require_distinct, run_main,
 )
@@ -53,9 +53,10 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--simulate", type=int, metavar="N",
                      help="stream N frames (instants; each at every height) from the built-in highway simulator, "
                           "nothing is written to disk but the results")
-    ap.add_argument("--heights", type=float, nargs="+", default=None, metavar="H",
+    ap.add_argument("--heights", type=height_or_rig_arg, nargs="+", default=None, metavar="H",
                     help="LiDAR mounting heights in metres (default: 0.5 1.0 1.8 for --simulate, every height of "
-                         "the dataset for --data)")
+                         "the dataset for --data); with --data also the name of a rig the dataset holds "
+                         "(tools/simulate.py --rigs), counted on its merged points")
     ap.add_argument("--rigs", nargs="+", default=None, metavar="NAME",
                     help="(--simulate) LiDAR rigs by name instead of heights (configs/rigs.yaml or --rig-file): "
                          "their LDR cells, ground blind zone, rays taken by the ego's body and near-field LDR by "
@@ -109,8 +110,12 @@ def build_parser() -> argparse.ArgumentParser:
 def check_arguments(args: argparse.Namespace) -> None:
     """UserError for a value the study cannot use, before any frame is read or simulated."""
     for h in args.heights or ():
-        require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
-    require_distinct(args.heights, "--heights", key=height_key, what="height")
+        if isinstance(h, str):
+            require(args.data is not None, f"--heights {h}: a rig's name goes with --data (a dataset simulated with "
+                                           f"the rig); to simulate rigs give --simulate N --rigs {h}")
+        else:
+            require(math.isfinite(h) and h > 0, f"--heights {h:g}: a mounting height is a positive number of metres")
+    require_distinct(args.heights, "--heights", key=data_key, what="height")
     require(args.rigs is None or args.simulate is not None, "--rigs needs --simulate N (rigs are simulated)")
     require(args.rigs is None or args.heights is None, "--rigs and --heights: give one of them")
     require(args.rig_file is None or args.rigs is not None, "--rig-file needs --rigs NAME [NAME ...]")

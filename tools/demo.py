@@ -28,6 +28,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
 from detbench.config import shipped_default
+from detbench.data.frame import height_or_rig_arg, key_label
 from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
 
 
@@ -44,8 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--split", default="test", choices=("train", "test", "all"),
                     help="split the frame is taken from (default test)")
     ap.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
-    ap.add_argument("--height", type=float, default=None,
-                    help="LiDAR height of the frame, metres (default: the training height)")
+    ap.add_argument("--height", type=height_or_rig_arg, default=None,
+                    help="LiDAR height of the frame, metres, or a rig's name (default: what the checkpoint was "
+                         "trained on)")
     ap.add_argument("--score-threshold", type=float, default=shipped_default("eval.score_threshold"),
                     help="predictions below this score are not drawn (default %(default)s, the evaluator's)")
     ap.add_argument("--stage", default="refined", choices=("refined", "proposals"),
@@ -67,7 +69,8 @@ def main(argv=None) -> int:
     require(math.isfinite(args.score_threshold) and 0 <= args.score_threshold <= 1,
             f"--score-threshold {args.score_threshold:g}: must be a score in [0, 1]; predictions below it are "
             f"not drawn")
-    require(args.height is None or (math.isfinite(args.height) and args.height > 0),
+    require(args.height is None or isinstance(args.height, str)
+            or (math.isfinite(args.height) and args.height > 0),
             f"--height {args.height}: must be a positive number of metres")
     if args.out is not None:
         check_out_dir(args.out)
@@ -81,8 +84,8 @@ def main(argv=None) -> int:
                                                  height=args.height, out=args.out, stage=args.stage,
                                                  score_threshold=args.score_threshold, device=str(device)))
     drawn = int(d.drawn.sum())
-    print(f"{d.model} ({ckpt}) on frame {d.frame_id} of the {d.split} split at {d.height:g} m: {len(d.gt_boxes)} "
-          f"ground-truth boxes, {drawn} predictions with score >= {d.score_threshold:g} drawn "
+    print(f"{d.model} ({ckpt}) on frame {d.frame_id} of the {d.split} split at {key_label(d.height)}: "
+          f"{len(d.gt_boxes)} ground-truth boxes, {drawn} predictions with score >= {d.score_threshold:g} drawn "
           f"({len(d.scores) - drawn} below), {len(d.points)} points")
     print(f"wrote {png}, {js}")
     return 0

@@ -29,6 +29,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.config import shipped_default
+from detbench.data.frame import data_key, height_or_rig_arg, key_label, key_value
 from detbench.eval.prediction_files import remove_prediction_folder, write_prediction_folder
 from detbench.eval.report import summary_lines
 from detbench.utils.atomic import atomic_write_json, atomic_write_text
@@ -74,7 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     src = p.add_argument_group("evaluate one model at one height")
     src.add_argument("--data", type=Path, help="dataset root in the Height3 layout (docs/data-format.md)")
-    src.add_argument("--height", type=float, help="LiDAR mounting height to evaluate, metres (e.g. 0.5, 1.0, 1.8)")
+    src.add_argument("--height", type=height_or_rig_arg,
+                     help="LiDAR mounting height to evaluate, metres (e.g. 0.5, 1.0, 1.8), or the name of a rig the "
+                          "dataset holds (tools/simulate.py --rigs; docs/rigs.md), e.g. headlights")
     src.add_argument("--split", default="test", choices=SPLITS, help="dataset split whose frames are evaluated")
     src.add_argument("--pred", type=Path,
                      help="folder of predictions: one <frame_id>.txt per frame, lines 'x y z dx dy dz heading "
@@ -96,8 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "a training run's folder (OUT) for its newest checkpoint; --data and --height default "
                           "to what it was trained on; its predictions are written to OUT/pred/ in the --pred "
                           "format")
-    src.add_argument("--test-height", type=float, default=None,
-                     help="with --ckpt: evaluate at this height instead of the training height (cross-height)")
+    src.add_argument("--test-height", type=height_or_rig_arg, default=None,
+                     help="with --ckpt: evaluate at this height (or rig) instead of the training one (cross-height)")
     src.add_argument("--device", default="cpu", help="with --ckpt: cpu, cuda or cuda:N")
     src.add_argument("--batch-size", type=int, default=4, help="with --ckpt: frames per forward pass")
     src.add_argument("--stage", default="refined", choices=("refined", "proposals"),
@@ -180,21 +183,22 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         raise UserError(str(e)) from None
     if args.ckpt != given:
         print(f"checkpoint: {args.ckpt} (the newest in {given})")
-    trained_h = float(ck["data"].get("height", float("nan")))
+    trained_h = _recorded_key(ck["data"].get("height"))
     if args.model is not None and args.model != ck["model_name"]:
         raise UserError(f"--model {args.model}: --ckpt {args.ckpt} is a {ck['model_name']} checkpoint; leave --model "
                         f"out (the report takes the checkpoint's model) or give --model {ck['model_name']}")
-    if not math.isfinite(trained_h) and args.height is None:
+    if trained_h is None and args.height is None:
         raise UserError(f"--ckpt {args.ckpt}: records no training height (data.height); give --height H in metres")
     if args.height is None:
         args.height = trained_h
-    elif abs(args.height - trained_h) > 1e-6:
-        raise UserError(f"--ckpt {args.ckpt} was trained at {trained_h:g} m, not --height {args.height:g}; to test "
-                        f"it at another height keep --height {trained_h:g} (or leave it out) and add "
-                        f"--test-height {args.height:g}")
+    elif trained_h is not None and data_key(args.height) != data_key(trained_h):
+        trained, given = _arg(trained_h), _arg(args.height)
+        raise UserError(f"--ckpt {args.ckpt} was trained at {key_label(trained_h)}, not --height {given}; to test "
+                        f"it at another height keep --height {trained} (or leave it out) and add "
+                        f"--test-height {given}")
     if args.data is None:
         args.data = Path(ck["data"]["source"])
-    args.trained_height = trained_h
+    args.trained_height = float("nan") if trained_h is None else trained_h
     seed = (ck.get("config") or {}).get("train", {}).get("seed")
     args.train_seed = int(seed) if isinstance(seed, (int, float)) and not isinstance(seed, bool) else None
     preset = (ck.get("config") or {}).get("preset")
@@ -205,6 +209,23 @@ def checkpoint_defaults(args: argparse.Namespace) -> None:
         from detbench.train.run_layout import eval_dir_name, run_dir_of_checkpoint
 
         args.out = run_dir_of_checkpoint(args.ckpt) / eval_dir_name(args.height, args.split, args.stage)
+
+
+def _recorded_key(value) -> float | str | None:
+    """A checkpoint's recorded data.height: a height in metres, a rig's name, or None when it records none."""
+    if isinstance(value, str):
+        try:
+            return key_value(value)
+        except ValueError:
+            return None
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value > 0:
+        return float(value)
+    return None
+
+
+def _arg(value: float | str | None) -> str:
+    """A height or rig as the command line writes it: 1.8, headlights."""
+    return "?" if value is None else value if isinstance(value, str) else f"{value:g}"
 
 
 def write_misses(dataset, preds, settings: EvalSettings, out: Path, title: str) -> list[Path]:
@@ -230,7 +251,8 @@ def check_arguments(args: argparse.Namespace) -> None:
             f"--iou-threshold {args.iou_threshold:g}: must be an IoU in (0, 1], e.g. 0.7")
     require(args.bootstrap >= 0, f"--bootstrap {args.bootstrap}: must be an integer >= 0 (0 = no intervals)")
     for flag, h in (("--height", args.height), ("--test-height", args.test_height)):
-        require(h is None or (math.isfinite(h) and h > 0), f"{flag} {h}: must be a positive number of metres")
+        require(h is None or isinstance(h, str) or (math.isfinite(h) and h > 0),
+                f"{flag} {h}: must be a positive number of metres or a rig's name")
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
@@ -243,7 +265,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     missing = [name for name, v in (("--data", args.data), ("--height", args.height), ("--out", args.out)) if v is None]
     # (with --ckpt these were filled from the checkpoint above)
     if missing:
-        raise UserError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H "
+        raise UserError(f"missing {', '.join(missing)}; evaluating needs --data ROOT --height H (or a rig's name) "
                         f"(--pred DIR | --ckpt FILE) --out DIR")
     if (args.pred is None) == (args.ckpt is None):
         raise UserError("give exactly one of --pred PRED_DIR (saved predictions) or --ckpt FILE (a checkpoint)")
@@ -316,7 +338,7 @@ def run_combine(args: argparse.Namespace) -> int:
         comb, paths = combine_report_files(args.combine, args.out, figures=not args.no_figures,
                                            range_name=args.range_name, with_variants=args.with_variants)
     print(f"combined {len(args.combine)} reports: models {', '.join(comb['models'])}; heights "
-          f"{', '.join(f'{h:g} m' for h in comb['heights'])}")
+          f"{', '.join(key_label(h) for h in comb['heights'])}")
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 

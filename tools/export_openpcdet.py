@@ -19,6 +19,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
     import _checkout  # noqa: F401  (imported for its side effect: sys.path)
 
 from detbench.data.errors import DatasetError
+from detbench.data.frame import height_or_rig_arg, is_rig_key
 from detbench.data.openpcdet import CLASS_MAP_PRESETS, DEFAULT_EXPORT_CLASS_MAP, class_count_lines, parse_class_map
 from detbench.data.openpcdet_export import EXPORT_MANIFEST, EXPORT_MARKDOWN, export_openpcdet
 from detbench.utils.cli import UserError, run_main
@@ -41,7 +42,9 @@ def build_parser() -> argparse.ArgumentParser:
                "Frames without boxes are left out of ImageSets: OpenPCDet's info generation cannot read an empty\n"
                "label file.")
     ap.add_argument("root", metavar="ROOT", help="detbench dataset folder (holds dataset.json)")
-    ap.add_argument("--height", type=float, required=True, help="the LiDAR mounting height to export, metres")
+    ap.add_argument("--height", type=height_or_rig_arg, required=True,
+                    help="the LiDAR mounting height to export, metres, or a rig the dataset holds by name "
+                         "(docs/rigs.md; ground frame only)")
     ap.add_argument("--out", required=True, metavar="DIR", help="output folder (new or empty, or an earlier export "
                                                                 "with --overwrite)")
     ap.add_argument("--frame", choices=("ground", "sensor"), default="ground",
@@ -73,7 +76,8 @@ def main(argv=None) -> int:
         raise UserError(str(e)) from None
     out = Path(args.out)
     sp = m["splits"]
-    print(f"{out}: {m['source']['height']} m in the {m['frame']} frame; train {sp['train']['frames']} frames, val "
+    where = m["source"]["height"] + ("" if is_rig_key(m["source"]["height"]) else " m")
+    print(f"{out}: {where} in the {m['frame']} frame; train {sp['train']['frames']} frames, val "
           f"{sp['val']['frames']} frames; {m['boxes']} boxes; classes {', '.join(m['classes']) or '(none)'} "
           f"({time.perf_counter() - t0:.1f} s)")
     print(f"label lines per class (map {m['class_map']}):")

@@ -31,6 +31,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
 from detbench.config import shipped_default
+from detbench.data.frame import height_or_rig, height_or_rig_arg
 from detbench.train.precision import (PRECISIONS, checkpoint_precision_markdown,
                                       checkpoint_precision_report, precision_frames, precision_summary_lines)
 from detbench.utils.cli import UserError, check_out_dir, require, run_main, torch_device
@@ -44,8 +45,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--ckpt", type=Path, required=True,
                     help="detector checkpoint (tools/train.py OUT/checkpoints/*.pt)")
     ap.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
-    ap.add_argument("--height", type=float, default=None,
-                    help="LiDAR height of the frames, metres (default: the training height)")
+    ap.add_argument("--height", type=height_or_rig_arg, default=None,
+                    help="LiDAR height of the frames, metres, or a rig's name (default: what the checkpoint was "
+                         "trained on)")
     ap.add_argument("--split", default="test", choices=("train", "test", "all"),
                     help="split whose frames are used (default test)")
     ap.add_argument("--frames", type=int, default=40, help="use the first N frames of the split; 0 = all (default 40)")
@@ -78,7 +80,8 @@ def main(argv=None) -> int:
         raise UserError(f"--match-iou must lie in (0, 1], got {args.match_iou}")
     require(math.isfinite(args.score_threshold) and 0 <= args.score_threshold <= 1,
             f"--score-threshold {args.score_threshold:g}: must be a score in [0, 1]; detections below it are dropped")
-    require(args.height is None or (math.isfinite(args.height) and args.height > 0),
+    require(args.height is None or isinstance(args.height, str)
+            or (math.isfinite(args.height) and args.height > 0),
             f"--height {args.height}: must be a positive number of metres")
     if args.out is not None:
         check_out_dir(args.out)
@@ -90,7 +93,7 @@ def main(argv=None) -> int:
                                lower_model="train it with --set model.post.score_threshold={value:g}")
     except (CheckpointError, ConfigError) as e:
         raise UserError(str(e)) from None
-    height = float(args.height if args.height is not None else ck["data"].get("height", float("nan")))
+    height = height_or_rig(args.height if args.height is not None else ck["data"].get("height", float("nan")))
     root = args.data or Path(ck["data"]["source"])
     try:
         frames = precision_frames(root, height, args.split, args.frames)

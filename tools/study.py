@@ -13,6 +13,7 @@ Examples:
   python tools/study.py --preset cpu --out runs/study_cpu
   python tools/study.py --preset paper --device cuda   # the paper's scale
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
+  python tools/study.py --preset cpu --rigs headlights forehead --cross-height   # rigs as cars carry them
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
   python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per usable core)
   python tools/study.py --preset quick --models second pillarnet --seeds 0 1   # each run once per seed
@@ -66,6 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--heights", type=float, nargs="+", default=None,
                     help="mounting heights in metres (default: with --data every height the dataset holds, else the "
                          "preset's data.heights)")
+    ap.add_argument("--rigs", nargs="+", default=None, metavar="NAME",
+                    help="LiDAR rigs by name instead of heights (configs/rigs.yaml; docs/rigs.md): the data simulated "
+                         "with those rigs (or --data holding them), the ability study, training and evaluation per "
+                         "rig, the report keyed by rig; --cross-height gives the cross-rig matrix. E.g. --rigs "
+                         "headlights forehead")
     ap.add_argument("--data", default=None, metavar="ROOT", help="a dataset on disk instead of the simulated default")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     ap.add_argument("--out", default=None, help="output folder (default runs/study_<preset>)")
@@ -114,7 +120,7 @@ def _describe_presets_in_help(ap: argparse.ArgumentParser, preset: argparse.Acti
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
-    opts = StudyOptions(preset=args.preset, models=args.models, heights=args.heights, data=args.data,
+    opts = StudyOptions(preset=args.preset, models=args.models, heights=args.heights, rigs=args.rigs, data=args.data,
                         device=args.device, out=args.out, overrides=args.overrides, cross_height=args.cross_height,
                         fresh=args.fresh, no_progress=args.no_progress, jobs=args.jobs, executor=args.executor,
                         address=args.address, seeds=args.seeds)

@@ -18,6 +18,7 @@ OUT/tensorboard/, OUT/history.json, OUT/config.yaml and OUT/train_summary.{json,
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from functools import partial
@@ -32,7 +33,7 @@ import torch
 
 import models
 from detbench.config import ConfigError
-from detbench.data.frame import key_label, key_value
+from detbench.data.frame import height_or_rig_arg, key_label
 from detbench.data.errors import DatasetError
 from detbench.train.checkpoint import CheckpointError, init_from_checkpoint
 from detbench.train.run import (check_training_frames, claim_run_folder, collect_train_boxes, eval_frames,
@@ -43,19 +44,11 @@ from detbench.utils.atomic import DiskFullError
 from detbench.utils.folder_ownership import FolderNotReplaceable
 
 
-def height_or_rig(text: str) -> float | str:
-    """--height: a mounting height in metres, or a rig's name."""
-    try:
-        return key_value(text)
-    except ValueError as e:
-        raise argparse.ArgumentTypeError(str(e)) from None
-
-
 def build_parser() -> argparse.ArgumentParser:
     ap = doc_parser(__doc__)
     ap.add_argument("--model", default="second", help=f"detector: {', '.join(sorted(models.REGISTRY))} "
                                                       f"(default second)")
-    ap.add_argument("--height", type=height_or_rig, required=True,
+    ap.add_argument("--height", type=height_or_rig_arg, required=True,
                     help="LiDAR mounting height in metres, e.g. 1.8, or the name of a rig the dataset holds "
                          "(tools/simulate.py --rigs; docs/rigs.md), e.g. headlights")
     ap.add_argument("--data", default=None, metavar="ROOT",
@@ -141,6 +134,10 @@ def check_device(name: str) -> None:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.train import run_layout
+
+    if not isinstance(args.height, str) and not (math.isfinite(args.height) and args.height > 0):
+        raise UserError(f"--height {args.height:g}: a mounting height is a positive number of metres (or give a "
+                        f"rig's name)")
 
     check_device(args.device)  # before any folder, data or model: a device this machine lacks is one line
     if args.deterministic:

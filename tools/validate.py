@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Check a whole dataset in one pass and list every problem with its file (and line).
 
-    python tools/validate.py ROOT [--heights 0.5 1.8] [--max-errors 50]
+    python tools/validate.py ROOT [--heights 0.5 1.8 headlights] [--max-errors 50]
 
 The same as `python -m detbench.data.validate` (the check lives there). Exit status 0 when
 the dataset is clean, 1 when problems were found.

@@ -14,6 +14,7 @@ Conventions (docs/architecture.md):
 """
 from __future__ import annotations
 
+import argparse
 import math
 import re
 from dataclasses import dataclass, field
@@ -71,8 +72,45 @@ def key_value(value: float | str) -> float | str:
 
 def key_label(value: float | str) -> str:
     """"1.8 m" for a height, "rig headlights" for a rig: how reports name the sensors a run used."""
+    if isinstance(value, str) and is_rig_key(value):
+        return f"rig {data_key(value)}"
+    return f"{float(value):g} m"
+
+
+def key_text(value: float | str) -> str:
+    """"1.8" (`:g`) for a height, the name for a rig: the short form study keys and stage names use."""
+    if isinstance(value, str) and is_rig_key(value):
+        return data_key(value)
+    return f"{float(value):g}"
+
+
+def height_or_rig(value: float | str) -> float | str:
+    """A report's or a run's height as a key: metres as a float, a rig by its name (unchanged)."""
+    return value if isinstance(value, str) and is_rig_key(value) else float(value)
+
+
+def key_heading(key: str) -> str:
+    """A dataset key as a column heading: "1.8 m" for a height's key (as written), the name for a rig."""
+    return key if is_rig_key(key) else f"{key} m"
+
+
+def key_order(value: float | str) -> tuple:
+    """Sort key of heights and rigs: the heights by metres, then the rigs by name."""
     key = data_key(value)
-    return f"rig {key}" if is_rig_key(key) else f"{float(key):g} m"
+    return (1, 0.0, key) if is_rig_key(key) else (0, float(key), "")
+
+
+def height_or_rig_arg(text: str) -> float | str:
+    """argparse type of an option that takes a mounting height in metres or a rig's name: a number as a float (as
+    type=float, so the tool's own check names a bad height), anything else as a rig's name."""
+    try:
+        return float(text)
+    except ValueError:
+        pass
+    try:
+        return key_value(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def is_rig_key(key: str) -> bool:

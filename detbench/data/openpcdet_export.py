@@ -16,6 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from detbench.data.frame import is_rig_key
 from detbench.data.layout import IMAGESETS_DIR, LABELS_DIR, POINTS_DIR, POINTS_FRAMES
 from detbench.data.openpcdet import (
     DEFAULT_EXPORT_CLASS_MAP, KITTI_EVAL_CLASSES, OPENPCDET_SPLITS, ClassMap, count_classes, parse_class_map,
@@ -301,11 +302,12 @@ def export_manifest(source: dict, frame: str, sensor: tuple[float, float], cmap:
 def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os.PathLike, *, frame: str = "ground",
                      class_map: ClassMap | str | Sequence[str] | None = None, overwrite: bool = False,
                      progress: bool = True) -> dict:
-    """Write one height of the detbench dataset at `root` as an OpenPCDet custom folder at `out`.
+    """Write one height (or rig, by name) of the detbench dataset at `root` as an OpenPCDet custom folder at `out`.
 
     frame: "ground" (detbench's ego ground frame, road at z = 0) or "sensor" (the LiDAR's own
     frame, each frame's stored height and pitch; boxes stay upright, so a pitched sensor's box
-    tilt is dropped). Points are written as `points/<id>.npy` (N, 4) float32, labels as
+    tilt is dropped; a rig, whose sensors merge in the ground frame, has none: ValueError). Points are
+    written as `points/<id>.npy` (N, 4) float32, labels as
     `labels/<id>.txt` with single spaces, classes through `class_map` (default: every class ->
     Vehicle). The detbench train split becomes ImageSets/train.txt, the test split val.txt.
     Frames left without boxes (none in the data, or all dropped by the class map) are not
@@ -321,6 +323,9 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     root, out = Path(root), Path(out)
     datasets = {s: Height3Dataset(root, height, s) for s in OPENPCDET_SPLITS}
     hk = datasets["train"].height_key
+    if frame == "sensor" and datasets["train"].height_info.rig is not None:
+        raise ValueError(f"--frame sensor: the rig {hk!r} merges its sensors' points in the ego ground frame, so "
+                         f"there is no one sensor frame to write them in; export it with --frame ground")
     removed = check_replaceable(out, overwrite, EXPORT_FOLDER, out="--out")
     recover_staged(out)
     # built beside `out` and swapped in whole when complete: a failed or killed export leaves `out` as it was
@@ -332,7 +337,7 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
         sensor = datasets["train"].sensor
         s_h, s_p = done.main_sensor((float(sensor.height), float(sensor.pitch_deg)))
         atomic_write_text(dst / EXPORT_YAML, openpcdet_dataset_yaml(out.resolve(), done.classes or ["Vehicle"], frame,
-                                                                    s_h, s_p, source=f"{root.resolve()} at {hk} m"))
+                                                                    s_h, s_p, source=f"{root.resolve()} {_at(hk)}"))
         commands = openpcdet_commands(out, root, hk, frame)
         atomic_write_text(dst / EXPORT_SCRIPT, _create_infos_script(out, commands))
         source = {"root": str(root.resolve()), "height": hk, "dataset_source": datasets["train"].info.source}
@@ -343,13 +348,23 @@ def export_openpcdet(root: str | os.PathLike, height: float | str, out: str | os
     return manifest
 
 
+def _at(key: str) -> str:
+    """"at 1.8 m" for a height's key, "rig headlights" for a rig's."""
+    return f"rig {key}" if is_rig_key(key) else f"at {key} m"
+
+
+def _lidar(key: str) -> str:
+    """"the 1.8 m LiDAR" for a height's key, "the rig headlights" for a rig's."""
+    return f"the rig {key}" if is_rig_key(key) else f"the {key} m LiDAR"
+
+
 def export_markdown(m: dict) -> str:
     """The manifest of an export as Markdown: what is where, in which frame, and the commands."""
     c = m["commands"]
     lines = [
         "# OpenPCDet custom dataset exported by detbench",
         "",
-        f"Source: `{m['source']['root']}`, the {m['source']['height']} m LiDAR. Frame of points and labels: "
+        f"Source: `{m['source']['root']}`, {_lidar(m['source']['height'])}. Frame of points and labels: "
         f"**{m['frame']}** - {m['frame_description']}. Sensor: {m['sensor']['height_m']:g} m, pitch "
         f"{m['sensor']['pitch_deg']:g} deg.",
         "",

@@ -1,6 +1,6 @@
 """Check a whole dataset and list every problem (not just the first).
 
-    python -m detbench.data.validate ROOT [--heights 0.5 1.8] [--max-errors 50]
+    python -m detbench.data.validate ROOT [--heights 0.5 1.8 headlights] [--max-errors 50]
 
 Exit status 0 when the dataset is clean, 1 otherwise. Each problem is printed as
 ``PATH[:LINE]: what is wrong; how to fix it``.
@@ -17,9 +17,9 @@ from collections.abc import Sequence
 import numpy as np
 
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key
+from detbench.data.frame import data_key, height_or_rig_arg
 from detbench.data.dataset import Height3Dataset, check_frame_count, split_ids
-from detbench.data.layout import INFO_FILE, LABELS_DIR, read_info
+from detbench.data.layout import INFO_FILE, LABELS_DIR, read_info, sensor_index_path
 from detbench.data.readers import label_problems, read_points
 from detbench.data.transforms import sensor_to_ground
 
@@ -54,12 +54,13 @@ class ValidationReport:
 
 def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50, progress: bool = False
                      ) -> ValidationReport:
-    """Read every listed frame at every height (or `heights`, metres) and collect the problems.
+    """Read every listed frame at every height and rig (or `heights`: metres or rig names) and collect the problems.
 
     Checks dataset.json (its num_frames against the ImageSets), ImageSets (duplicates, ids in both
     splits, a scene in both splits, whatever split.rule says, unless the dataset has one scene cut in
     time), every label (every malformed line of it), meta and points file
-    (format, dtype and byte order, plausible values, counts), what the points say about the
+    (format, dtype and byte order, plausible values, counts), a rig's sensor index of every point
+    (`sensor_index_error`), what the points say about the
     frame they are in (`points_frame_problem`: the road's height in the declared frame), and
     warns about label files no split lists. A file's problem is listed once. Stops collecting
     after `max_errors`.
@@ -84,7 +85,7 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
     except (DatasetError, FileNotFoundError) as e:
         err(e)
         return rep
-    keys = list(info.heights) if heights is None else [height_key(float(h)) for h in heights]
+    keys = list(info.heights) if heights is None else [data_key(h) for h in heights]
     rep.heights = keys
     try:
         ids = split_ids(root, "all")
@@ -135,6 +136,9 @@ def validate_dataset(root: str | os.PathLike, heights=None, max_errors: int = 50
         for ds in datasets.values():
             e = frame_error(ds, fid)
             if e is None:
+                e = sensor_index_error(ds, fid)
+                if e is not None and err(e):
+                    return rep
                 continue
             if any(err(p) for p in _every_line(e, ds.info.classes)):
                 return rep
@@ -220,6 +224,32 @@ def _every_line(e: Exception, classes) -> list[Exception]:
     return label_problems(text, e.path, classes) or [e]
 
 
+def sensor_index_error(dataset: Height3Dataset, frame_id: str) -> DatasetError | None:
+    """For a rig (dataset.json's heights.<name>.rig), why sensor_index/<rig>/<frame_id>.npy does not give each
+    point of the frame one of the rig's sensors, or None (also for a height)."""
+    rig = dataset.height_info.rig
+    if rig is None:
+        return None
+    path = sensor_index_path(dataset.root, dataset.height_key, frame_id)
+    n_sensors = len(rig.get("sensors") or [])
+    fix = f"simulate the rig again (tools/simulate.py --rigs {dataset.height_key})"
+    if not path.is_file():
+        return DatasetError(f"missing: the rig {dataset.height_key!r} keeps each point's sensor here; {fix}",
+                            path=path)
+    try:
+        index = np.load(path, allow_pickle=False)
+        points = read_points(dataset.points_file(frame_id), dataset.height_info.bin_columns)
+    except (OSError, ValueError, DatasetError) as e:
+        return DatasetError(f"unreadable sensor index ({e}); {fix}", path=path)
+    if index.ndim != 1 or index.dtype.kind not in "iu" or len(index) != len(points):
+        return DatasetError(f"must be a 1-D integer array of one sensor a point ({len(points)} points), got "
+                            f"{index.dtype} of shape {index.shape}; {fix}", path=path)
+    if len(index) and (index.min() < 0 or index.max() >= n_sensors):
+        return DatasetError(f"sensor indices {int(index.min())}..{int(index.max())} outside the rig's "
+                            f"{n_sensors} sensor(s) 0..{n_sensors - 1}; {fix}", path=path)
+    return None
+
+
 def frame_error(dataset: Height3Dataset, frame_id: str) -> Exception | None:
     """Why frame `frame_id` of `dataset` cannot be read (the reader's error naming file and line), or None."""
     try:
@@ -248,8 +278,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m detbench.data.validate",
                                  description="Check every file of a detbench dataset and list all problems.")
     ap.add_argument("root", help="dataset folder (holds dataset.json)")
-    ap.add_argument("--heights", type=float, nargs="+", default=None,
-                    help="mounting heights to check, metres (default: all heights of the dataset)")
+    ap.add_argument("--heights", type=height_or_rig_arg, nargs="+", default=None,
+                    help="mounting heights to check, metres, or rigs by name (default: all heights and rigs of the "
+                         "dataset)")
     ap.add_argument("--max-errors", type=int, default=50, help="stop after this many problems (default 50)")
     args = ap.parse_args(argv)
     rep = validate_dataset(args.root, args.heights, args.max_errors, progress=True)

@@ -21,7 +21,7 @@ from pathlib import Path
 from collections.abc import Sequence
 from typing import Any
 
-from detbench.data.frame import height_key
+from detbench.data.frame import height_key, height_or_rig, is_rig_key, key_label, key_order
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_LABELS, RANGE_NAMES
 from detbench.utils.figures import save_figure
 
@@ -43,7 +43,20 @@ def _frac(v: float | None, digits: int = 3) -> str:
 def _height_str(h: Any) -> str:
     if h is None:
         return "?"
-    return f"{height_key(h)} m"
+    return key_label(h) if isinstance(h, str) and is_rig_key(h) else f"{height_key(h)} m"
+
+
+def _x(comb: dict, h: Any) -> float:
+    """Where a height (metres) or a rig (its place in the table) sits on a figure's x axis."""
+    return comb["heights"].index(h) if _rigs(comb) else h
+
+
+def _rigs(comb: dict) -> bool:
+    return any(isinstance(h, str) for h in comb["heights"])
+
+
+def _x_label(comb: dict) -> str:
+    return "LiDAR rig" if _rigs(comb) else "LiDAR mounting height (m)"
 
 
 def _check_results(results: Any, where: str) -> dict:
@@ -167,7 +180,7 @@ def report_rows(report: dict) -> list[dict]:
             for lv in LEVELS:
                 row = {
                     "model": report.get("model") or "",
-                    "height_m": "" if report.get("height") is None else float(report["height"]),
+                    "height_m": "" if report.get("height") is None else height_or_rig(report["height"]),
                     "split": report.get("split") or "",
                     "variant": name,
                     "iou_kind": kind,
@@ -224,7 +237,10 @@ def report_variant(report: dict) -> str | None:
     or None. Read from the report's "trained_height", "height" and "stage" (tools/eval.py --ckpt writes them)."""
     bits = []
     trained = report.get("trained_height")
-    if trained is not None and report.get("height") is not None and not math.isnan(float(trained)) \
+    if isinstance(trained, str) or isinstance(report.get("height"), str):  # a rig on either side
+        if trained is not None and report.get("height") is not None and trained != report["height"]:
+            bits.append(f"trained at {key_label(trained)}")
+    elif trained is not None and report.get("height") is not None and not math.isnan(float(trained)) \
             and abs(float(trained) - float(report["height"])) > 1e-6:
         bits.append(f"trained at {float(trained):g} m")
     if report.get("stage", "refined") != "refined":
@@ -275,14 +291,14 @@ def _entries(reports: Sequence[dict], sources: Sequence[str] | None = None) -> l
         if not rep.get("model"):
             raise ValueError(f"{where}: no 'model' name; set it (tools/eval.py --model NAME) before "
                              f"combining")
-        key = (str(rep["model"]), float(rep["height"]))
+        key = (str(rep["model"]), height_or_rig(rep["height"]))
         if key in seen:
             seeds = (seen[key][1], rep.get("train_seed"))
             why = ""
             if None not in seeds and seeds[0] != seeds[1]:
                 why = (f" (training seeds {seeds[0]} and {seeds[1]}: combine one seed's reports, the run folders of "
                        f"one seed; a study's study.md combines its seeds itself)")
-            raise ValueError(f"{where}: model {key[0]!r} at height {key[1]:g} m is also in {seen[key][0]}; "
+            raise ValueError(f"{where}: model {key[0]!r} at {key_label(key[1])} is also in {seen[key][0]}; "
                              f"combine each model and height once{why}")
         seen[key] = (where, rep.get("train_seed"))
         settings = (rep.get("iou_kind", "3d"), float(rep["iou_threshold"]), float(rep["score_threshold"]))
@@ -301,7 +317,7 @@ def _entries(reports: Sequence[dict], sources: Sequence[str] | None = None) -> l
                 a, b = ref["results"][r][lv], e["results"][r][lv]
                 if (a["total"], a["lidar_detected"]) != (b["total"], b["lidar_detected"]):
                     raise ValueError(
-                        f"{e['where']} and {ref['where']} (height {e['height']:g} m) disagree on the "
+                        f"{e['where']} and {ref['where']} ({key_label(e['height'])}) disagree on the "
                         f"ground truth of {r}/{lv} (total, LiDAR detected) = {(b['total'], b['lidar_detected'])} "
                         f"vs {(a['total'], a['lidar_detected'])}; they were evaluated on different data")
     return entries
@@ -323,7 +339,7 @@ def combine_reports(reports: Sequence[dict], sources: Sequence[str] | None = Non
         "iou_kind": rep0.get("iou_kind", "3d"),
         "iou_threshold": float(rep0["iou_threshold"]),
         "score_threshold": float(rep0["score_threshold"]),
-        "heights": sorted({e["height"] for e in entries}),
+        "heights": sorted({e["height"] for e in entries}, key=key_order),
         "models": models,
         "data": data_label(reports),
         "entries": [{k: e[k] for k in ("model", "height", "split", "num_frames", "results")} for e in entries],
@@ -445,7 +461,7 @@ def _series(comb, cell, model: str, metric: str, r: str, lv: str) -> tuple[list[
         if res is None:
             continue
         v = res[r][lv][metric]
-        xs.append(h)
+        xs.append(_x(comb, h))
         ys.append(math.nan if v is None else float(v))
     return xs, ys
 
@@ -454,9 +470,9 @@ def _line_axes(ax, comb, cell, metric: str, r: str, lv: str, title: str) -> None
     for m in comb["models"]:
         xs, ys = _series(comb, cell, m, metric, r, lv)
         ax.plot(xs, ys, marker="o", label=m)
-    ax.set_xticks(comb["heights"])
+    ax.set_xticks([_x(comb, h) for h in comb["heights"]])
     ax.set_xticklabels([_height_str(h) for h in comb["heights"]])
-    ax.set_xlabel("LiDAR mounting height (m)")
+    ax.set_xlabel(_x_label(comb))
     ax.set_ylabel(f"{METRIC_LABELS[metric]} (fraction)")
     ax.set_title(title)
     ax.set_ylim(-0.02, 1.05)
@@ -496,7 +512,7 @@ def plot_by_height(reports: Sequence[dict], path: str | Path, range_name: str = 
                     label="LiDAR detected" if name is None else name)
     axes[0].set_xticks(range(len(heights)))
     axes[0].set_xticklabels([_height_str(h) for h in heights])
-    axes[0].set_xlabel("LiDAR mounting height (m)")
+    axes[0].set_xlabel(_x_label(comb))
     axes[0].set_ylabel("vehicles (count)")
     axes[0].set_title("(a) detected vehicles")
     top = max((p.get_height() for p in axes[0].patches), default=1.0)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from detbench.data import Height3Dataset, split_ids
 from detbench.data.errors import DatasetError
+from detbench.data.frame import key_label
 from detbench.data.layout import sim_calibration
 from detbench.eval.evaluate import evaluate_predictions
 from detbench.eval.external import LoadedPredictions, load_predictions, vertical_offset_check
@@ -42,15 +43,15 @@ class EvalSettings:
 class CheckpointRun:
     """Where a checkpoint's predictions came from, for the report."""
 
-    trained_height: float
+    trained_height: float | str  # metres, or a rig's name
     predictions_dir: Path
     stage: str = "refined"  # or "proposals": a two-stage model's first stage alone
     train_seed: int | None = None  # the training's train.seed (the seed statistics name runs by it)
     train_preset: str | None = None  # the training budget (configs/presets/), for the figures' titles
 
 
-def load_split(root: Path, height: float, split: str) -> tuple[Height3Dataset, list[str]]:
-    """(the dataset of `split` at `height`, frame ids of the other splits)."""
+def load_split(root: Path, height: float | str, split: str) -> tuple[Height3Dataset, list[str]]:
+    """(the dataset of `split` at `height` (metres, or a rig's name), frame ids of the other splits)."""
     if not Path(root).is_dir():
         raise UserError(f"{root}: dataset root not found; give --data the folder written by tools/simulate.py "
                         f"or holding the Height3 data")
@@ -97,8 +98,8 @@ def evaluation_report(dataset, preds: dict, settings: EvalSettings, *, model: st
             bootstrap=settings.bootstrap)
     except (ValueError, KeyError) as e:  # a check of ours is one line; numpy's or a kernel's error is a bug
         raise as_user_error(e, always=(DatasetError,)) from None
-    full = {"model": model, "height": float(height), "split": split, "data": str(data),
-            "data_source": data_source(dataset.info.source),
+    full = {"model": model, "height": height if isinstance(height, str) else float(height), "split": split,
+            "data": str(data), "data_source": data_source(dataset.info.source),
             "predictions": str(source), **report}
     if checkpoint is not None:
         full["trained_height"] = checkpoint.trained_height
@@ -126,7 +127,7 @@ def empty_input_warning(report: dict) -> str | None:
     """The warning for a report whose figures mean nothing: no labelled vehicle in any range, or vehicles without
     one point inside any (empty or misread point files); None otherwise."""
     cells = [r["all"] for r in report["results"].values()]
-    where = f"the {report['num_frames']} frame(s) of the {report['split']!r} split at {report['height']:g} m"
+    where = f"the {report['num_frames']} frame(s) of the {report['split']!r} split at {key_label(report['height'])}"
     if not any(c["total"] for c in cells):
         return (f"no vehicle in any range in {where}: every label file is empty or holds no vehicle box, so "
                 f"recall and AP are undefined; check the labels")
@@ -138,7 +139,7 @@ def empty_input_warning(report: dict) -> str | None:
 
 def report_title(model: str | None, height: float, split: str, stage: str = "refined") -> str:
     """The heading of report.md."""
-    title = f"Detection results{' of ' + model if model else ''} at {height:g} m ({split} split)"
+    title = f"Detection results{' of ' + model if model else ''} at {key_label(height)} ({split} split)"
     if stage != "refined":
         title += f", {stage} of the first stage alone"
     return title

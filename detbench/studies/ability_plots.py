@@ -20,6 +20,7 @@ from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
+from detbench.data.frame import key_heading, key_order
 from detbench.data.regions import LEVEL_LABELS, LEVELS, RANGE_NAMES, RANGES
 from detbench.data.layout import sim_calibration
 from detbench.studies.ability import ExampleFrames
@@ -66,10 +67,10 @@ def _grouped(report: dict, groups: list[str], cell, ci=None) -> tuple[Figure, li
     ax_n.bar(x - 0.4 + width / 2, totals, width, color="#bbbbbb", edgecolor="#777777", label="Total")
     for i, h in enumerate(heights):
         det = [cell(h, g)["detected"] for g in groups]
-        ax_n.bar(x - 0.4 + width * (i + 1.5), det, width, color=col[h], label=f"{h} m")
+        ax_n.bar(x - 0.4 + width * (i + 1.5), det, width, color=col[h], label=key_heading(h))
         ldrs = [cell(h, g)["ldr"] for g in groups]
         ldrs = [np.nan if v is None else v for v in ldrs]
-        bars = ax_l.bar(x - 0.4 + width * (i + 1.5), ldrs, width, color=col[h], label=f"{h} m")
+        bars = ax_l.bar(x - 0.4 + width * (i + 1.5), ldrs, width, color=col[h], label=key_heading(h))
         intervals = [ci(h, g) if ci is not None else None for g in groups]
         for b, v, iv in zip(bars, ldrs, intervals):
             if v is None or math.isnan(v):
@@ -150,7 +151,7 @@ def plot_ldr_vs_distance(report: dict, path: str | os.PathLike) -> Path:
     ax, ax_c = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1.2]})
     for h in heights:
         v = np.array([np.nan if x is None else x for x in dist["heights"][h]["ldr"]], dtype=float)
-        ax.plot(centres, v, "o-", color=col[h], label=f"{h} m", ms=4)
+        ax.plot(centres, v, "o-", color=col[h], label=key_heading(h), ms=4)
     ax.set_ylabel("LDR = detected / total")
     ax.set_ylim(0, 1.05)
     ax.grid(alpha=0.3)
@@ -209,7 +210,7 @@ def plot_bev(example: ExampleFrames, path: str | os.PathLike, x_range=(-8.0, 152
     and large ranges are outlined. At most `max_points` points per panel are drawn (a
     seeded subsample) so the file stays small.
     """
-    heights = sorted(example.frames, key=float)
+    heights = sorted(example.frames, key=key_order)
     fig = Figure(figsize=(3.6 * len(heights) + 0.6, 13), facecolor="black")
     axes = np.atleast_1d(fig.subplots(1, len(heights), sharey=True))
     rng = np.random.default_rng(seed)
@@ -238,7 +239,7 @@ def plot_bev(example: ExampleFrames, path: str | os.PathLike, x_range=(-8.0, 152
         ax.add_collection(PolyCollection(ego, facecolors="#ffd700", edgecolors="#ffd700", linewidths=1.0))
         in_view = (frame.boxes[:, 0] >= x_range[0]) & (frame.boxes[:, 0] <= x_range[1]) \
             & (np.abs(frame.boxes[:, 1]) <= y_half)
-        ax.set_title(f"{h} m: {int((det & in_view).sum())} of {int(in_view.sum())} vehicles hit",
+        ax.set_title(f"{key_heading(h)}: {int((det & in_view).sum())} of {int(in_view.sum())} vehicles hit",
                      color="white", fontsize=10)
         ax.set_xlim(y_half, -y_half)  # +y (left) on the left
         ax.set_ylim(*x_range)

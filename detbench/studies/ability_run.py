@@ -11,7 +11,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 
-from detbench.data.frame import DEFAULT_LANE_WIDTH, height_key
+from detbench.data.frame import DEFAULT_LANE_WIDTH, data_key, height_key, is_rig_key, key_heading
 from detbench.data.regions import RANGE_NAMES
 from detbench.studies.ability import DEFAULT_THRESHOLDS, AbilityStudy, ExampleFrames
 from detbench.utils.cli import UserError
@@ -117,7 +117,7 @@ def stream_dataset(args: AbilityOptions, study: AbilityStudy) -> dict:
     from detbench.data.validate import points_frame_problem
 
     info = read_info(args.data)
-    keys = [height_key(h) for h in args.heights] if args.heights else list(info.heights)
+    keys = [data_key(h) for h in args.heights] if args.heights else list(info.heights)
     datasets = [Height3Dataset(args.data, k, args.split, lane_width=args.lane_width) for k in keys]
     for ds in datasets:  # points in another frame than declared would shift every count of points in a box
         problem = points_frame_problem(ds)
@@ -135,7 +135,7 @@ def stream_dataset(args: AbilityOptions, study: AbilityStudy) -> dict:
                 raise UserError(f"{e} (fix the file, or pass --skip-bad to skip such frames)") from None
             skipped.append(str(e))
             continue
-        study.add(frames)
+        study.add(frames, keys=keys if any(is_rig_key(k) for k in keys) else None)  # a rig: under its name
     src = {"kind": "dataset", "root": str(args.data), "split": args.split, "heights": keys,
            "dataset_source": info.source}
     if isinstance(info.source, dict) and info.source.get("kind") == "simulator":
@@ -155,12 +155,12 @@ def empty_input_warnings(report: dict) -> list[str]:
     for h, ranges in report["heights"].items():
         cells = [ranges[r]["all"] for r in RANGE_NAMES]
         if not any(c["total"] for c in cells):
-            out.append(f"{h} m: no vehicle in any range of the {report['num_frames']} frame(s): every label file is "
-                       f"empty or holds no vehicle box, so there is no LDR to report; check the labels")
+            out.append(f"{key_heading(h)}: no vehicle in any range of the {report['num_frames']} frame(s): every label "
+                       f"file is empty or holds no vehicle box, so there is no LDR to report; check the labels")
         elif not any(c["detected"] for c in cells):
-            out.append(f"{h} m: not one point lies in any of the {max(c['total'] for c in cells)} vehicle box(es), so "
-                       f"every LDR is 0.00; the point files are probably empty or misread (run tools/validate.py on "
-                       f"the dataset)")
+            out.append(f"{key_heading(h)}: not one point lies in any of the {max(c['total'] for c in cells)} vehicle "
+                       f"box(es), so every LDR is 0.00; the point files are probably empty or misread (run "
+                       f"tools/validate.py on the dataset)")
     return out
 
 
@@ -224,7 +224,7 @@ def summary_lines(report: dict, seconds: float) -> list[str]:
     lines = []
     heights = list(report["heights"])
     lines.append(f"{report['num_frames']} frames in {seconds:.1f} s; LDR of all vehicles (detected / total):")
-    lines.append("range     " + "".join(f"{h + ' m':>20}" for h in heights))
+    lines.append("range     " + "".join(f"{key_heading(h):>20}" for h in heights))
     for r in RANGE_NAMES:
         cells = [report["heights"][h][r]["all"] for h in heights]
         lines.append(f"{r:<10}" + "".join(f"{c['detected']:>9}/{c['total']:<6} {c['ldr']:.2f}" if c["total"] else

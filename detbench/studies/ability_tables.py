@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 
+from detbench.data.frame import key_heading
 from detbench.data.regions import DETECTED_BOTTOM_LIFT, LEVELS, RANGE_NAMES, RANGES
 from detbench.studies.ability import DECOMPOSITION_PARTS, paper_decomposition
 
@@ -33,9 +34,9 @@ def _table_md(rows: list[tuple[str, Cells]], heights: list[str], row_title: str)
     """rows: (label, {height: {"total","detected","ldr"}}); one Total column when all heights agree."""
     shared = all(len({c[h]["total"] for h in heights}) == 1 for _, c in rows)
     if shared:
-        head = f"| {row_title} | Total | " + " | ".join(f"{h} m Number / LDR" for h in heights) + " |"
+        head = f"| {row_title} | Total | " + " | ".join(f"{key_heading(h)} Number / LDR" for h in heights) + " |"
     else:
-        head = f"| {row_title} | " + " | ".join(f"{h} m Number / Total / LDR" for h in heights) + " |"
+        head = f"| {row_title} | " + " | ".join(f"{key_heading(h)} Number / Total / LDR" for h in heights) + " |"
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for label, cells in rows:
         if shared:
@@ -64,7 +65,7 @@ def header_lines(title: str, num_frames: int, heights: Sequence[str], extras: Ma
 
         out += [f"Source: {', '.join(f'{k}={v}' for k, v in src.items() if simple(v))}", ""]
     definitions = extras.get("definitions", {})
-    out += [f"{num_frames} frames; heights {', '.join(h + ' m' for h in heights)}. A vehicle is "
+    out += [f"{num_frames} frames; heights {', '.join(key_heading(h) for h in heights)}. A vehicle is "
             f"LiDAR-detected when at least one point lies inside its box with the bottom raised by "
             f"{definitions.get('bottom_lift_m', DETECTED_BOTTOM_LIFT)} m; LDR = detected / total. "
             f"Number = detected vehicles summed over frames. Ranges by box centre (metres): "
@@ -109,7 +110,7 @@ def distance_table(dist: Mapping, heights: list[str]) -> list[str]:
     """LDR per x bin (`extras.ldr_vs_distance`)."""
     edges = dist["edges_m"]
     out = [f"## LDR against distance (extra; {dist['region']})", "",
-           "| x (m) | " + " | ".join(f"{h} m Number / Total / LDR" for h in heights) + " |",
+           "| x (m) | " + " | ".join(f"{key_heading(h)} Number / Total / LDR" for h in heights) + " |",
            "|" + "---|" * (len(heights) + 1)]
     for b in range(len(edges) - 1):
         vals = [f"{dist['heights'][h]['detected'][b]} / {dist['heights'][h]['total'][b]} / "
@@ -121,7 +122,7 @@ def distance_table(dist: Mapping, heights: list[str]) -> list[str]:
 def per_frame_table(vehicles_per_frame: Mapping, mean_points: Mapping, heights: list[str]) -> list[str]:
     """Vehicles per frame per range and the mean points on a detected vehicle per height."""
     out = ["## Vehicles per frame and points per detected vehicle (extra)", "",
-           "| Range | Vehicles per frame | " + " | ".join(f"{h} m mean points per detected vehicle"
+           "| Range | Vehicles per frame | " + " | ".join(f"{key_heading(h)} mean points per detected vehicle"
                                                         for h in heights) + " |",
            "|" + "---|" * (len(heights) + 2)]
     for r in RANGE_NAMES:
@@ -140,7 +141,7 @@ def uncertainty_table(unc: Mapping, table: Mapping, heights: list[str]) -> list[
            "Frames of one scene are correlated, so whole scenes are resampled. One scene's LDR scatters by "
            "the scene std; a study of n scenes is uncertain by about scene std / sqrt(n). Differences "
            "pair the heights on the same traffic.", "",
-           "| Range | " + " | ".join(f"{h} m LDR [{pct}] / scene std" for h in heights)
+           "| Range | " + " | ".join(f"{key_heading(h)} LDR [{pct}] / scene std" for h in heights)
            + "".join(f" | {k} m difference [{pct}]" for k in unc["differences"]) + " |",
            "|" + "---|" * (1 + len(heights) + len(unc["differences"]))]
     for r in RANGE_NAMES:
@@ -164,7 +165,7 @@ def decomposition_table(dec: Mapping, heights: list[str], num_frames: int) -> li
            "lanes; beyond-Top6 = All minus Top6: every other vehicle of the range."
            + (" Paper: the same differences of its Tables IV-VI." if paper_dec else ""), "",
            "| Part | Range | Total per frame" + (" (paper)" if paper_dec else "") + " | "
-           + " | ".join(f"{h} m LDR" + (" (paper)" if paper_dec and h in PAPER_HEIGHTS else "")
+           + " | ".join(f"{key_heading(h)} LDR" + (" (paper)" if paper_dec and h in PAPER_HEIGHTS else "")
                         for h in heights) + " |",
            "|" + "---|" * (3 + len(heights))]
     n_frames = max(int(num_frames), 1)

@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from collections.abc import Sequence
 
+from detbench.data.frame import height_or_rig, key_label, key_order, key_text
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.report import source_label
 from detbench.utils.figures import save_figure
@@ -31,21 +32,21 @@ def cross_height_matrix(reports: Sequence[dict], metric: str = "ap_r40", range_n
         raise ValueError(f"unknown metric {metric!r}; use one of {', '.join(METRICS)}")
     if range_name not in RANGE_NAMES or level not in LEVELS:
         raise ValueError(f"unknown range/level {range_name!r}/{level!r}")
-    cells: dict[tuple[str, float, float], float | None] = {}
-    heights: set[float] = set()
+    cells: dict[tuple[str, float | str, float | str], float | None] = {}
+    heights: set[float | str] = set()
     models: list[str] = []
     for i, rep in enumerate(reports):
         if rep.get("trained_height") is None:
             raise ValueError(f"report {i} ({rep.get('model')!r} at {rep.get('height')}) has no trained_height; "
                              f"cross-height reports come from tools/eval.py --ckpt")
-        m, tr, te = str(rep["model"]), float(rep["trained_height"]), float(rep["height"])
+        m, tr, te = str(rep["model"]), height_or_rig(rep["trained_height"]), height_or_rig(rep["height"])
         if (m, tr, te) in cells:
-            raise ValueError(f"two reports for {m} trained at {tr:g} m and tested at {te:g} m")
+            raise ValueError(f"two reports for {m} trained at {key_label(tr)} and tested at {key_label(te)}")
         cells[(m, tr, te)] = rep["results"][range_name][level][metric]
         heights.update((tr, te))
         if m not in models:
             models.append(m)
-    hs = sorted(heights)
+    hs = sorted(heights, key=key_order)
     values = {m: [[cells.get((m, tr, te)) for te in hs] for tr in hs] for m in models}
     return {"metric": metric, "range": range_name, "level": level, "heights": hs, "models": models,
             "values": values, "data": source_label(reports)}
@@ -59,7 +60,7 @@ def cross_height_markdown(mat: dict) -> list[str]:
     for m in mat["models"]:
         out += [f"{name} of {m} ({mat['range']} range, {mat['level']} level); rows: trained at, columns: tested at "
                 f"(bold: the same height).", "",
-                "| trained \\ tested | " + " | ".join(f"{h:g} m" for h in hs) + " |",
+                "| trained \\ tested | " + " | ".join(key_label(h) for h in hs) + " |",
                 "|---|" + "---:|" * len(hs)]
         for i, tr in enumerate(hs):
             row = []
@@ -67,7 +68,7 @@ def cross_height_markdown(mat: dict) -> list[str]:
                 v = mat["values"][m][i][j]
                 s = "-" if v is None else f"{v:.3f}"
                 row.append(f"**{s}**" if i == j else s)
-            out.append(f"| {tr:g} m | " + " | ".join(row) + " |")
+            out.append(f"| {key_label(tr)} | " + " | ".join(row) + " |")
         out.append("")
     return out
 
@@ -91,11 +92,12 @@ def plot_cross_height(mat: dict, path: str | Path) -> Path:
                 ax.text(j, i, "-" if math.isnan(v) else f"{v:.2f}", ha="center", va="center",
                         color="white" if (math.isnan(v) or v < 0.5) else "black", fontsize=8)
             ax.add_patch(Rectangle((i - 0.5, i - 0.5), 1, 1, fill=False, edgecolor="red", linewidth=1.5))
-        ax.set_xticks(range(len(hs)), [f"{h:g}" for h in hs])
-        ax.set_yticks(range(len(hs)), [f"{h:g}" for h in hs])
-        ax.set_xlabel("tested at (m)")
+        ax.set_xticks(range(len(hs)), [key_text(h) for h in hs])
+        ax.set_yticks(range(len(hs)), [key_text(h) for h in hs])
+        unit = "" if any(isinstance(h, str) for h in hs) else " (m)"
+        ax.set_xlabel(f"tested at{unit}")
         if k == 0:
-            ax.set_ylabel("trained at (m)")
+            ax.set_ylabel(f"trained at{unit}")
         ax.set_title(m, fontsize=9)
     data = f"; {mat['data']}" if mat.get("data") else ""
     fig.suptitle(f"{name}, {mat['range']} range, {mat['level']} level (red: same height{data})", fontsize=9)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+from detbench.data.frame import height_or_rig, key_label, key_order
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.report import check_report
 
@@ -41,6 +42,13 @@ def _split_signature(rep: dict) -> dict:
         sig["LiDAR-detected vehicles per scene"] = [
             list(unc["per_cluster"][r][lv]["lidar_detected"]) for r in RANGE_NAMES for lv in LEVELS]
     return sig
+
+
+def _other_height(a: float | str, b: float | str) -> bool:
+    """True when two heights (metres) or rigs (names) differ."""
+    if isinstance(a, str) or isinstance(b, str):
+        return a != b
+    return abs(a - b) > 1e-9
 
 
 def _name(where: str, i: int, rep: dict) -> str:
@@ -110,18 +118,18 @@ def checked_groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
     for key, reports in groups.items():
         try:
             model, height = key
-            model, height = str(model), float(height)
+            model, height = str(model), height_or_rig(height)
         except (TypeError, ValueError):
             raise ValueError(f"groups: key {key!r} must be a (model, height in metres) pair") from None
-        where = f"{model} at {height:g} m"
+        where = f"{model} at {key_label(height)}"
         reports = checked_reports(reports, where)
         for i, rep in enumerate(reports):
             if rep.get("model") is not None and str(rep["model"]) != model:
                 raise ValueError(f"{_name(where, i, rep)}: the report is of model {rep['model']!r}, not {model!r}; "
                                  f"group each model's reports under its own name")
-            if rep.get("height") is not None and abs(float(rep["height"]) - height) > 1e-9:
-                raise ValueError(f"{_name(where, i, rep)}: the report is at height {float(rep['height']):g} m, not "
-                                 f"{height:g} m; group each height's reports under its own height")
+            if rep.get("height") is not None and _other_height(height_or_rig(rep["height"]), height):
+                raise ValueError(f"{_name(where, i, rep)}: the report is at height {key_label(rep['height'])}, not "
+                                 f"{key_label(height)}; group each height's reports under its own height")
         if first is None:
             first = (where, eval_settings(reports[0]))
         elif eval_settings(reports[0]) != first[1]:
@@ -134,8 +142,8 @@ def checked_groups(groups: Mapping) -> dict[float, dict[str, list[dict]]]:
     for h, models in by_height.items():
         names = list(models)
         firsts = [models[m][0] for m in names]
-        _check_same(firsts, [_name(f"{m} at {h:g} m", 0, models[m][0]) for m in names])
-    return dict(sorted(by_height.items()))
+        _check_same(firsts, [_name(f"{m} at {key_label(h)}", 0, models[m][0]) for m in names])
+    return dict(sorted(by_height.items(), key=lambda hm: key_order(hm[0])))
 
 
 __all__ = ["bootstrap_settings", "checked_groups", "checked_reports", "eval_settings", "seed_label"]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 
+from detbench.data.frame import key_label
 from detbench.data.regions import RANGE_NAMES
 from detbench.studies.seeds import METRICS, seed_statistics
 
@@ -51,7 +52,7 @@ def _lead_sentence(prefix: str, key: str, metric: str, entry: dict) -> str:
     what = f"{METRIC_WORDS[metric]} ({r} range, {'All' if lv == 'all' else lv.capitalize()} vehicles)"
 
     def name(e: dict) -> str:
-        return f"{float(e[key]):g} m" if key == "height" else str(e[key])
+        return key_label(e[key]) if key == "height" else str(e[key])
 
     if not entry["ranking"]:
         return f"{prefix}, {what}: nothing is evaluated in that range."
@@ -86,14 +87,14 @@ def pairwise_markdown(leads: Mapping) -> list[str]:
                 ranking = " > ".join(f"{e['model']} {_f(e['mean'], 2)}" for e in entry["ranking"]) or "-"
                 resolved = "; ".join(f"{p['model']} over {p['over']} {_f(p['diff'], 2, signed=True)} "
                                      f"{_ci2(p['ci95'], signed=True)}" for p in entry["pairs"] if p["ahead"]) or "none"
-                lines.append(f"| {float(h):g} m | {r} | {METRIC_WORDS[metric]} | {ranking} | {resolved} |")
+                lines.append(f"| {key_label(h)} | {r} | {METRIC_WORDS[metric]} | {ranking} | {resolved} |")
     return lines
 
 
 def _answer(p: Mapping) -> str:
     """A height pair's verdict in words."""
     if p["answer"] == "resolved":
-        return f"resolved: {float(p['leader']):g} m leads"
+        return f"resolved: {key_label(p['leader'])} leads"
     if p["answer"] == "bounded":
         return f"bounded: the two differ by less than {_f(p['margin'])}"
     return "no interval (evaluate with --bootstrap)"
@@ -113,7 +114,7 @@ def height_pairs_markdown(height_pairs: Mapping) -> list[str]:
         for metric, entry in by_metric.items():
             what = f"{METRIC_WORDS[metric]} {entry['range']}"
             for p in entry["pairs"]:
-                lines.append(f"| {what} | {float(p['height']):g} m - {float(p['over']):g} m | "
+                lines.append(f"| {what} | {key_label(p['height'])} - {key_label(p['over'])} | "
                              f"{_f(p['diff'], signed=True)} {_ci(p['ci95'], signed=True)} | {_answer(p)} |")
         lines.append("")
     return lines
@@ -137,7 +138,7 @@ def detector_table_markdown(rows: Sequence[Mapping]) -> list[str]:
     for row in rows:
         paper, minutes = row["paper_recall"], row["train_minutes"]
         lines.append(
-            f"| {row['model']} | {float(row['height']):g} m | {row['num_seeds']} | {_with_ci(row['ap_r40_small'])} | "
+            f"| {row['model']} | {key_label(row['height'])} | {row['num_seeds']} | {_with_ci(row['ap_r40_small'])} | "
             f"{_with_ci(row['recall_small'])} / {_f(row['recall_moderate'], 2)} / {_f(row['recall_large'], 2)} | "
             f"{_f(row['recall_large_top3'], 2)} / {_f(row['recall_large_top6'], 2)} | "
             f"{' / '.join(f'{v:.2f}' for v in paper) if paper else '-'} | "
@@ -179,7 +180,7 @@ def seed_markdown_lines(summary: Mapping, by_model: Mapping, height_pairs: Mappi
                   "freedom in the t factor; each height's own sd in brackets), because 2 or 3 seeds alone give a t "
                   "factor of 12.7 or 4.3 on an sd that rests on one or two differences.", ""]
     for h, cell in summary.items():
-        lines += [f"**{float(h):g} m**", "",
+        lines += [f"**{key_label(h)}**", "",
                   "| Model | Seeds | Range | Recall (95 %, scenes + seeds) | Recall seed sd / +- | Recall scene-only "
                   "95 % | AP@R40 (95 %, scenes + seeds) | AP@R40 seed sd / +- | AP@R40 scene-only 95 % |",
                   "|---|---|---|---|---|---|---|---|---|"]
@@ -195,7 +196,7 @@ def seed_markdown_lines(summary: Mapping, by_model: Mapping, height_pairs: Mappi
                 lines.append("| " + " | ".join(row) + " |")
         lines.append("")
         for metric in METRICS:
-            lines.append(_lead_sentence(f"At {float(h):g} m", "model", metric, cell[metric]))
+            lines.append(_lead_sentence(f"At {key_label(h)}", "model", metric, cell[metric]))
         lines.append("")
     if by_model:
         lines += ["**Heights, per model**", ""]

@@ -85,6 +85,7 @@ from itertools import combinations
 
 import numpy as np
 
+from detbench.data.frame import key_label, key_order
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.ap_bootstrap import has_ap_ranking, paired_ap_difference
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
@@ -394,7 +395,7 @@ def combined_groups(groups: Mapping, pool: bool = True) -> dict[float, dict[str,
     """{height: {model: (reports, SeedCombined)}} of {(model, height): [report of each seed]} (checked by
     detbench.studies.seed_checks), with the seed spread pooled over each model's heights when `pool`."""
     by_height = checked_groups(groups)
-    combs = {(m, h): combine_seeds(reps, f"{m} at {h:g} m") for h, models in by_height.items()
+    combs = {(m, h): combine_seeds(reps, f"{m} at {key_label(h)}") for h, models in by_height.items()
              for m, reps in models.items()}
     if pool:
         combs = pooled(combs)
@@ -478,10 +479,10 @@ def _table(combined: Mapping, train_minutes: Mapping | None) -> list[dict]:
             by_model.setdefault(m, []).append((h, comb))
     rows = []
     for m, cells in by_model.items():
-        for h, comb in sorted(cells, key=lambda x: x[0]):
+        for h, comb in sorted(cells, key=lambda x: key_order(x[0])):
             recall = {(r, lv): comb.cell(r, lv, "recall").mean for r in RANGE_NAMES for lv in LEVELS}
             ap, rs = comb.cell("small", "all", "ap_r40"), comb.cell("small", "all", "recall")
-            paper = paper_recall(m, h)
+            paper = None if isinstance(h, str) else paper_recall(m, h)  # Table VII has heights, no rigs
             rows.append({"model": m, "height": h, "num_seeds": comb.num_seeds,
                          "ap_r40_small": {"mean": ap.mean, "ci95": ap.ci95},
                          "recall_small": {"mean": rs.mean, "ci95": rs.ci95},

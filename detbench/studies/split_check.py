@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 
+from detbench.data.frame import key_heading, key_order
 from detbench.data.regions import RANGE_NAMES
 
 Z95 = 1.959963984540054  # two-sided 95 % normal quantile
@@ -55,7 +56,7 @@ def compare_splits(split_report: dict, reference_report: dict) -> dict:
     reports do not share are left out and listed under "heights_missing"."""
     split, ref = split_figures(split_report), split_figures(reference_report)
     cells, outside, resolved = [], [], []
-    for hk in sorted(set(split) & set(ref), key=float):
+    for hk in sorted(set(split) & set(ref), key=key_order):
         for r in RANGE_NAMES:
             for m in METRICS:
                 value, own_ci = split[hk][r][m]
@@ -77,7 +78,7 @@ def compare_splits(split_report: dict, reference_report: dict) -> dict:
     judged = sum(1 for c in cells if c["inside"] is not None)
     return {"cells": cells, "judged": judged, "outside": len(outside), "resolved": len(resolved),
             "expected_outside_by_chance": round(0.05 * judged, 1),
-            "heights_missing": sorted((set(split) ^ set(ref)), key=float)}
+            "heights_missing": sorted((set(split) ^ set(ref)), key=key_order)}
 
 
 def _fmt(v, ci=None, digits=3) -> str:
@@ -93,11 +94,12 @@ def split_check_markdown(result: dict, split_name: str, reference_name: str) -> 
     """Markdown lines: one table per metric (rows: range; columns: height, split vs reference), then the
     cells outside the reference's interval and those whose difference is resolved."""
     lines = []
-    heights = sorted({c["height"] for c in result["cells"]}, key=float)
+    heights = sorted({c["height"] for c in result["cells"]}, key=key_order)
     for m in METRICS:
         lines += [f"**{METRIC_LABELS[m]}**, all vehicles: {split_name} [95 % interval] | {reference_name} "
                   f"[95 % interval]", "",
-                  "| range | " + " | ".join(f"{h} m: {split_name} | {h} m: {reference_name}" for h in heights) + " |",
+                  "| range | " + " | ".join(f"{key_heading(h)}: {split_name} | {key_heading(h)}: {reference_name}"
+                                         for h in heights) + " |",
                   "|---|" + "---|---|" * len(heights)]
         for r in RANGE_NAMES:
             row = []
@@ -113,7 +115,8 @@ def split_check_markdown(result: dict, split_name: str, reference_name: str) -> 
                  f"(95 % interval of the difference excludes 0).")
     for c in result["cells"]:
         if c["resolved"]:
-            lines.append(f"- {c['height']} m, {c['range']} range, {METRIC_LABELS[c['metric']]}: {split_name} "
+            lines.append(f"- {key_heading(c['height'])}, {c['range']} range, {METRIC_LABELS[c['metric']]}: "
+                         f"{split_name} "
                          f"{_fmt(c['value'])}, {reference_name} {_fmt(c['reference'])}, difference "
                          f"{_fmt(c['diff'], c['diff_ci95'])}")
     return lines
@@ -121,7 +124,8 @@ def split_check_markdown(result: dict, split_name: str, reference_name: str) -> 
 
 def split_check_warnings(result: dict, split_name: str, reference_name: str) -> list[str]:
     """One warning line per cell whose difference from the reference is resolved."""
-    return [f"warning: the {split_name}'s {METRIC_LABELS[c['metric']]} at {c['height']} m, {c['range']} range, "
+    return [f"warning: the {split_name}'s {METRIC_LABELS[c['metric']]} at {key_heading(c['height'])}, "
+            f"{c['range']} range, "
             f"is {_fmt(c['value'])} against the {reference_name}'s {_fmt(c['reference'], c['reference_ci95'])}: "
             f"the split holds other traffic than the {reference_name} describes"
             for c in result["cells"] if c["resolved"]]

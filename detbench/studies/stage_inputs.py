@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from detbench.data.dataset import Height3Dataset, split_ids
-from detbench.data.frame import height_key
+from detbench.data.frame import data_key
 from detbench.data.layout import INFO_FILE, imageset_path
 from detbench.train.checkpoint import config_diff
 from detbench.train.train_config import RESUME_IGNORE_KEYS
@@ -97,10 +97,11 @@ def training_config(cfg: Mapping) -> dict:
 
 
 def dataset_fingerprint(root: str | os.PathLike, heights: Iterable[float], hashes: FileHashes) -> str:
-    """SHA-1 of what a stage reads of the dataset at `root` at `heights` (metres): dataset.json without its
-    `source` and with only those heights, ImageSets, and every listed frame's label, meta and points files."""
+    """SHA-1 of what a stage reads of the dataset at `root` at `heights` (metres, or rigs' names): dataset.json
+    without its `source` and with only those heights, ImageSets, and every listed frame's label, meta and points
+    files."""
     root = Path(root)
-    keys = sorted({height_key(float(h)) for h in heights})
+    keys = sorted({data_key(h) for h in heights})
     info = dict(read_json(root / INFO_FILE))
     info.pop("source", None)
     info["heights"] = {k: v for k, v in (info.get("heights") or {}).items() if k in keys}

@@ -31,7 +31,7 @@ from pathlib import Path
 
 from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key
+from detbench.data.frame import height_key, is_rig_key
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
 from detbench.studies.cpu_load import MachineLoad
@@ -59,6 +59,7 @@ class StudyOptions:
     preset: str = "quick"
     models: list[str] | None = None  # None: the preset's study.models, else every registered model
     heights: list[float] | None = None  # None: with `data` the heights it holds, else the preset's data.heights
+    rigs: list[str] | None = None  # rigs by name instead of heights (configs/rigs.yaml; with `data`: the ones it holds)
     data: str | None = None  # a dataset on disk instead of the simulated default
     device: str = "auto"
     out: str | None = None  # None: run_layout.default_study_dir(preset)
@@ -126,7 +127,10 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
         raise UserError(f"--heights {' '.join(f'{h:g}' for h in bad_heights)}: a mounting height is a positive "
                         f"number of metres below 10, e.g. --heights 0.5 1.0 1.8")
     require_distinct(args.heights, "--heights", key=height_key, what="height")
-    heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
+    if args.rigs:
+        heights = study_rigs(args.data, args.rigs, args.heights)
+    else:
+        heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
     _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
     with ExitStack() as held:
@@ -146,22 +150,60 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
 
 def study_heights(data: str | None, heights: list[float] | None, preset_heights: list) -> list[float]:
     """The study's mounting heights (metres): `heights` (--heights) when given, else with `data` (--data) every
-    height that dataset holds, else the preset's data.heights. UserError for a dataset whose dataset.json
-    cannot be read, or that lacks a height of `heights` (before anything is created)."""
+    height that dataset holds (its rigs go with --rigs), else the preset's data.heights. UserError for a dataset
+    whose dataset.json cannot be read, that holds rigs only, or that lacks a height of `heights` (before anything
+    is created)."""
     if not data:
         return list(heights) if heights else [float(h) for h in preset_heights]
     try:
-        held = {height_key(k): float(k) for k in read_info(data).heights}
+        keys = list(read_info(data).heights)
     except DatasetError as e:
         raise UserError(f"--data {data}: {e}") from None
+    held = {height_key(k): float(k) for k in keys if not is_rig_key(k)}  # a rig is studied with --rigs
+    if not held and not heights:
+        raise UserError(f"--data {data}: holds the rigs {', '.join(keys)} and no height; study them with --rigs "
+                        f"{' '.join(keys)}")
     if not heights:
         return sorted(held.values())
     missing = [h for h in heights if height_key(h) not in held]
     if missing:
-        raise UserError(f"--heights {' '.join(f'{h:g}' for h in missing)}: the dataset {data} holds "
-                        f"{', '.join(f'{h:g} m' for h in sorted(held.values()))}; give heights among them, or leave "
-                        f"--heights out to study every height it holds")
+        have = ", ".join(f"{h:g} m" for h in sorted(held.values())) or "no height"
+        raise UserError(f"--heights {' '.join(f'{h:g}' for h in missing)}: the dataset {data} holds {have}; give "
+                        f"heights among them, or leave --heights out to study every height it holds")
     return list(heights)
+
+
+def study_rigs(data: str | None, rigs: list[str], heights: list[float] | None) -> list[str]:
+    """The study's rigs (--rigs), each studied where a height would be: with `data` (--data) rigs it holds, else
+    rigs of configs/rigs.yaml (the study simulates them). UserError before anything is created for --heights
+    beside them, a rig named twice, an unknown rig or one the dataset lacks."""
+    from detbench.data.frame import RIG_NAME, is_rig_key
+
+    if heights:
+        raise UserError("--heights and --rigs: give one of them (a study compares heights or rigs)")
+    require_distinct(rigs, "--rigs", what="rig")
+    bad = [r for r in rigs if not (RIG_NAME.fullmatch(r) and is_rig_key(r))]
+    if bad:
+        raise UserError(f"--rigs {' '.join(bad)}: a rig's name starts with a letter (configs/rigs.yaml, docs/rigs.md)")
+    if data:
+        try:
+            held = [k for k in read_info(data).heights if is_rig_key(k)]
+        except DatasetError as e:
+            raise UserError(f"--data {data}: {e}") from None
+        where, fix = f"the dataset {data}", "simulate them into it (tools/simulate.py --rigs)"
+    else:
+        from detbench.sim.rigs import RIGS_CONFIG, load_rigs
+
+        try:
+            held = list(load_rigs())
+        except ConfigError as e:
+            raise UserError(str(e)) from None
+        where, fix = RIGS_CONFIG.name, "add them there"
+    missing = [r for r in rigs if r not in held]
+    if missing:
+        raise UserError(f"--rigs {' '.join(missing)}: not in {where}, which holds {', '.join(held) or 'no rig'}; "
+                        f"give rigs among them, or {fix}")
+    return list(rigs)
 
 
 def _note(text: str) -> None:
@@ -215,6 +257,8 @@ def _dataset(args: StudyOptions, base_cfg: dict, heights: list[float]) -> tuple[
     data_cfg = dict(base_cfg["data"])
     if args.data:
         data_cfg["root"] = str(Path(args.data).resolve())
+    elif any(isinstance(h, str) for h in heights):  # rigs: a dataset of those rigs alone
+        data_cfg["heights"] = list(heights)
     else:
         data_cfg["heights"] = sorted(set(map(float, data_cfg["heights"])) | set(heights))
     print(f"\n=== dataset ({args.preset} preset)", flush=True)
@@ -300,4 +344,4 @@ def _executor(args: StudyOptions, gpu: bool, repo: str | os.PathLike):
     return LocalExecutor(default_jobs("cpu"), cwd=repo, load=MachineLoad())
 
 
-__all__ = ["StudyOptions", "run_study", "study_heights", "study_models"]
+__all__ = ["StudyOptions", "run_study", "study_heights", "study_models", "study_rigs"]

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from detbench.data.frame import key_label
 from detbench.studies.commands import TrainSpec, ability_command, combine_command, eval_command, train_command
 from detbench.studies.jobs import Job
 from detbench.studies.stage_inputs import FileHashes, changes, config_digest, write_record
@@ -149,15 +150,16 @@ def study_jobs(plan: StudyPlan, hashes: FileHashes, *, gpu: bool = False, progre
     evals = []
     for m, h, s in plan.runs():
         train = TrainStage(plan, m, h, s, progress)
-        jobs.append(Job(plan.train_stage(m, h, s), "train", f"train {m} {h:g} m{seed_words(s)}", train.command,
+        jobs.append(Job(plan.train_stage(m, h, s), "train", f"train {m} {key_label(h)}{seed_words(s)}", train.command,
                         model=m, outputs=(plan.run_dir(m, h, s),), gpu=gpu, finish=train.record))
-        evals.append(_eval_job(plan, hashes, m, h, h, s, f"evaluate {m} {h:g} m{seed_words(s)}", gpu, progress))
+        evals.append(_eval_job(plan, hashes, m, h, h, s, f"evaluate {m} {key_label(h)}{seed_words(s)}", gpu, progress))
         jobs.append(evals[-1])
     if plan.cross_height:
         for m in plan.models:
             for h in plan.heights:
-                jobs += [_eval_job(plan, hashes, m, h, t, plan.primary, f"evaluate {m} trained at {h:g} m on {t:g} m",
-                                   gpu, progress) for t in plan.heights if t != h]
+                jobs += [_eval_job(plan, hashes, m, h, t, plan.primary,
+                                   f"evaluate {m} trained at {key_label(h)} on {key_label(t)}", gpu, progress)
+                         for t in plan.heights if t != h]
     combine = CombineStage(plan)
     jobs.append(Job("combine", "combine", "combine reports", combine.command, deps=tuple(j.id for j in evals),
                     outputs=(plan.out / "combined",)))

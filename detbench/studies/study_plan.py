@@ -18,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from detbench.data.errors import DatasetError
+from detbench.data.frame import key_text
 from detbench.studies.stage_inputs import FileHashes, config_digest, dataset_fingerprint, training_config
 from detbench.train.run_config import load_run_config
 from detbench.train.run_layout import eval_report_path, study_run_dir
@@ -90,11 +91,11 @@ class StudyPlan:
 
     def train_stage(self, model: str, height: float, seed: int) -> str:
         tag = self.tag(seed)
-        return f"train_{model}_h{height:g}" + ("" if tag is None else f"_s{tag}")
+        return f"train_{model}_h{key_text(height)}" + ("" if tag is None else f"_s{tag}")
 
     def eval_stage(self, model: str, height: float, test_height: float, seed: int) -> str:
         tag = self.tag(seed)
-        return f"eval_{model}_h{height:g}_on_h{test_height:g}" + ("" if tag is None else f"_s{tag}")
+        return f"eval_{model}_h{key_text(height)}_on_h{key_text(test_height)}" + ("" if tag is None else f"_s{tag}")
 
     def runs(self):
         """(model, height, seed) of every training, in the graph's order."""
@@ -115,7 +116,8 @@ def build_plan(*, preset: str, models: list[str], left_out: list[str], heights: 
     except (DatasetError, FileNotFoundError, ValueError) as e:
         raise UserError(str(e)) from None
     data_cfg = base_cfg["data"]
-    frames = int((base_cfg.get("study") or {}).get("ability_frames", 0) or 0) if simulated else 0
+    rigs = any(isinstance(h, str) for h in heights)  # rigs are counted on the dataset's merged points
+    frames = int((base_cfg.get("study") or {}).get("ability_frames", 0) or 0) if simulated and not rigs else 0
     sim_overrides = tuple(str(o) for o in data_cfg.get("sim_overrides") or [])
     ability = AbilitySource(frames=frames, seed=data_cfg.get("seed", 0),
                             sim_preset=str(data_cfg.get("sim_preset", "paper")), sim_overrides=sim_overrides)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
+from detbench.data.frame import key_label
 from detbench.studies.cross_height import cross_height_markdown
 from detbench.studies.seed_markdown import detector_table_markdown, pairwise_markdown, seed_markdown_lines
 from detbench.studies.split_check import split_check_markdown
@@ -123,7 +124,7 @@ def _headline(study: Mapping) -> str:
                    "a resumed training counts every invocation; evaluation excluded): "
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
-    return (f"Heights: {', '.join(f'{h:g} m' for h in study['heights'])}. Models: {', '.join(study['models'])}. "
+    return (f"Heights: {', '.join(key_label(h) for h in study['heights'])}. Models: {', '.join(study['models'])}. "
             f"Detection data: {_data_words(study)}. Ran {study['seconds_this_invocation'] / 60:.1f} min in this "
             f"invocation. {train_words}")
 

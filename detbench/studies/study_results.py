@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from detbench.data.frame import key_text
 from detbench.data.regions import RANGES
 from detbench.studies.cross_height import cross_height_matrix
 from detbench.studies.seeds import seed_statistics
@@ -85,8 +86,8 @@ def study_results(plan: StudyPlan, seconds: float) -> dict:
         "ranges": {r: {"x_min": x0, "x_max": x1, "abs_y_max": y} for r, (x0, x1, y) in RANGES.items()},
         "preset_facts": None if facts is None else {"epochs": dict(facts.epochs), "paper_frames": facts.paper_frames,
                                                     "paper_epochs": dict(facts.paper_epochs)},
-        "run_minutes": {f"{m} {h:g}": round(sum(v) / len(v), 2) for (m, h), v in train_min.items()},
-        "ap_r40_small": {m: {f"{h:g}": by_run[(m, h)]["results"]["small"]["all"]["ap_r40"] for h in plan.heights}
+        "run_minutes": {f"{m} {key_text(h)}": round(sum(v) / len(v), 2) for (m, h), v in train_min.items()},
+        "ap_r40_small": {m: {key_text(h): by_run[(m, h)]["results"]["small"]["all"]["ap_r40"] for h in plan.heights}
                          for m in plan.models},
         "not_learned": {"below_ap_r40": NOT_LEARNED_AP, "models": unlearned_models(reports)},
         "markdown": {"ability": (out / "ability" / "ability.md").read_text(encoding="utf-8"),
@@ -109,10 +110,10 @@ def _seed_section(plan: StudyPlan, train_min: dict) -> dict:
                 groups[(m, h)].append(rep)
     minutes = {k: sum(v) / len(v) for k, v in train_min.items()}
     stats = seed_statistics(groups, minutes)
-    return {"seeds": list(plan.seeds), "by_height": {f"{h:g}": c for h, c in stats["by_height"].items()},
-            "by_model": stats["by_model"], "pairs": {f"{h:g}": c for h, c in stats["pairs"].items()},
+    return {"seeds": list(plan.seeds), "by_height": {f"{key_text(h)}": c for h, c in stats["by_height"].items()},
+            "by_model": stats["by_model"], "pairs": {f"{key_text(h)}": c for h, c in stats["pairs"].items()},
             "height_pairs": stats["height_pairs"],
-            "train_minutes": {f"{m} {h:g}": round(t, 2) for (m, h), t in minutes.items()},
+            "train_minutes": {f"{m} {key_text(h)}": round(t, 2) for (m, h), t in minutes.items()},
             "table": stats["table"]}
 
 

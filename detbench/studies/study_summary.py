@@ -20,6 +20,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from detbench.data.frame import height_or_rig, key_label, key_order
 from detbench.data.regions import LEVELS, RANGE_NAMES
 from detbench.eval.bootstrap import bootstrap_ratios, percentile_interval, scene_bootstrap_weights
 
@@ -95,7 +96,7 @@ def height_summary_lines(ability: dict) -> list[str]:
                 lines.append(f"| {LEVEL_WORDS[lv]} | {RANGE_WORDS[r]} | - | - | - |")
                 continue
             if c["tied"]:
-                names = " = ".join(f"{float(h):g} m" for h in [c["best"], *c["tied"]])
+                names = " = ".join(key_label(h) for h in [c["best"], *c["tied"]])
                 lines.append(f"| {LEVEL_WORDS[lv]} | {RANGE_WORDS[r]} | {names} (tied) | {_f(c['ldr'])} | 0 |")
                 bests.append(None)
                 continue
@@ -105,16 +106,16 @@ def height_summary_lines(ability: dict) -> list[str]:
             else:
                 total += 1
                 supported += c["supported"]
-                lead = (f"{c['diff']:+.3f} over {float(c['runner_up']):g} m {_ci(c['ci95'], True)}"
+                lead = (f"{c['diff']:+.3f} over {key_label(c['runner_up'])} {_ci(c['ci95'], True)}"
                         + ("" if c["supported"] or not c["ci95"] else " (not resolved)"))
-            lines.append(f"| {LEVEL_WORDS[lv]} | {RANGE_WORDS[r]} | {float(c['best']):g} m | {_f(c['ldr'])} | {lead} |")
+            lines.append(f"| {LEVEL_WORDS[lv]} | {RANGE_WORDS[r]} | {key_label(c['best'])} | {_f(c['ldr'])} | {lead} |")
     words = []
     if bests and len(set(bests)) == 1 and bests[0] is not None:
-        words.append(f"The LiDAR at {float(bests[0]):g} m hits the most vehicles at every level and range.")
+        words.append(f"The LiDAR at {key_label(bests[0])} hits the most vehicles at every level and range.")
     elif bests:
         counts = {h: bests.count(h) for h in dict.fromkeys(bests)}
         words.append("The height that hits the most vehicles depends on the cell: "
-                     + ", ".join((f"{float(h):g} m in {n}" if h is not None else f"a tie in {n}")
+                     + ", ".join((f"{key_label(h)} in {n}" if h is not None else f"a tie in {n}")
                                  + f" of {len(bests)}" for h, n in counts.items()) + ".")
     if total:
         words.append(f"Its lead over the next height is resolved (the 95 % interval excludes 0) in {supported} "
@@ -152,11 +153,11 @@ def paired_recall_difference(rep_a: dict, rep_b: dict, r: str, lv: str, replicat
 
 def detector_summary(reports: Sequence[dict], range_name: str = "large", level: str = "all") -> dict:
     """{height: {"ranking": [(model, recall, ap)], "best", "runner_up", "lead": {"diff", "ci95"}}}."""
-    by_height: dict[float, list[dict]] = {}
+    by_height: dict[float | str, list[dict]] = {}
     for rep in reports:
-        by_height.setdefault(float(rep["height"]), []).append(rep)
+        by_height.setdefault(height_or_rig(rep["height"]), []).append(rep)
     out = {}
-    for h in sorted(by_height):
+    for h in sorted(by_height, key=key_order):
         reps = by_height[h]
         scored = [(rep, rep["results"][range_name][level]) for rep in reps]
         scored = [(rep, c) for rep, c in scored if c.get("recall") is not None]
@@ -187,7 +188,7 @@ def detector_summary_markdown(summary: Mapping) -> list[str]:
              "|---|---|---|---|---|---|"]
     for h, c in summary.items():
         if not c["ranking"]:
-            lines.append(f"| {float(h):g} m | - | - | - | - | - |")
+            lines.append(f"| {key_label(h)} | - | - | - | - | - |")
             continue
         b = c["ranking"][0]
         lead = "-"
@@ -197,7 +198,7 @@ def detector_summary_markdown(summary: Mapping) -> list[str]:
         elif c["runner_up"] is not None:
             lead = f"over {c['runner_up']} (no paired interval: evaluate with --bootstrap)"
         every = "; ".join(f"{e['model']} {_f(e['recall'], 2)} / {_f(e['ap_r40'], 2)}" for e in c["ranking"])
-        lines.append(f"| {float(h):g} m | {b['model']} | {_f(b['recall'])} {_ci(b['recall_ci95'])} | "
+        lines.append(f"| {key_label(h)} | {b['model']} | {_f(b['recall'])} {_ci(b['recall_ci95'])} | "
                      f"{_f(b['ap_r40'])} {_ci(b['ap_r40_ci95'])} | {lead} | {every} |")
     return lines
 
@@ -216,8 +217,9 @@ def unlearned_models(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP,
     for rep in reports:
         ap = rep["results"][range_name][level].get("ap_r40")
         if ap is not None:  # no AP (no LiDAR-detected vehicle in the range) says nothing about learning
-            aps.setdefault(str(rep.get("model")), []).append((float(rep["height"]), float(ap)))
-    return {m: [a for _, a in sorted(v)] for m, v in sorted(aps.items()) if v and all(a < threshold for _, a in v)}
+            aps.setdefault(str(rep.get("model")), []).append((height_or_rig(rep["height"]), float(ap)))
+    return {m: [a for _, a in sorted(v, key=lambda ha: (key_order(ha[0]), ha[1]))]
+            for m, v in sorted(aps.items()) if v and all(a < threshold for _, a in v)}
 
 
 def unlearned_lines(reports: Sequence[dict], threshold: float = NOT_LEARNED_AP) -> list[str]:

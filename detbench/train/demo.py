@@ -22,7 +22,7 @@ from torch import nn
 from detbench.config import ConfigError, get, shipped_default
 from detbench.data.dataset import Height3Dataset
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key
+from detbench.data.frame import data_key, key_heading, key_value
 from detbench.data.road import RoadConfig
 from detbench.train.inference import checkpoint_predictions, frame_sample
 from detbench.train.logger import bev_figure
@@ -40,7 +40,7 @@ def select_frame(dataset: Height3Dataset, frame: str) -> str:
     ids = dataset.frame_ids
     if frame in ids:
         return frame
-    where = f"the {dataset.split} split at {dataset.height_key} m"
+    where = f"the {dataset.split} split at {key_heading(dataset.height_key)}"
     if not ids:
         raise UserError(f"--frame {frame}: {where} holds no frames; choose another --split")
     try:
@@ -59,7 +59,7 @@ class DemoFrame:
     """One frame with a checkpoint's predictions on it."""
 
     frame_id: str
-    height: float  # metres, the LiDAR the frame was recorded with
+    height: float | str  # metres, the LiDAR the frame was recorded with (a rig: its name)
     split: str
     model: str
     checkpoint: str
@@ -100,7 +100,7 @@ def demo_frame(model: nn.Module, ck: dict, dataset: Height3Dataset, frame: str, 
                                    source=checkpoint)
     boxes, scores = preds[fid].boxes, preds[fid].scores
     sample = frame_sample(f, pc_range, RoadConfig.of_run_config(ck["config"]))
-    return DemoFrame(frame_id=fid, height=float(dataset.height_key), split=dataset.split, model=ck["model_name"],
+    return DemoFrame(frame_id=fid, height=key_value(dataset.height_key), split=dataset.split, model=ck["model_name"],
                      checkpoint=str(checkpoint), stage=stage, points=sample.points,
                      gt_boxes=np.asarray(f.boxes, np.float32).reshape(-1, 7),
                      boxes=np.asarray(boxes, np.float32).reshape(-1, 7),
@@ -125,7 +125,7 @@ def demo_record(d: DemoFrame) -> dict:
 
 def demo_figure(d: DemoFrame) -> Figure:
     """The bird's-eye drawing of `d` (the training preview's `bev_figure`)."""
-    title = (f"{d.model} ({d.stage}) on frame {d.frame_id}, {d.split} split, {height_key(d.height)} m: "
+    title = (f"{d.model} ({d.stage}) on frame {d.frame_id}, {d.split} split, {key_heading(data_key(d.height))}: "
              f"ground truth (green) vs predictions (red)")
     return bev_figure(d.points, d.gt_boxes, d.boxes, d.scores, d.point_cloud_range,
                       score_threshold=d.score_threshold, title=title)
@@ -167,7 +167,7 @@ def run_demo(model: nn.Module, ck: dict, opts: DemoOptions) -> tuple[DemoFrame, 
         raise UserError(f"{data}: dataset root not found; give --data the folder written by tools/simulate.py "
                         f"or holding the Height3 data")
     try:
-        dataset = Height3Dataset(data, float(height), opts.split)
+        dataset = Height3Dataset(data, key_value(height), opts.split)
     except (FileNotFoundError, ValueError, KeyError) as e:
         raise UserError(str(e)) from None
     d = demo_frame(model, ck, dataset, opts.frame, checkpoint=opts.checkpoint, device=opts.device,

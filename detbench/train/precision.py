@@ -45,6 +45,7 @@ from tqdm import tqdm
 
 from detbench.config import shipped_default
 from detbench.data import Height3Dataset
+from detbench.data.frame import key_label
 from detbench.data.batch import collate
 from detbench.data.detections import Detections
 from detbench.data.errors import DatasetError
@@ -370,7 +371,7 @@ def precision_markdown(report: dict, title: str = "Inference precision against f
     return "\n".join(lines) + "\n"
 
 
-def precision_frames(root, height: float, split: str, limit: int = 0) -> list:
+def precision_frames(root, height: float | str, split: str, limit: int = 0) -> list:
     """The first `limit` frames (0: all) of `split` at `height` in the dataset at `root`; ValueError (naming
     the dataset) when it cannot be read or the split is empty."""
     try:
@@ -379,7 +380,7 @@ def precision_frames(root, height: float, split: str, limit: int = 0) -> list:
         raise ValueError(f"{e} (give --data ROOT --height H of a dataset in the Height3 layout)") from None
     n = len(dataset) if limit == 0 else min(limit, len(dataset))
     if n == 0:
-        raise ValueError(f"{root}: the {split!r} split at {height:g} m has no frames; try --split all")
+        raise ValueError(f"{root}: the {split!r} split at {key_label(height)} has no frames; try --split all")
     return [dataset[i] for i in range(n)]
 
 
@@ -398,7 +399,7 @@ def checkpoint_precision_report(model: nn.Module, ck: dict, checkpoint, frames: 
 
 def checkpoint_precision_markdown(report: dict) -> str:
     """precision.md of a `checkpoint_precision_report`."""
-    md = precision_markdown(report, f"{report['model']} at {report['height']:g} m: inference precision against "
+    md = precision_markdown(report, f"{report['model']} at {key_label(report['height'])}: inference precision against "
                                     f"float32")
     return md + f"\nCheckpoint: {report['checkpoint']}; torch {report['torch']}, {report['threads']} threads.\n"
 

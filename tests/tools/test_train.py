@@ -222,21 +222,59 @@ def test_a_run_whose_checkpoint_stores_an_earlier_versions_model_config_resumes(
     assert proc.returncode == 2 and "model.head.focal_gamma: 3.0 (checkpoint) vs 2.0 (now)" in proc.stderr
 
 
-@pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
-def test_train_on_a_rig(tmp_path, model):
-    # a headlight-pair dataset trains through the same command as a height, --height naming the rig
-    import tools.train
-    from detbench.sim.dataset import write_simulation
-    from detbench.sim import HighwaySimulator, load_sim_config
-    from detbench.sim.rigs import load_rigs
+@pytest.fixture(scope="module")
+def rig_dataset(tmp_path_factory):
+    """9 frames (3 scenes of 3, seed 7) seen by the headlight pair and the forehead unit of configs/rigs.yaml."""
+    from detbench.sim.dataset import simulate_dataset
 
-    data = tmp_path / "rigs"
-    write_simulation(data, HighwaySimulator(load_sim_config(), 7), [load_rigs()["headlights"]], 6,
-                     source={"kind": "simulator"}, frames_per_scene=3, progress=False)
+    root = tmp_path_factory.mktemp("data") / "rigs"
+    return simulate_dataset(root, frames=9, heights=["headlights", "forehead"], seed=7, frames_per_scene=3,
+                            progress=False)
+
+
+@pytest.mark.parametrize("model", ["second", "pillarnet", "pointrcnn", "ct3d"])
+def test_train_then_eval_on_a_rig(rig_dataset, tmp_path, model, capsys):
+    # a headlight-pair dataset trains and evaluates through the same commands as a height, --height naming the rig
+    import tools.train
+    from detbench.data import Height3Dataset
+
     out = tmp_path / "run"
     assert run_main(tools.train.main, ["--model", model, "--height", "headlights", "--preset", "smoke", "--data",
-                                       str(data), "--out", str(out), "--epochs", "1", "--no-progress",
+                                       str(rig_dataset), "--out", str(out), "--epochs", "1", "--no-progress",
                                        "--set", "train.tensorboard=false"]) == 0
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["height"] == "headlights" and summary["epochs_completed"] == 1
     assert "at rig headlights" in (out / "train_summary.md").read_text()
+    # the checkpoint records the rig: --ckpt alone evaluates it on the rig's own test split
+    assert run_main(tools.eval.main, ["--ckpt", str(out), "--bootstrap", "0", "--no-progress"]) == 0
+    report = json.loads((out / "eval_hheadlights_test" / "report.json").read_text())
+    assert (report["model"], report["height"], report["trained_height"]) == (model, "headlights", "headlights")
+    assert report["num_frames"] == len(Height3Dataset(rig_dataset, "headlights", "test").frame_ids) > 0
+    assert report["results"]["large"]["all"]["lidar_detected"] > 0  # the rig's merged points were read
+    assert "at rig headlights (test split)" in (out / "eval_hheadlights_test" / "report.md").read_text()
+    if model != "second":
+        return
+    # the drawing of a prediction on a rig's frame (tools/demo.py) takes the rig from the checkpoint too
+    import tools.demo
+
+    assert run_main(tools.demo.main, ["--ckpt", str(out), "--frame", "0"]) == 0
+    drawn = json.loads(next((out / "demo_hheadlights_test").glob("*.json")).read_text())
+    assert drawn["height_m"] == "headlights" and drawn["ground_truth"]
+    # and so does the precision check (tools/precision.py)
+    import tools.precision
+
+    assert run_main(tools.precision.main, ["--ckpt", str(next((out / "checkpoints").glob("*.pt"))), "--frames", "2",
+                                           "--precisions", "float32", "--no-progress"]) == 0
+    checked = json.loads(next(out.glob("precision_hheadlights_test/precision.json")).read_text())
+    assert checked["height"] == "headlights"
+    # another rig is a cross-rig evaluation, as another height is a cross-height one
+    assert run_main(tools.eval.main, ["--ckpt", str(out), "--test-height", "forehead", "--bootstrap", "0",
+                                      "--no-progress"]) == 0
+    cross = json.loads((out / "eval_hforehead_test" / "report.json").read_text())
+    assert (cross["height"], cross["trained_height"]) == ("forehead", "headlights")
+    from detbench.eval.report import report_variant
+
+    assert report_variant(cross) == "trained at rig headlights" and report_variant(report) is None
+    capsys.readouterr()
+    assert run_main(tools.eval.main, ["--ckpt", str(out), "--height", "forehead", "--out", str(tmp_path / "e")]) == 2
+    assert "was trained at rig headlights, not --height forehead" in capsys.readouterr().err
