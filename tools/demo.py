@@ -9,7 +9,7 @@ predictions at or above the score threshold (red, with their scores). The comput
 
 Examples:
   python tools/demo.py --ckpt runs/second_h1.8_cpu                       # the run's newest checkpoint, frame 0
-  python tools/demo.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_004.pt --frame 0003_017
+  python tools/demo.py --ckpt runs/second_h1.8_cpu/checkpoints/epoch_011.pt --frame 0003_017
   python tools/demo.py --ckpt runs/second_h1.8_cpu --frame -1 --split train --out runs/demo
 
 Writes OUT/<frame_id>.png (the drawing) and OUT/<frame_id>.json (the frame, the checkpoint, the ground
