@@ -39,21 +39,13 @@ class RigAbilityOptions:
 
 
 def load_selected_rigs(names: list[str], rig_file: str | None) -> list:
-    """The named rigs of the rig file; UserError names the file and the known rigs."""
-    from detbench.config import ConfigError
-    from detbench.sim.rigs import load_rigs
+    """The named rigs of the rig file (`detbench.sim.run.run_rigs`); UserError names the file and the known rigs."""
+    from detbench.sim.run import run_rigs
 
     try:
-        known = load_rigs(rig_file)
-    except ConfigError as e:
+        return run_rigs(names, rig_file)
+    except ValueError as e:  # ConfigError of the rig file included
         raise UserError(str(e)) from None
-    missing = [n for n in names if n not in known]
-    if missing:
-        raise UserError(f"--rigs {' '.join(missing)}: not in {rig_file or 'configs/rigs.yaml'}; known: "
-                        f"{', '.join(known)}")
-    if len(set(names)) != len(names):
-        raise UserError(f"--rigs {' '.join(names)}: each rig once")
-    return [known[n] for n in names]
 
 
 def _reference_body(rigs: list):

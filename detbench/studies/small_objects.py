@@ -36,10 +36,8 @@ class SmallObjectCounts:
         p = np.array([PROBE_PLACES.index(str(v)) for v in places], np.int64) if places is not None \
             else np.zeros(len(k), np.int64)
         det = counts >= DETECTED_MIN_POINTS
-        for j in np.flatnonzero(sel):
-            acc[p[j], k[j], 0, b[j]] += 1
-            acc[p[j], k[j], 1, b[j]] += int(det[j])
-            acc[p[j], k[j], 2, b[j]] += int(counts[j])
+        for row, value in enumerate((np.ones(len(k), np.int64), det.astype(np.int64), counts.astype(np.int64))):
+            np.add.at(acc[:, :, row], (p[sel], k[sel], b[sel]), value[sel])
 
     def definitions(self) -> dict:
         return {"kinds": list(PROBE_KINDS), "places": list(PROBE_PLACES),

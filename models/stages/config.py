@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import difflib
 import math
+from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
@@ -168,12 +169,13 @@ class Section:
             raise ModelConfigError(f"{self.source}: unknown key {self.dotted(key)}{hint}")
 
 
-class StageConfig:
+class StageConfig(ABC):
     """Base of the frozen stage configs: `read(section)` in each, `from_config` for a whole mapping."""
 
     @classmethod
-    def read(cls: type[C], s: Section) -> C:  # pragma: no cover - every stage config defines it
-        raise NotImplementedError
+    @abstractmethod
+    def read(cls: type[C], s: Section) -> C:
+        """The config from its section, each key read through `s` (so `finish` can name the unread ones)."""
 
     @classmethod
     def from_config(cls: type[C], section: Any, path: str = "model", source: str = "the model config") -> C:
