@@ -15,6 +15,7 @@ Examples:
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
   python tools/study.py --preset cpu --rigs headlights forehead --cross-height   # rigs as cars carry them
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
+  python tools/study.py --preset cpu --test-data data/test200   # the trained runs tested on more scenes
   python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per usable core)
   python tools/study.py --preset quick --models second pillarnet --seeds 0 1   # each run once per seed
   python tools/study.py --preset smoke --executor ray  # the jobs as tasks of a local Ray instance
@@ -73,6 +74,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "rig, the report keyed by rig; --cross-height gives the cross-rig matrix. E.g. --rigs "
                          "headlights forehead")
     ap.add_argument("--data", default=None, metavar="ROOT", help="a dataset on disk instead of the simulated default")
+    ap.add_argument("--test-data", default=None, metavar="ROOT",
+                    help="evaluate on the test split of this dataset instead of the training data's (the training "
+                         "still reads the train split of --data or the simulated default): more test scenes for "
+                         "narrower intervals without training again, or another world. It must hold every height "
+                         "(or rig) of the study. E.g. a held-out set of 200 scenes of the cpu preset's world: "
+                         "tools/simulate.py --out data/test200 --frames 2000 --frames-per-scene 10 --frame-stride 20 "
+                         "--heights 0.5 1.8 --seed 1 --test-fraction 0.99")
     ap.add_argument("--device", default="auto", help="cpu, cuda or auto (default)")
     ap.add_argument("--out", default=None, help="output folder (default runs/study_<preset>)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -123,7 +131,7 @@ def main(argv=None) -> int:
     opts = StudyOptions(preset=args.preset, models=args.models, heights=args.heights, rigs=args.rigs, data=args.data,
                         device=args.device, out=args.out, overrides=args.overrides, cross_height=args.cross_height,
                         fresh=args.fresh, no_progress=args.no_progress, jobs=args.jobs, executor=args.executor,
-                        address=args.address, seeds=args.seeds)
+                        address=args.address, seeds=args.seeds, test_data=args.test_data)
     md, seconds = run_study(opts, registry=models, repo=ROOT)
     print(f"\nstudy done in {seconds / 60:.1f} min: {md}")
     return 0

@@ -78,11 +78,13 @@ def train_command(spec: TrainSpec) -> list[str] | None:
 
 
 def eval_command(checkpoint: str | os.PathLike, trained_height: float, test_height: float, out: str | os.PathLike,
-                 device: str, *, progress: bool = False) -> list[str]:
+                 device: str, *, data: str | os.PathLike | None = None, progress: bool = False) -> list[str]:
     """tools/eval.py's command: the checkpoint trained at `trained_height` on the test split at `test_height`
-    (--test-height only when they differ), report into the folder `out`."""
+    (--test-height only when they differ) of the dataset it was trained on, or of `data` when given, report into
+    the folder `out`."""
     other = ["--test-height", str(test_height)] if test_height != trained_height else []
-    return [sys.executable, EVAL_TOOL, "--ckpt", str(checkpoint), *other, "--split", "test", "--out", str(out),
+    on = ["--data", str(data)] if data is not None else []
+    return [sys.executable, EVAL_TOOL, "--ckpt", str(checkpoint), *on, *other, "--split", "test", "--out", str(out),
             "--device", device, *_quiet(progress)]
 
 

@@ -71,6 +71,7 @@ class StudyOptions:
     executor: str = "local"  # local or ray
     address: str | None = None  # the Ray cluster (None: a local Ray instance)
     seeds: list[int] | None = None  # training seeds; None: the config's train.seed
+    test_data: str | None = None  # a dataset whose test split the evaluations read (None: the training data's)
 
 
 def study_models(preset: str, requested: list[str] | None, overrides: list[str], *,
@@ -85,21 +86,24 @@ def study_models(preset: str, requested: list[str] | None, overrides: list[str],
 
 
 def split_ability_reports(root: Path, heights: list[float], out: Path, fingerprint: str, *,
-                          no_progress: bool = True) -> dict:
+                          no_progress: bool = True, test_root: Path | None = None,
+                          test_fingerprint: str | None = None) -> dict:
     """{"train": report, "test": report}: the ability study counted on each split of the dataset at `root`
-    (hit counts of its points, as tools/analyze.py --data), kept in `out`/splits/<split>.json. A kept report
-    is reused while its stage record (detbench.studies.stage_inputs: the heights and the data's content
-    `fingerprint`) still holds."""
+    (hit counts of its points, as tools/analyze.py --data), the test split on `test_root`'s when given, kept in
+    `out`/splits/<split>.json. A kept report is reused while its stage record (detbench.studies.stage_inputs:
+    the heights and the data's content `fingerprint`, or `test_fingerprint` for the test split) still holds."""
     from detbench.studies.ability_run import AbilityOptions, run_ability
 
-    inputs = {"heights": list(heights), "data_fingerprint": fingerprint}
     reports = {}
     for split in ("train", "test"):
+        other = split == "test" and test_root is not None
+        inputs = {"heights": list(heights), "data_fingerprint": test_fingerprint if other else fingerprint}
+        data = test_root if other else root
         path = out / "splits" / f"{split}.json"
         if path.is_file() and not changes(out, f"split_{split}", inputs):
             reports[split] = read_json(path)
             continue
-        reports[split], _, _ = run_ability(AbilityOptions(data=str(root), split=split, heights=list(heights),
+        reports[split], _, _ = run_ability(AbilityOptions(data=str(data), split=split, heights=list(heights),
                                                           no_figures=True, no_progress=no_progress))
         atomic_write_json(path, reports[split])
         write_record(out, f"split_{split}", inputs)
@@ -131,6 +135,7 @@ def run_study(args: StudyOptions, *, registry: ModelRegistry, repo: str | os.Pat
         heights = study_rigs(args.data, args.rigs, args.heights)
     else:
         heights = study_heights(args.data, args.heights, base_cfg["data"]["heights"])
+    _check_test_data(args.test_data, heights)
     _check_executor_options(args)
     # only now, with the arguments known to be good, is anything deleted or created
     with ExitStack() as held:
@@ -206,6 +211,27 @@ def study_rigs(data: str | None, rigs: list[str], heights: list[float] | None) -
     return list(rigs)
 
 
+def _check_test_data(test_data: str | None, heights: list) -> None:
+    """UserError before anything is created for --test-data that is no dataset or lacks a height (or rig) of
+    the study."""
+    if not test_data:
+        return
+    if not (Path(test_data) / "dataset.json").is_file():
+        raise UserError(f"--test-data {test_data}: no dataset.json there; give a dataset written by "
+                        f"tools/simulate.py (e.g. tools/simulate.py --out {test_data} --seed 1 ...) or python -m "
+                        f"detbench.data.convert, or leave --test-data out to test on the training data's test split")
+    try:
+        held = list(read_info(test_data).heights)
+    except DatasetError as e:
+        raise UserError(f"--test-data {test_data}: {e}") from None
+    keys = {height_key(k) if not is_rig_key(k) else k for k in held}
+    missing = [h for h in heights if (h if isinstance(h, str) else height_key(h)) not in keys]
+    if missing:
+        lacks = ", ".join(h if isinstance(h, str) else f"{h:g} m" for h in missing)
+        raise UserError(f"--test-data {test_data}: lacks {lacks} (it holds {', '.join(map(str, held))}); simulate "
+                        f"the test data at every height (or rig) of the study")
+
+
 def _note(text: str) -> None:
     print(f"note: {text}", file=sys.stderr, flush=True)
 
@@ -220,11 +246,15 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
               f"configs/presets/{args.preset}.yaml); add it with {add}", flush=True)
     # 1. data (in this process, before the graph: every job reads it)
     root, info = _dataset(args, base_cfg, heights)
+    test_root = Path(args.test_data).resolve() if args.test_data else None
+    if test_root is not None:
+        print(f"test data: {test_root} (the evaluations read its test split)", flush=True)
     hashes = FileHashes(out / RECORDS_DIR / "file_hashes.json")
     plan = build_plan(preset=args.preset, models=names, left_out=left_out, heights=heights, seeds=args.seeds,
                       base_cfg=base_cfg, out=out, data_root=root, data_info=info, hashes=hashes,
                       simulated=not args.data, overrides=args.overrides, device=args.device,
-                      cross_height=args.cross_height)
+                      cross_height=args.cross_height, test_root=test_root,
+                      test_info=read_json(test_root / "dataset.json") if test_root is not None else None)
     # a finished training run computed from other inputs is refused here, before any stage runs
     stale = stale_trainings(plan)
     if stale:
@@ -236,7 +266,10 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     hashes.save()
     # the splits counted like the ability study (in this process; compared with it after the graph)
     print("\n=== the train and test splits counted like the ability study", flush=True)
-    split_ability_reports(root, heights, out, dataset_fingerprint(root, heights, hashes), no_progress=args.no_progress)
+    split_ability_reports(root, heights, out, dataset_fingerprint(root, heights, hashes), no_progress=args.no_progress,
+                          test_root=test_root,
+                          test_fingerprint=None if test_root is None else dataset_fingerprint(test_root, heights,
+                                                                                              hashes))
     hashes.save()
     # 2-5. the job graph: the ability study, each training, its evaluations, the combined report
     _run_jobs(args, plan, hashes, repo)

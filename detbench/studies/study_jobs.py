@@ -10,7 +10,8 @@ what it was computed from once it succeeded (`record`, detbench.studies.stage_in
 - per model, height and seed a training (no dependencies), resumed from its checkpoints when it
   was stopped; its stage record is written before it starts, so a killed run resumes with it;
 - its evaluation at its own height (after the training), and with cross_height those of the
-  primary seed at the other heights; recomputed when the checkpoint, data or eval config changed;
+  primary seed at the other heights, on the test split of the dataset or of the plan's test data;
+  recomputed when the checkpoint, the test data or the eval config changed;
 - the combined report of the primary seed's evaluations (after every evaluation at its height).
 
 `stale_trainings(plan)` lists the finished or started trainings computed from other inputs than the
@@ -108,7 +109,7 @@ class EvalStage:
         ckpt = read_json(run_dir / "train_summary.json")["checkpoint"]
         inputs = {"train": config_digest(plan.train_inputs[(self.model, self.height, self.seed)]),
                   "checkpoint": self.hashes.sha1(ckpt), "test_height": self.test_height,
-                  "data_fingerprint": plan.data_fingerprints[self.test_height],
+                  "data_fingerprint": plan.eval_fingerprints[self.test_height],
                   "eval": plan.eval_digests[self.model]}
         self.hashes.save()
         self.recorded.update(inputs)
@@ -118,7 +119,8 @@ class EvalStage:
             return None
         if diff:
             _note(f"{report} was computed from other inputs ({'; '.join(diff)}); evaluating again")
-        return eval_command(ckpt, self.height, self.test_height, report.parent, self.device, progress=self.progress)
+        return eval_command(ckpt, self.height, self.test_height, report.parent, self.device, data=plan.test_root,
+                            progress=self.progress)
 
     def record(self) -> None:
         write_record(self.plan.out, self.plan.eval_stage(self.model, self.height, self.test_height, self.seed),

@@ -70,6 +70,14 @@ class StudyPlan:
     device: str = "auto"
     cross_height: bool = False
     facts: PresetFacts | None = None
+    test_root: Path | None = None  # the dataset whose test split the evaluations read (None: data_root's)
+    test_info: Mapping | None = None  # its dataset.json
+    test_fingerprints: Mapping[float, str] | None = None  # per height: the content of its files at that height
+
+    @property
+    def eval_fingerprints(self) -> Mapping[float, str]:
+        """Per height: the content of the files the evaluations read (the test data's, else the dataset's)."""
+        return self.data_fingerprints if self.test_fingerprints is None else self.test_fingerprints
 
     @property
     def primary(self) -> int:
@@ -105,14 +113,19 @@ class StudyPlan:
 def build_plan(*, preset: str, models: list[str], left_out: list[str], heights: list[float], seeds: list[int] | None,
                base_cfg: Mapping, out: Path, data_root: Path, data_info: Mapping, hashes: FileHashes,
                simulated: bool, overrides: list[str] = (), device: str = "auto",
-               cross_height: bool = False) -> StudyPlan:
+               cross_height: bool = False, test_root: Path | None = None,
+               test_info: Mapping | None = None) -> StudyPlan:
     """The plan of a study on the dataset at `data_root` (made or found already), whose figures go to `out`.
     `simulated`: the data are the preset's simulated default, so the ability study may run on its own
-    simulated stream (the config's study.ability_frames). Raises UserError when the data cannot be read."""
+    simulated stream (the config's study.ability_frames). `test_root`: a second dataset whose test split the
+    evaluations read instead of `data_root`'s (the training still reads `data_root`'s train split). Raises
+    UserError when the data cannot be read."""
     config_seed = int(base_cfg["train"]["seed"])
     seeds = list(dict.fromkeys(int(x) for x in seeds)) if seeds else [config_seed]
     try:
         fingerprints = {h: dataset_fingerprint(data_root, [h], hashes) for h in heights}
+        test_fingerprints = (None if test_root is None
+                             else {h: dataset_fingerprint(test_root, [h], hashes) for h in heights})
     except (DatasetError, FileNotFoundError, ValueError) as e:
         raise UserError(str(e)) from None
     data_cfg = base_cfg["data"]
@@ -137,7 +150,8 @@ def build_plan(*, preset: str, models: list[str], left_out: list[str], heights: 
                      seeds=tuple(seeds), config_seed=config_seed, out=out, data_root=data_root, data_info=data_info,
                      data_fingerprints=fingerprints, ability=ability, ability_inputs=ability_inputs,
                      train_inputs=train_inputs, eval_digests=eval_digests, overrides=tuple(overrides), device=device,
-                     cross_height=cross_height, facts=preset_facts(models, preset, overrides))
+                     cross_height=cross_height, facts=preset_facts(models, preset, overrides), test_root=test_root,
+                     test_info=test_info, test_fingerprints=test_fingerprints)
 
 
 def _seed_overrides(seed: int, config_seed: int) -> tuple[str, ...]:

@@ -82,10 +82,10 @@ def _rules(study: Mapping) -> tuple[str, str, str]:
     return extent, rule, spans
 
 
-def _data_words(study: Mapping) -> str:
-    """The detection data: "`ROOT` (N frames, K per scene)"."""
-    info = study.get("data_info")
-    words = f"`{study['data']}`"
+def _data_words(study: Mapping, which: str = "data") -> str:
+    """The detection data ("data") or the test data ("test_data"): "`ROOT` (N frames, K per scene)"."""
+    info = study.get(f"{which}_info")
+    words = f"`{study[which]}`"
     if info:
         words += f" ({'?' if info.get('num_frames') is None else info['num_frames']} frames"
         words += f", {info['frames_per_scene']} per scene)" if info.get("frames_per_scene") else ")"
@@ -102,8 +102,10 @@ def _ability_words(study: Mapping) -> str:
 
 def _detect_source(study: Mapping, tested: str = "tested on the test split") -> str:
     scenes = study.get("test_scenes")
-    return (f"*Preset `{study['preset']}`; trained on the train split and {tested} of {_data_words(study)}: "
-            f"{study['test_frames']} test frames" + (f" from {scenes} scenes" if scenes else "") + ".*")
+    where = (f"trained on the train split and {tested} of {_data_words(study)}" if not study.get("test_data") else
+             f"trained on the train split of {_data_words(study)} and {tested} of {_data_words(study, 'test_data')}")
+    return (f"*Preset `{study['preset']}`; {where}: {study['test_frames']} test frames"
+            + (f" from {scenes} scenes" if scenes else "") + ".*")
 
 
 def _embed(markdown: str, source: str) -> str:
@@ -125,7 +127,9 @@ def _headline(study: Mapping) -> str:
                    + ", ".join(f"{m} {t / 60:.1f} min" for m, t in train_s.items())
                    + f"; {sum(train_s.values()) / 60:.1f} min in all.")
     return (f"Heights: {', '.join(key_label(h) for h in study['heights'])}. Models: {', '.join(study['models'])}. "
-            f"Detection data: {_data_words(study)}. Ran {study['seconds_this_invocation'] / 60:.1f} min in this "
+            f"Detection data: {_data_words(study)}."
+            + (f" Test data: {_data_words(study, 'test_data')}." if study.get("test_data") else "")
+            + f" Ran {study['seconds_this_invocation'] / 60:.1f} min in this "
             f"invocation. {train_words}")
 
 
@@ -177,8 +181,9 @@ def _ability_section(study: Mapping) -> list[str]:
              "The detection dataset's splits counted like the ability study (all vehicles; 95 % scene-bootstrap "
              "intervals): a test split that holds other traffic than the ability study scores the detectors on "
              "another world.", "",
-             f"*Preset `{study['preset']}`; the train and test splits of {_data_words(study)}, against the ability "
-             f"study ({_ability_words(study)}).*", ""]
+             f"*Preset `{study['preset']}`; the train and test splits of {_data_words(study)}"
+             + (f" (the test split of {_data_words(study, 'test_data')})" if study.get("test_data") else "")
+             + f", against the ability study ({_ability_words(study)}).*", ""]
     for name, result in study["split_check"].items():
         split = study["splits"][name]
         lines += [f"**{name.capitalize()} split** ({split['num_frames']} frames, {split['num_scenes']} scenes)", "",

@@ -10,7 +10,8 @@ against the ability study (detbench.studies.split_check), the cross-height matri
 their text, e.g. "1.8"); times in seconds or minutes as the key says.
 
 What it holds, besides the summary's and the statistics' own layouts: "data_info" (the dataset's
-frames), "splits" (each split's frames and scenes), "evaluation" (the reports' IoU kind and
+frames), "test_data" and "test_data_info" (the dataset whose test split the evaluations read, None for
+the training data's own), "splits" (each split's frames and scenes), "evaluation" (the reports' IoU kind and
 thresholds), "ranges" (the extents of detbench.data.regions), "preset_facts" (each model's epochs
 at the preset, the paper preset's frames and epochs), "run_minutes" (each model and height's
 training minutes, the mean over seeds), "ap_r40_small" (the primary seed's AP@R40 per model and
@@ -77,8 +78,8 @@ def study_results(plan: StudyPlan, seconds: float) -> dict:
     facts = plan.facts
     study.update({
         "primary_seed": plan.primary, "train_seeds": list(plan.seeds),
-        "data_info": None if not info else {"num_frames": info.get("num_frames"),
-                                            "frames_per_scene": info.get("frames_per_scene")},
+        "data_info": _info_words(info), "test_data": None if plan.test_root is None else str(plan.test_root),
+        "test_data_info": _info_words(plan.test_info),
         "splits": {name: {"num_frames": rep["num_frames"],
                           "num_scenes": ((rep.get("extras") or {}).get("uncertainty") or {}).get("num_clusters")}
                    for name, rep in splits.items()},
@@ -96,6 +97,13 @@ def study_results(plan: StudyPlan, seconds: float) -> dict:
                          for m in plan.models for h in plan.heights],
         "figures": [str(p.relative_to(out)) for p in sorted(figures)]})
     return study
+
+
+def _info_words(info) -> dict | None:
+    """What study.md states of a dataset.json: its frames and frames per scene (None without one)."""
+    if not info:
+        return None
+    return {"num_frames": info.get("num_frames"), "frames_per_scene": info.get("frames_per_scene")}
 
 
 def _seed_section(plan: StudyPlan, train_min: dict) -> dict:

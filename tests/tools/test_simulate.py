@@ -45,6 +45,30 @@ def test_simulate_writes_a_readable_dataset(tmp_path):
     np.testing.assert_allclose(g.boxes, first[1].boxes, atol=1e-3)
 
 
+def test_frame_stride_writes_the_presets_frames(tmp_path):
+    """--frame-stride K writes what the presets' data (detbench.sim.dataset.simulate_dataset, frame_stride K)
+    write for the same seed: the same points, frames K native frames apart, the stride in dataset.json."""
+    from detbench.sim.dataset import simulate_dataset
+
+    out = tmp_path / "tool"
+    assert tools.simulate.main(["--out", str(out), "--frames", "4", "--frames-per-scene", "2", "--frame-stride", "3",
+                                "--heights", "1.8", "--seed", "2", "--no-progress"]) == 0
+    ref = simulate_dataset(tmp_path / "ref", frames=4, heights=[1.8], seed=2, frames_per_scene=2, frame_stride=3,
+                           progress=False)
+    src = json.loads((out / "dataset.json").read_text())["source"]
+    assert src["frame_stride"] == 3 and src["overrides"] == ["scene.frame_rate_hz=0.6666666666666666"]
+    files = sorted(p.name for p in (ref / "points" / "1.8").iterdir())
+    assert len(files) == 4 and files == sorted(p.name for p in (out / "points" / "1.8").iterdir())
+    for name in files:
+        np.testing.assert_array_equal(np.load(out / "points" / "1.8" / name), np.load(ref / "points" / "1.8" / name))
+    plain = tmp_path / "plain"  # stride 1: other instants of the same scenes
+    tools.simulate.main(["--out", str(plain), "--frames", "4", "--frames-per-scene", "2", "--heights", "1.8",
+                         "--seed", "2", "--no-progress"])
+    assert not np.array_equal(np.load(plain / "points" / "1.8" / files[1]), np.load(out / "points" / "1.8" / files[1]))
+    with pytest.raises(SystemExit, match="--frame-stride 0"):
+        tools.simulate.main(["--out", str(tmp_path / "x"), "--frames", "2", "--frame-stride", "0"])
+
+
 def test_simulate_rejects_bad_input(tmp_path):
     sim = tools.simulate
     with pytest.raises(SystemExit, match="density_per_km_lane"):
