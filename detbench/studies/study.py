@@ -232,6 +232,20 @@ def _check_test_data(test_data: str | None, heights: list) -> None:
                         f"the test data at every height (or rig) of the study")
 
 
+def _check_held_out(root: Path, info: dict, test_root: Path, test_info: dict) -> None:
+    """UserError when the test data repeat the training data's scenes: two simulations with the same simulator
+    preset, seed and overrides draw the same scenes (detbench.sim.simulator seeds each scene by (seed, scene)), so
+    the training data's train scenes would be tested on."""
+    if test_root == root:
+        return
+    src, test_src = info.get("source") or {}, test_info.get("source") or {}
+    same = ("kind", "preset", "calibration", "seed", "overrides")
+    if src.get("kind") == "simulator" and all(src.get(k) == test_src.get(k) for k in same):
+        raise UserError(f"--test-data {test_root}: simulated with the training data's simulator preset, seed "
+                        f"{src.get('seed')} and overrides, so its scenes repeat the training scenes of {root}; "
+                        f"simulate the test data with another --seed (e.g. --seed {int(src.get('seed') or 0) + 1})")
+
+
 def _note(text: str) -> None:
     print(f"note: {text}", file=sys.stderr, flush=True)
 
@@ -247,14 +261,16 @@ def _run_stages(args: StudyOptions, out: Path, names: list[str], left_out: list[
     # 1. data (in this process, before the graph: every job reads it)
     root, info = _dataset(args, base_cfg, heights)
     test_root = Path(args.test_data).resolve() if args.test_data else None
+    test_info = read_json(test_root / "dataset.json") if test_root is not None else None
     if test_root is not None:
+        _check_held_out(root, info, test_root, test_info)
         print(f"test data: {test_root} (the evaluations read its test split)", flush=True)
     hashes = FileHashes(out / RECORDS_DIR / "file_hashes.json")
     plan = build_plan(preset=args.preset, models=names, left_out=left_out, heights=heights, seeds=args.seeds,
                       base_cfg=base_cfg, out=out, data_root=root, data_info=info, hashes=hashes,
                       simulated=not args.data, overrides=args.overrides, device=args.device,
                       cross_height=args.cross_height, test_root=test_root,
-                      test_info=read_json(test_root / "dataset.json") if test_root is not None else None)
+                      test_info=test_info)
     # a finished training run computed from other inputs is refused here, before any stage runs
     stale = stale_trainings(plan)
     if stale:

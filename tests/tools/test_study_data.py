@@ -76,6 +76,20 @@ def test_test_data_is_checked_before_anything_is_created(two_heights, tmp_path):
         assert not out.exists()
 
 
+def test_test_data_that_repeat_the_training_scenes_are_refused(two_heights, tmp_path):
+    """A simulation with the training data's seed draws its scenes again: testing on it would test on train scenes."""
+    from detbench.sim.dataset import simulate_dataset
+
+    same = simulate_dataset(tmp_path / "same", frames=16, heights=[0.5, 1.8], seed=0, frames_per_scene=8,
+                            progress=False)
+    out = tmp_path / "study"
+    with pytest.raises(UserError) as e:
+        run_study(StudyOptions(preset="smoke", data=str(two_heights), test_data=str(same), out=str(out),
+                               no_progress=True), registry=models, repo=ROOT)
+    msg = str(e.value)
+    assert "repeat the training scenes" in msg and "--seed 1" in msg, msg
+
+
 def test_the_evaluations_read_the_test_data_and_the_trainings_do_not(two_heights, other_scenes, tmp_path):
     """With test data the evaluation command reads its test split and its stage input is that data's content;
     the training's inputs stay those of the training data, so trained runs are tested on it without training
