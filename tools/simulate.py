@@ -89,7 +89,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from detbench.sim import HighwaySimulator, load_sim_config
-    from detbench.sim.dataset import check_space, estimate_dataset_bytes, human_bytes, plan_frames, write_simulation
+    from detbench.sim.dataset import (check_space, estimate_dataset_bytes, human_bytes, plan_frames,
+                                      strided_overrides, write_simulation)
     from detbench.sim.run import RunSummary, run_lidars, run_rigs, simulation_source
 
     from detbench.data.frame import height_key
@@ -102,11 +103,8 @@ def main(argv=None) -> int:
     if args.frame_stride < 1:
         raise UserError(f"--frame-stride {args.frame_stride}: keep every K-th frame, K an integer >= 1")
     try:
+        args.overrides = strided_overrides(args.sim_preset, args.overrides, args.frame_stride)  # as the presets' data
         cfg = load_sim_config(args.sim_preset, overrides=tuple(args.overrides))
-        if args.frame_stride > 1:  # as the presets' data do (detbench.sim.dataset.simulate_dataset)
-            rate = float(cfg["scene"]["frame_rate_hz"])
-            args.overrides = [*args.overrides, f"scene.frame_rate_hz={rate / args.frame_stride!r}"]
-            cfg = load_sim_config(args.sim_preset, overrides=tuple(args.overrides))
         frames, fps = plan_frames(args.frames, args.scenes, args.frames_per_scene,
                                   int(cfg["scene"]["frames_per_scene"]))
         if sum(bool(v) for v in (args.lidars, args.heights, args.rigs)) > 1:

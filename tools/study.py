@@ -15,7 +15,7 @@ Examples:
   python tools/study.py --preset cpu --models second --heights 0.5 1.8
   python tools/study.py --preset cpu --rigs headlights forehead --cross-height   # rigs as cars carry them
   python tools/study.py --preset quick --cross-height  # + each model tested at the other heights
-  python tools/study.py --preset cpu --test-data data/test200   # the trained runs tested on more scenes
+  python tools/study.py --preset cpu --heights 0.5 1.8 --test-data data/test200   # tested on more scenes
   python tools/study.py --preset quick --jobs 2        # two jobs at once (default: one per usable core)
   python tools/study.py --preset quick --models second pillarnet --seeds 0 1   # each run once per seed
   python tools/study.py --preset smoke --executor ray  # the jobs as tasks of a local Ray instance

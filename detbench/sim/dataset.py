@@ -193,6 +193,18 @@ def sensor_sets(heights: Sequence[float | str]) -> list:
     return [rig_by_name(h) if isinstance(h, str) and is_rig_key(h) else lidar_preset(float(h)) for h in heights]
 
 
+def strided_overrides(preset: str, overrides: Sequence[str], frame_stride: int) -> list[str]:
+    """`overrides` with, for `frame_stride` k > 1, the simulator preset's `scene.frame_rate_hz` divided by k (every
+    k-th frame kept: a scene of n frames spans n * k frames of time). ValueError unless k is an integer >= 1."""
+    if isinstance(frame_stride, bool) or int(frame_stride) != frame_stride or frame_stride < 1:
+        raise ValueError(f"frame_stride must be an integer >= 1, got {frame_stride!r}")
+    overrides = list(overrides)
+    if frame_stride > 1:
+        rate = float(load_sim_config(preset, overrides)["scene"]["frame_rate_hz"])
+        overrides.append(f"scene.frame_rate_hz={rate / int(frame_stride)!r}")
+    return overrides
+
+
 def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[float | str], seed: int = 0,
                      preset: str = "paper", overrides: Sequence[str] = (), frames_per_scene: int | None = None,
                      test_fraction: float | None = None, frame_stride: int | None = None, overwrite: bool = False,
@@ -211,12 +223,7 @@ def simulate_dataset(root: str | os.PathLike, *, frames: int, heights: Sequence[
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     frame_stride = shipped_default("data.frame_stride", frame_stride)
-    if int(frame_stride) != frame_stride or frame_stride < 1:
-        raise ValueError(f"frame_stride must be an integer >= 1, got {frame_stride!r}")
-    overrides = list(overrides)
-    if frame_stride > 1:
-        rate = float(load_sim_config(preset, overrides)["scene"]["frame_rate_hz"])
-        overrides.append(f"scene.frame_rate_hz={rate / int(frame_stride)!r}")
+    overrides = strided_overrides(preset, overrides, frame_stride)
     cfg = load_sim_config(preset, overrides)
     lidars = sensor_sets(heights)
     source = {"kind": "simulator", "preset": preset, "calibration": sim_calibration(cfg),

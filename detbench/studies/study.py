@@ -31,7 +31,7 @@ from pathlib import Path
 
 from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
-from detbench.data.frame import height_key, is_rig_key
+from detbench.data.frame import data_key, height_key, is_rig_key
 from detbench.data.layout import read_info
 from detbench.studies.cross_height import plot_cross_height
 from detbench.studies.cpu_load import MachineLoad
@@ -224,8 +224,7 @@ def _check_test_data(test_data: str | None, heights: list) -> None:
         held = list(read_info(test_data).heights)
     except DatasetError as e:
         raise UserError(f"--test-data {test_data}: {e}") from None
-    keys = {height_key(k) if not is_rig_key(k) else k for k in held}
-    missing = [h for h in heights if (h if isinstance(h, str) else height_key(h)) not in keys]
+    missing = [h for h in heights if data_key(h) not in held]
     if missing:
         lacks = ", ".join(h if isinstance(h, str) else f"{h:g} m" for h in missing)
         raise UserError(f"--test-data {test_data}: lacks {lacks} (it holds {', '.join(map(str, held))}); simulate "

@@ -115,7 +115,8 @@ def test_the_evaluations_read_the_test_data_and_the_trainings_do_not(two_heights
     stages = [EvalStage(p, hashes, "second", 1.8, 1.8, p.primary) for p in (own, held_out)]
     cmds = [s.command() for s in stages]
     assert "--data" not in cmds[0]
-    assert cmds[1][cmds[1].index("--data") + 1] == str(other_scenes) and "test" in cmds[1]
+    assert cmds[1][cmds[1].index("--data") + 1] == str(other_scenes)
+    assert cmds[1][cmds[1].index("--split") + 1] == "test"
     assert stages[0].recorded["data_fingerprint"] == own.data_fingerprints[1.8]
     assert stages[1].recorded["data_fingerprint"] == held_out.test_fingerprints[1.8] != own.data_fingerprints[1.8]
     train = TrainStage(held_out, "second", 1.8, held_out.primary)
