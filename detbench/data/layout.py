@@ -449,3 +449,24 @@ def sim_calibration(info: dict) -> str:
     if isinstance(cfg, dict) and cfg.get("calibration"):
         return calibration_id(cfg["calibration"])
     return PREVIOUS_CALIBRATION
+
+
+_SCENE_IDENTITY = ("kind", "preset", "calibration", "seed", "overrides")  # what draws a simulated dataset's scenes
+
+
+def scene_identity(source: dict) -> dict:
+    """What draws a simulated dataset's scenes, from its dataset.json `source`: simulator preset, calibration,
+    seed and overrides (and the kind of source)."""
+    return {k: source.get(k) for k in _SCENE_IDENTITY}
+
+
+def same_scenes(source: dict | None, other: dict | None) -> bool | None:
+    """Whether two datasets' frames with one id hold one scene, from their dataset.json `source`: True for two
+    simulations with the same simulator preset, calibration, seed and overrides (detbench.sim seeds each scene by
+    (seed, scene), so frame 0001_000 is one traffic state in both however each is split); False for two
+    simulations that differ in any of them (their ids name other scenes); None when either is not simulated or
+    does not say (real data: ids alone cannot tell)."""
+    a, b = source or {}, other or {}
+    if a.get("kind") != "simulator" or b.get("kind") != "simulator":
+        return None
+    return scene_identity(a) == scene_identity(b)

@@ -32,7 +32,7 @@ from pathlib import Path
 from detbench.config import ConfigError
 from detbench.data.errors import DatasetError
 from detbench.data.frame import data_key, height_key, is_rig_key
-from detbench.data.layout import read_info
+from detbench.data.layout import read_info, same_scenes
 from detbench.studies.cross_height import plot_cross_height
 from detbench.studies.cpu_load import MachineLoad
 from detbench.studies.executor import LocalExecutor
@@ -237,9 +237,8 @@ def _check_held_out(root: Path, info: dict, test_root: Path, test_info: dict) ->
     the training data's train scenes would be tested on."""
     if test_root == root:
         return
-    src, test_src = info.get("source") or {}, test_info.get("source") or {}
-    same = ("kind", "preset", "calibration", "seed", "overrides")
-    if src.get("kind") == "simulator" and all(src.get(k) == test_src.get(k) for k in same):
+    src = info.get("source") or {}
+    if same_scenes(src, test_info.get("source")):
         raise UserError(f"--test-data {test_root}: simulated with the training data's simulator preset, seed "
                         f"{src.get('seed')} and overrides, so its scenes repeat the training scenes of {root}; "
                         f"simulate the test data with another --seed (e.g. --seed {int(src.get('seed') or 0) + 1})")

@@ -246,7 +246,7 @@ def load_checkpoint(path: str | os.PathLike, *, model_name: str | None = None, c
 
 DATA_FINGERPRINT_KEY = "frames_sha1"  # the training frames' content (detbench.data.gt_database.frames_fingerprint)
 # recorded for evaluations (detbench.train.run.training_data_warnings), not compared on resume (the fingerprint is)
-EVALUATION_ONLY_KEYS = ("dataset_sha1", "train_frames")
+EVALUATION_ONLY_KEYS = ("dataset_sha1", "dataset_scenes", "train_frames")
 
 
 def _fingerprint_of(data: Mapping) -> str | None:

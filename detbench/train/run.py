@@ -4,6 +4,7 @@ the anchors, the evaluation after each epoch, and the summary files of the run."
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import sys
 from contextlib import contextmanager
@@ -15,6 +16,7 @@ import numpy as np
 from detbench.data import Height3Dataset
 from detbench.data.frame import key_label, key_value
 from detbench.data.gt_database import frames_fingerprint
+from detbench.data.layout import same_scenes, scene_identity
 from detbench.data.regions import RANGE_NAMES
 from detbench.data.validate import check_frames
 from detbench.eval.evaluate import evaluate_predictions
@@ -75,18 +77,56 @@ def training_data_info(root: Path, height: float, train_set: TrainingSet) -> dic
 def dataset_identity(root: Path, frames) -> dict:
     """What an evaluation of a checkpoint compares with the data it is given (`training_data_warnings`): the
     digest of the dataset's dataset.json (its source, seed and split; another after a re-simulation or a
-    re-split) and the ids of the training frames, one string of lines (one value however many frames)."""
+    re-split), what draws its scenes (`dataset_scenes`: the simulator preset, calibration, seed and overrides of
+    its `source`, JSON; empty for data that are not simulated) and the ids of the training frames, one string
+    of lines (one value however many frames)."""
     info_file = Path(root) / "dataset.json"
     digest = hashlib.sha1(info_file.read_bytes()).hexdigest() if info_file.is_file() else None
+    source = _dataset_source(info_file)
     ids = getattr(frames, "frame_ids", None)
-    return {"dataset_sha1": digest, "train_frames": "\n".join(str(i) for i in (ids if ids is not None else []))}
+    return {"dataset_sha1": digest, "dataset_scenes": json.dumps(scene_identity(source)) if source else "",
+            "train_frames": "\n".join(str(i) for i in (ids if ids is not None else []))}
+
+
+def _dataset_source(info_file: Path) -> dict | None:
+    """The `source` of a dataset.json, or None when the file is missing, unreadable or has none."""
+    try:
+        source = json.loads(info_file.read_text()).get("source") if info_file.is_file() else None
+    except (OSError, ValueError, AttributeError):
+        return None
+    return source if isinstance(source, dict) else None
+
+
+def _training_source(data_info: dict) -> dict | None:
+    """What drew the training data's scenes: recorded in the checkpoint (`dataset_scenes`), or, for a checkpoint
+    that predates the record, the `source` of the training dataset's dataset.json when that file is still the one
+    trained on (same digest)."""
+    recorded = data_info.get("dataset_scenes")
+    if isinstance(recorded, str) and recorded:
+        try:
+            return json.loads(recorded)
+        except ValueError:
+            return None
+    where, was = data_info.get("source"), data_info.get("dataset_sha1")
+    info_file = Path(str(where)) / "dataset.json" if where else None
+    if info_file is None or not was or not info_file.is_file():
+        return None
+    try:
+        same_file = hashlib.sha1(info_file.read_bytes()).hexdigest() == was
+    except OSError:
+        return None
+    return _dataset_source(info_file) if same_file else None
 
 
 def training_data_warnings(data_info: dict, root: Path, split: str, split_ids: list[str]) -> list[str]:
     """Warnings for an evaluation on `split` of the dataset `root` (frame ids `split_ids`) of a checkpoint that
     records `data_info` (`training_data_info`): the dataset was re-simulated, re-split or edited since the
     training, and (for a split other than train or all) frames it was trained on are among those evaluated.
-    None for a checkpoint that records neither."""
+    None for a checkpoint that records neither, and none for a simulated dataset whose scenes another simulator
+    seed, preset or calibration drew than the training data's (a held-out world: its frame ids name other
+    scenes, `detbench.data.layout.same_scenes`)."""
+    if same_scenes(_training_source(data_info), _dataset_source(Path(root) / "dataset.json")) is False:
+        return []
     out = []
     was = data_info.get("dataset_sha1")
     now = dataset_identity(root, [])["dataset_sha1"]

@@ -204,3 +204,50 @@ def test_an_evaluation_says_when_its_data_changed_since_the_training(trained_run
     assert any("were training frames of this checkpoint" in w for w in report["warnings"])
     code, err = tool("eval", "--ckpt", ckpt, "--data", fault_data, "--out", tmp_path / "eval0", "--no-progress")
     assert code == 0 and "training frames of this checkpoint" not in err and "is not the dataset" not in err
+
+
+def test_an_evaluation_on_another_simulated_world_is_a_held_out_test(trained_run, fault_data, tmp_path, tool):
+    """A dataset simulated with another seed (tools/study.py --test-data, a held-out set) names its frames as the
+    training data does (0000_000, ...) but holds other scenes: evaluating on it warns of neither a changed dataset
+    nor training frames among the test frames, while the same seed re-split does (the test above)."""
+    src = json.loads((fault_data / "dataset.json").read_text())["source"]
+    other = tmp_path / "other"
+    code, err = tool("simulate", "--out", other, "--frames", src["frames"], "--frames-per-scene", 4, "--heights",
+                     0.5, 1.8, "--seed", int(src["seed"]) + 1, "--test-fraction", 0.67, "--no-progress")
+    assert code == 0, err[-3000:]
+    ckpt = trained_run / "checkpoints" / "epoch_002.pt"
+    code, err = tool("eval", "--ckpt", ckpt, "--data", other, "--out", tmp_path / "eval", "--no-progress")
+    assert code == 0, err[-3000:]
+    assert "training frames of this checkpoint" not in err and "is not the dataset" not in err, err[-3000:]
+    report = json.loads((tmp_path / "eval" / "report.json").read_text())
+    assert report["warnings"] == []
+
+
+def test_a_checkpoint_without_the_scene_record_reads_its_training_datasets_source(fault_data, tmp_path):
+    """A checkpoint written before it recorded what drew its scenes (`dataset_scenes`) is compared through its
+    training dataset's dataset.json while that file is the one it was trained on: another seed's world is a
+    held-out test, the same seed's re-split is not; once the training dataset.json changed, ids decide."""
+    import shutil
+
+    from detbench.train.run import dataset_identity, training_data_warnings
+
+    info = {"source": str(fault_data), **dataset_identity(fault_data, [])}
+    assert json.loads(info.pop("dataset_scenes"))["seed"] == 3
+    test_ids = (fault_data / "ImageSets" / "test.txt").read_text().split()
+    train_ids = (fault_data / "ImageSets" / "train.txt").read_text().split()
+    info["train_frames"] = "\n".join(train_ids)
+    other = Path(shutil.copytree(fault_data, tmp_path / "other"))
+    meta = json.loads((other / "dataset.json").read_text())
+    (other / "ImageSets" / "test.txt").write_text("\n".join(train_ids + test_ids) + "\n")
+    meta["source"]["seed"] = 4
+    (other / "dataset.json").write_text(json.dumps(meta))
+    assert training_data_warnings(info, other, "test", train_ids + test_ids) == []
+    meta["source"]["seed"] = 3
+    meta["split"] = {**meta.get("split", {}), "note": "re-split"}
+    (other / "dataset.json").write_text(json.dumps(meta))
+    warned = training_data_warnings(info, other, "test", train_ids + test_ids)
+    assert len(warned) == 2 and f"{len(train_ids)} of the {len(train_ids) + len(test_ids)} frames" in warned[1]
+    moved = {**info, "source": str(tmp_path / "gone")}
+    meta["source"]["seed"] = 4
+    (other / "dataset.json").write_text(json.dumps(meta))
+    assert len(training_data_warnings(moved, other, "test", train_ids + test_ids)) == 2
