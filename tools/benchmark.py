@@ -40,7 +40,7 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
 import models
-from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,
+from detbench.benchmarks.detectors import (benchmark_markdown, channels_last_2d, loaded_figures, measure_detector,
                                             peak_rss_mib)
 from detbench.benchmarks.profile import profile_markdown
 from detbench.data.road import RoadConfig
@@ -81,6 +81,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--profile", action="store_true",
                     help="also profile the data pipeline, one training step and one inference by stage and by kind "
                          "of op (a few seconds per model more); the training frames come from the same dataset")
+    ap.add_argument("--channels-last", action="store_true",
+                    help="hold the models' 2D convolution weights in channels-last memory format (NHWC), so "
+                         "the dense BEV maps run through the NHWC convolution kernels; to measure whether it "
+                         "pays on this CPU (docs/benchmarks.md) against the same command without it")
     ap.add_argument("--out", default="runs/benchmark", help="output folder (default runs/benchmark)")
     ap.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # internal: one model in a child process
     return ap
@@ -113,6 +117,8 @@ def worker(args) -> dict:
         cfg_model = models.prepare_model_config(name, cfg["model"], boxes)
         road = RoadConfig.of_run_config(cfg)
         model = models.build_model(name, cfg_model).to(device).eval()
+    if args.channels_last:
+        model = channels_last_2d(model)
     source = frames_source(args.data, ck if ckpt else None)
     data_root = default_dataset({"root": source} if source else load_run_config(name, "smoke")["data"],
                                 progress=False)
@@ -209,6 +215,7 @@ def main(argv=None) -> int:
             if args.train_steps > 0:
                 cmd += ["--train-steps", str(args.train_steps)]
             cmd += ["--train-batch", str(args.train_batch)] + (["--profile"] if args.profile else [])
+            cmd += ["--channels-last"] if args.channels_last else []
 
             def run_worker(cmd=cmd, name=name, dev=dev):
                 proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
@@ -235,6 +242,7 @@ def main(argv=None) -> int:
             "threads": results[0]["threads"] if results else args.threads,
             "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             "preset": args.preset, "study": args.study, "height": args.height,
+            "memory_format": "channels_last" if args.channels_last else "contiguous",
             "frames_from": sorted({r["frames_from"] for r in results})}
     with claim_output(args.out, BENCHMARK_FOLDER) as out:
         atomic_write_json(out / "benchmark.json", {"meta": meta, "results": results})

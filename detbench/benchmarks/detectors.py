@@ -21,7 +21,7 @@ from detbench.data.road import RoadConfig, crop_model_input
 from detbench.train.inference import frame_sample
 from detbench.utils.bench import StageTimer, load_line, ratio, runtime_line
 
-__all__ = ["benchmark_markdown", "idle_loaded_markdown", "loaded_figures",
+__all__ = ["benchmark_markdown", "channels_last_2d", "idle_loaded_markdown", "loaded_figures",
            "measure_detector", "peak_rss_mib", "train_step_ms"]
 
 
@@ -101,6 +101,16 @@ def train_step_ms(model: nn.Module, frames, point_cloud_range, steps: int, batch
     return round(statistics.median(times), 2)
 
 
+def channels_last_2d(model: nn.Module) -> nn.Module:
+    """`model` with the weights of its 2D (transposed) convolutions in channels-last memory format (NHWC), in
+    place: a dense BEV map meeting them runs through the NHWC convolution kernels, and the ops after keep its
+    format. The sparse and point layers' weights (other ranks) stay as they are."""
+    for m in model.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            m.to(memory_format=torch.channels_last)
+    return model
+
+
 def benchmark_markdown(meta: dict, results: list[dict]) -> str:
     """benchmark.md: one row per model and device, the stages in the models' own order."""
     stage_names = []  # in the models' own stage order, post-processing last
@@ -116,7 +126,9 @@ def benchmark_markdown(meta: dict, results: list[dict]) -> str:
              f"{', ' + meta['cuda'] if meta['cuda'] else ''})", "",
              "Latency: median per frame after warm-up, batch of 1. Weights: the state_dict as torch.save writes it "
              "(no optimizer state). Units: ms, MB = 10^6 bytes, MiB = 2^20 bytes."
-             + (f" Frames: the test split of {', '.join(meta['frames_from'])}." if meta.get("frames_from") else ""),
+             + (f" Frames: the test split of {', '.join(meta['frames_from'])}." if meta.get("frames_from") else "")
+             + (" 2D convolution weights in channels-last memory format (--channels-last)."
+                if meta.get("memory_format") == "channels_last" else ""),
              "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in results:

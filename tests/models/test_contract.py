@@ -81,6 +81,40 @@ def test_model_follows_the_contract(name):
 
 
 @pytest.mark.parametrize("name", sorted(models.REGISTRY))
+def test_channels_last_weights_compute_the_same_model(name):
+    """tools/benchmark.py --channels-last holds the 2D convolution weights in NHWC: every 2D convolution's output
+    and the training loss are those of the contiguous model (float32 sums in another order: within 1e-4; the
+    proposals of an untrained model tie in score, so their order, not their values, may differ)."""
+    import copy
+
+    from detbench.benchmarks.detectors import channels_last_2d
+
+    model = smoke_model(name)
+    nhwc = channels_last_2d(copy.deepcopy(model))
+    convs = [m for m in nhwc.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.ConvTranspose2d))]
+    assert convs or name == "pointrcnn"  # PointRCNN has no dense 2D convolution: nothing to convert
+    assert all(m.weight.is_contiguous(memory_format=torch.channels_last) for m in convs)
+    batch = two_frames()
+    losses = []
+    for m in (model, nhwc):
+        torch.manual_seed(0)
+        m.train()
+        losses.append(float(m.loss(m(batch), batch)[0]))
+    assert losses[0] == pytest.approx(losses[1], rel=1e-4, abs=1e-5)
+    outputs = ([], [])
+    for m, seen in zip((model, nhwc), outputs):
+        for conv in m.modules():
+            if isinstance(conv, (torch.nn.Conv2d, torch.nn.ConvTranspose2d)):
+                conv.register_forward_hook(lambda mod, args, out, seen=seen: seen.append(out))
+        with torch.no_grad():
+            m.eval()(batch)
+    assert len(outputs[0]) == len(outputs[1]) >= len(convs)
+    for a, b in zip(*outputs):
+        torch.testing.assert_close(a, b, rtol=1e-4, atol=1e-4)
+    assert all(b.is_contiguous(memory_format=torch.channels_last) for b in outputs[1] if b.shape[1] > 1)
+
+
+@pytest.mark.parametrize("name", sorted(models.REGISTRY))
 def test_two_stage_models_declare_the_output_stage_switch(name):
     """The models with a proposal and a refinement stage follow `TwoStageDetector` (tools/eval.py --stage);
     the others do not claim to."""
