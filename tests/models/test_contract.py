@@ -99,7 +99,7 @@ def test_channels_last_weights_compute_the_same_model(name):
     for m in (model, nhwc):
         torch.manual_seed(0)
         m.train()
-        losses.append(float(m.loss(m(batch), batch)[0]))
+        losses.append(float(m.loss(m(batch), batch)[0].detach()))
     assert losses[0] == pytest.approx(losses[1], rel=1e-4, abs=1e-5)
     outputs = ([], [])
     for m, seen in zip((model, nhwc), outputs):
