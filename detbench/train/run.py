@@ -80,21 +80,23 @@ def dataset_identity(root: Path, frames) -> dict:
     re-split), what draws its scenes (`dataset_scenes`: the simulator preset, calibration, seed and overrides of
     its `source`, JSON; empty for data that are not simulated) and the ids of the training frames, one string
     of lines (one value however many frames)."""
-    info_file = Path(root) / "dataset.json"
-    digest = hashlib.sha1(info_file.read_bytes()).hexdigest() if info_file.is_file() else None
-    source = _dataset_source(info_file)
+    digest, source = _read_dataset_info(Path(root) / "dataset.json")
     ids = getattr(frames, "frame_ids", None)
     return {"dataset_sha1": digest, "dataset_scenes": json.dumps(scene_identity(source)) if source else "",
             "train_frames": "\n".join(str(i) for i in (ids if ids is not None else []))}
 
 
-def _dataset_source(info_file: Path) -> dict | None:
-    """The `source` of a dataset.json, or None when the file is missing, unreadable or has none."""
+def _read_dataset_info(info_file: Path) -> tuple[str | None, dict | None]:
+    """The SHA-1 of a dataset.json and its `source`, from one read; None for what is missing or unreadable."""
     try:
-        source = json.loads(info_file.read_text()).get("source") if info_file.is_file() else None
-    except (OSError, ValueError, AttributeError):
-        return None
-    return source if isinstance(source, dict) else None
+        data = info_file.read_bytes()
+    except OSError:
+        return None, None
+    try:
+        source = json.loads(data).get("source")
+    except (ValueError, AttributeError):
+        source = None
+    return hashlib.sha1(data).hexdigest(), source if isinstance(source, dict) else None
 
 
 def _training_source(data_info: dict) -> dict | None:
@@ -108,14 +110,10 @@ def _training_source(data_info: dict) -> dict | None:
         except ValueError:
             return None
     where, was = data_info.get("source"), data_info.get("dataset_sha1")
-    info_file = Path(str(where)) / "dataset.json" if where else None
-    if info_file is None or not was or not info_file.is_file():
+    if not where or not was:
         return None
-    try:
-        same_file = hashlib.sha1(info_file.read_bytes()).hexdigest() == was
-    except OSError:
-        return None
-    return _dataset_source(info_file) if same_file else None
+    digest, source = _read_dataset_info(Path(str(where)) / "dataset.json")
+    return source if digest == was else None
 
 
 def training_data_warnings(data_info: dict, root: Path, split: str, split_ids: list[str]) -> list[str]:
@@ -125,11 +123,11 @@ def training_data_warnings(data_info: dict, root: Path, split: str, split_ids: l
     None for a checkpoint that records neither, and none for a simulated dataset whose scenes another simulator
     seed, preset or calibration drew than the training data's (a held-out world: its frame ids name other
     scenes, `detbench.data.layout.same_scenes`)."""
-    if same_scenes(_training_source(data_info), _dataset_source(Path(root) / "dataset.json")) is False:
+    now, source = _read_dataset_info(Path(root) / "dataset.json")
+    if same_scenes(_training_source(data_info), source) is False:
         return []
     out = []
     was = data_info.get("dataset_sha1")
-    now = dataset_identity(root, [])["dataset_sha1"]
     if was and now and was != now:
         out.append(f"{root} is not the dataset this checkpoint was trained on: its dataset.json changed since "
                    f"(re-simulated, re-split or edited); the figures describe the data as it is now")
