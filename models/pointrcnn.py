@@ -107,7 +107,8 @@ class PointRCNN(OutputStageSwitch, nn.Module):
         b, sampling = batch.batch_size, self.cfg.sampling
         n = sampling.num_points
         gen = None if self.training else torch.Generator().manual_seed(0)  # evaluation: the same points every time
-        sp = sample_frame_points(batch.points, b, n, sampling.far_threshold, generator=gen, shuffle=sampling.shuffle)
+        sp = sample_frame_points(batch.points, b, n, sampling.far_threshold, generator=gen, shuffle=sampling.shuffle,
+                                voxel_size=sampling.voxel_size)
         xyz = sp.points[:, :3].contiguous()
         feats = self.backbone(xyz, sp.points[:, 3:4].contiguous(), n)
         point = self.point_head(feats, b)

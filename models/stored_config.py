@@ -3,7 +3,8 @@
 A checkpoint stores the `model:` section it was trained with. Some keys of today's YAMLs were
 values in code before (the anchor head's loss weights, focal loss and direction bins, the
 post-processing selection, the point head's focal loss, SECOND's voxel features in absolute
-x, y) and one block was spelled `pre_top_k / post_top_k` in PillarNet's `post:`.
+x, y; PointRCNN's sampling without thinning to voxel cells) and one block was spelled
+`pre_top_k / post_top_k` in PillarNet's `post:`.
 `upgrade_stored_model_config` turns such a stored section into today's: it renames the old
 spelling and fills each key that had a value in code with exactly that value, so the rebuilt
 model computes what the checkpoint's model computed.
@@ -32,7 +33,8 @@ CODE_VALUES: dict[str, dict[str, Any]] = {
     "ct3d": {**_VFE, **_ANCHOR_HEAD},
     "pillarnet": {"head.loss_weights.hm": 1.0, "head.loss_weights.reg": 0.25, "head.loss_weights.iou": 1.0,
                   "head.loss_weights.od_iou": 1.0, "post.method": "nms", **_POST, "post.iou_rectifier": 0.68},
-    "pointrcnn": {"point_head.focal_alpha": 0.25, "point_head.focal_gamma": 2.0, **_POST},
+    "pointrcnn": {"point_head.focal_alpha": 0.25, "point_head.focal_gamma": 2.0, **_POST,
+                  "sampling.voxel_size": 0.0},
 }
 # dotted key as stored -> today's spelling
 RENAMED: dict[str, dict[str, str]] = {

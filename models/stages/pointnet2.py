@@ -6,7 +6,7 @@ stage. Every level keeps a fixed number of points per frame, so counts stay unif
 
 - `sample_frame_points`: each frame's points to a fixed budget (the paper's sampling:
   distant points first, near points randomly, repeats when a frame has too few), in scan
-  order or shuffled.
+  order or shuffled; optionally thinned first to one point per voxel cell.
 - `SharedMLP`: per-point Linear + BatchNorm + ReLU layers (or Linear with bias + ReLU).
 - `SetAbstraction`: farthest point sampling, ball query per radius (multi-scale grouping),
   shared MLP and max-pool per scale, concatenated; `npoint=None` groups all points of a frame.
@@ -35,12 +35,14 @@ class SamplingConfig(StageConfig):
     num_points: int  # points per frame fed to the network
     far_threshold: float  # m (BEV): points farther than this are kept first
     shuffle: bool  # sampled points in random order
+    voxel_size: float  # m: first one point per cubic cell of this edge (0: every point)
 
     @classmethod
     def read(cls, s: Section) -> SamplingConfig:
         return cls(num_points=s.count("num_points"),
                    far_threshold=s.non_negative("far_threshold", "a distance >= 0 in metres"),
-                   shuffle=s.flag("shuffle"))
+                   shuffle=s.flag("shuffle"),
+                   voxel_size=s.non_negative("voxel_size", "a cell edge >= 0 in metres (0: no thinning)"))
 
 
 @dataclass(frozen=True)
@@ -67,10 +69,31 @@ class SampledPoints(NamedTuple):
 
 
 @torch.no_grad()
+def thin_to_voxels(pts: torch.Tensor, voxel_size: float, generator: torch.Generator | None = None) -> torch.Tensor:
+    """Indices (sorted) of one randomly chosen point per occupied cubic cell of edge `voxel_size` (m) of
+    `pts` (N, >= 3), so a near vehicle's thousands of points and a far one's few come out at one density."""
+    n = pts.shape[0]
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long, device=pts.device)
+    cell = torch.floor(pts[:, :3] / voxel_size).to(torch.int64)
+    cell = cell - cell.min(dim=0).values
+    span = cell.max(dim=0).values + 1
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    _, group = torch.unique(key, return_inverse=True)
+    rank = torch.randperm(n, generator=generator).to(pts.device)
+    first = torch.full((int(group.max()) + 1,), n, dtype=torch.long, device=pts.device)
+    first = first.scatter_reduce(0, group, rank, reduce="amin")
+    return (rank == first[group]).nonzero(as_tuple=True)[0]
+
+
 def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, far_threshold: float,
-                        generator: torch.Generator | None = None, *, shuffle: bool) -> SampledPoints:
+                        generator: torch.Generator | None = None, *, shuffle: bool,
+                        voxel_size: float) -> SampledPoints:
     """Each frame of a Batch's points (P, 1 + C) to exactly `num_points` rows (PointRCNN's sampling).
 
+    With `voxel_size` > 0 (m; 0: no thinning) each frame is first thinned to one random point per cubic cell of that
+    edge (`thin_to_voxels`): the budget then goes to the scene's shape rather than to the densest, nearest
+    surfaces, and a frame crowded with vehicles (ground-truth sampling) is sampled like a sparse one.
     A frame with more points keeps all points farther than `far_threshold` (BEV distance from
     the sensor, metres) when they fit, and fills the budget with a random subset of the near
     ones (if even the far ones do not fit, a random subset of them); a frame with fewer
@@ -85,6 +108,8 @@ def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, 
     c = points.shape[1] - 1
     for i in range(batch_size):
         pts = points[points[:, 0] == i, 1:]
+        if voxel_size > 0:
+            pts = pts[thin_to_voxels(pts, voxel_size, generator)]
         n = pts.shape[0]
         if n == 0:
             filler = pts.new_zeros(num_points, c)

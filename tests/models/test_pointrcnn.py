@@ -6,7 +6,7 @@ import torch
 import models
 from detbench.train.run_config import load_run_config
 from models.stages.point_head import point_targets
-from models.stages.pointnet2 import sample_frame_points
+from models.stages.pointnet2 import sample_frame_points, thin_to_voxels
 from tests.helpers import batch_of, box_points
 
 CAR = [10.0, 2.0, 0.8, 4.5, 1.9, 1.6, 0.3]
@@ -52,17 +52,37 @@ def test_sampling_keeps_far_points_first_and_fills_small_frames():
     frame1 = near[:10]
     points = torch.cat([torch.cat([torch.zeros(len(frame0), 1), frame0], 1),
                         torch.cat([torch.ones(len(frame1), 1), frame1], 1)])
-    s = sample_frame_points(points, 3, 64, far_threshold=40.0, generator=g, shuffle=False)  # frame 2 is empty
+    s = sample_frame_points(points, 3, 64, far_threshold=40.0, generator=g, shuffle=False,
+                            voxel_size=0.0)  # frame 2 is empty
     assert s.points.shape == (192, 4) and s.num_points == 64
     f0, f1, f2 = s.points[:64], s.points[64:128], s.points[128:]
     assert int((torch.hypot(f0[:, 0], f0[:, 1]) > 40).sum()) == 20  # every far point kept
     assert len({tuple(p.tolist()) for p in f0}) == 64  # no repeats while there are enough points
     assert {tuple(p.tolist()) for p in f1} == {tuple(p.tolist()) for p in frame1}  # all 10, repeated
     assert s.valid[:128].all() and not s.valid[128:].any() and (f2[:, 2] == -10).all()
-    a = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False)
-    b = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False)
+    a = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False,
+                            voxel_size=0.0)
+    b = sample_frame_points(points, 3, 64, 40.0, generator=torch.Generator().manual_seed(1), shuffle=False,
+                            voxel_size=0.0)
     assert torch.equal(a.points, b.points)
 
+
+
+def test_voxel_thinning_keeps_one_point_per_cell_and_leaves_sparse_points_alone():
+    g = torch.Generator().manual_seed(0)
+    dense = torch.rand(3000, 4, generator=g) * torch.tensor([1.0, 1.0, 0.5, 1.0]) + torch.tensor([5.0, 0.0, 0.2, 0.0])
+    sparse = torch.tensor([[60.0 + 0.5 * k, -3.0, 0.5, 0.2] for k in range(20)])  # 0.5 m apart: one a cell
+    pts = torch.cat([dense, sparse])
+    keep = thin_to_voxels(pts, 0.25, torch.Generator().manual_seed(1))
+    cells = torch.floor(pts[keep, :3] / 0.25).to(torch.int64)
+    assert len(torch.unique(cells, dim=0)) == len(keep)  # one point a cell
+    assert len(keep) == len(torch.unique(torch.floor(pts[:, :3] / 0.25).to(torch.int64), dim=0))  # every cell
+    assert set(range(3000, 3020)) <= set(keep.tolist())  # the far vehicle keeps all its points
+    assert torch.equal(keep, thin_to_voxels(pts, 0.25, torch.Generator().manual_seed(1)))  # seeded: repeatable
+    assert len(thin_to_voxels(pts[:0], 0.25)) == 0
+    frame = torch.cat([torch.zeros(len(pts), 1), pts], 1)
+    s = sample_frame_points(frame, 1, 64, 40.0, torch.Generator().manual_seed(2), shuffle=True, voxel_size=0.25)
+    assert s.points.shape == (64, 4) and int((s.points[:, 0] > 40).sum()) == 20  # far points first, as without
 
 def test_empty_sparse_and_normal_frames_give_finite_losses_and_predictions():
     torch.manual_seed(0)
@@ -330,14 +350,15 @@ def test_shuffled_sampling_is_deterministic_per_seed():
 
     def sample(seed, shuffle):
         return sample_frame_points(points, 1, 128, 40.0, generator=torch.Generator().manual_seed(seed),
-                                   shuffle=shuffle)
+                                   shuffle=shuffle, voxel_size=0.0)
 
     ordered, a, b, c = sample(3, False), sample(3, True), sample(3, True), sample(4, True)
     assert torch.equal(a.points, b.points) and not torch.equal(a.points, c.points)
     assert {tuple(p.tolist()) for p in a.points} == {tuple(p.tolist()) for p in ordered.points}
     assert not torch.equal(a.points, ordered.points)
     # a small frame (repeats) is shuffled too: the original rows no longer lead
-    small = sample_frame_points(points[:50], 1, 128, 40.0, generator=torch.Generator().manual_seed(3), shuffle=True)
+    small = sample_frame_points(points[:50], 1, 128, 40.0, generator=torch.Generator().manual_seed(3), shuffle=True,
+                                voxel_size=0.0)
     assert not torch.equal(small.points[:50], frame[:50])
 
 
