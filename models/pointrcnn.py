@@ -3,7 +3,8 @@ Point Cloud", CVPR 2019): the point-based two-stage detector, in plain torch on 
 
 The model is the composition of shared stages, read top to bottom:
 
-  points --sample_frame_points (fixed budget per frame, far points first, shuffled: sampling.shuffle)--> (B * N, 4)
+  points --sample_frame_points (optionally thinned to one point per voxel cell: sampling.voxel_size; then a
+     fixed budget per frame, far points first, shuffled: sampling.shuffle)--> (B * N, 4)
   --PointNet2MSG (set abstraction down, feature propagation up)--> a feature per point
   --PointHead--> foreground logit + a box per point (residual coding on the mean vehicle size,
      or the paper's bin-based coding: point_head.box_coding)
