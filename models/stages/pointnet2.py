@@ -86,14 +86,16 @@ def thin_to_voxels(pts: torch.Tensor, voxel_size: float, generator: torch.Genera
     return (rank == first[group]).nonzero(as_tuple=True)[0]
 
 
+@torch.no_grad()
 def sample_frame_points(points: torch.Tensor, batch_size: int, num_points: int, far_threshold: float,
                         generator: torch.Generator | None = None, *, shuffle: bool,
                         voxel_size: float) -> SampledPoints:
     """Each frame of a Batch's points (P, 1 + C) to exactly `num_points` rows (PointRCNN's sampling).
 
-    With `voxel_size` > 0 (m; 0: no thinning) each frame is first thinned to one random point per cubic cell of that
-    edge (`thin_to_voxels`): the budget then goes to the scene's shape rather than to the densest, nearest
-    surfaces, and a frame crowded with vehicles (ground-truth sampling) is sampled like a sparse one.
+    With `voxel_size` > 0 (m; 0: no thinning) each frame is first thinned to one random point per cubic
+    cell of that edge (`thin_to_voxels`): the budget then goes to the scene's shape rather than to the
+    densest, nearest surfaces, and a frame crowded with vehicles (ground-truth sampling) is sampled like a
+    sparse one.
     A frame with more points keeps all points farther than `far_threshold` (BEV distance from
     the sensor, metres) when they fit, and fills the budget with a random subset of the near
     ones (if even the far ones do not fit, a random subset of them); a frame with fewer
