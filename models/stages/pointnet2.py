@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 import torch.nn as nn
 
-from detbench.ops import ball_query, farthest_point_sample, group_neighbours, three_nn_interpolate
+from detbench.ops import ball_query, farthest_point_sample, group_neighbours, three_nn_interpolate, unique_voxels
 
 from detbench.sparse import SafeBatchNorm1d
 
@@ -76,13 +76,9 @@ def thin_to_voxels(pts: torch.Tensor, voxel_size: float, generator: torch.Genera
     if n == 0:
         return torch.zeros(0, dtype=torch.long, device=pts.device)
     cell = torch.floor(pts[:, :3] / voxel_size).to(torch.int64)
-    cell = cell - cell.min(dim=0).values
-    span = cell.max(dim=0).values + 1
-    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
-    _, group = torch.unique(key, return_inverse=True)
+    cells, group = unique_voxels(cell - cell.min(dim=0).values)
     rank = torch.randperm(n, generator=generator).to(pts.device)
-    first = torch.full((int(group.max()) + 1,), n, dtype=torch.long, device=pts.device)
-    first = first.scatter_reduce(0, group, rank, reduce="amin")
+    first = torch.full((len(cells),), n, dtype=torch.long, device=pts.device).scatter_reduce(0, group, rank, "amin")
     return (rank == first[group]).nonzero(as_tuple=True)[0]
 
 

@@ -67,7 +67,6 @@ def test_sampling_keeps_far_points_first_and_fills_small_frames():
     assert torch.equal(a.points, b.points)
 
 
-
 def test_voxel_thinning_keeps_one_point_per_cell_and_leaves_sparse_points_alone():
     g = torch.Generator().manual_seed(0)
     dense = torch.rand(3000, 4, generator=g) * torch.tensor([1.0, 1.0, 0.5, 1.0]) + torch.tensor([5.0, 0.0, 0.2, 0.0])
@@ -83,6 +82,9 @@ def test_voxel_thinning_keeps_one_point_per_cell_and_leaves_sparse_points_alone(
     frame = torch.cat([torch.zeros(len(pts), 1), pts], 1)
     s = sample_frame_points(frame, 1, 64, 40.0, torch.Generator().manual_seed(2), shuffle=True, voxel_size=0.25)
     assert s.points.shape == (64, 4) and int((s.points[:, 0] > 40).sum()) == 20  # far points first, as without
+    near = s.points[s.points[:, 0] < 40, :3]  # 44 of the dense patch's 48 cells: each sampled point its own cell
+    assert len(near) == 44 and len(torch.unique(torch.floor(near / 0.25).to(torch.int64), dim=0)) == 44
+
 
 def test_empty_sparse_and_normal_frames_give_finite_losses_and_predictions():
     torch.manual_seed(0)
