@@ -8,7 +8,7 @@ Modules
 - voxelize: hard and dynamic voxelization, scatter reductions.
 - Point operations (batches, indices, arithmetic and backends: point_batch):
   - sampling: `farthest_point_sample`.
-  - grouping: `ball_query` -> `BallQuery`, `group_points`, `group_neighbours`.
+  - grouping: `ball_query` -> `BallQuery`, `group_points`, `group_neighbours`, `group_linear`.
   - interpolate: `three_nn`, `three_interpolate`, `three_nn_interpolate`.
   - roi_pool: `roi_point_pool` -> `RoIPoints`, `to_canonical`, `from_canonical`.
   - cylinder: `cylinder_query` (CT3D).
@@ -52,7 +52,7 @@ from detbench.ops.iou import (
 )
 from detbench.ops.nms import nms_bev
 from detbench.ops.cylinder import cylinder_query
-from detbench.ops.grouping import BallQuery, ball_query, group_neighbours, group_points
+from detbench.ops.grouping import BallQuery, ball_query, group_linear, group_neighbours, group_points
 from detbench.ops.interpolate import three_interpolate, three_nn, three_nn_interpolate
 from detbench.ops.point_batch import EMPTY_INDEX
 from detbench.ops.roi_pool import RoIPoints, from_canonical, roi_point_pool, to_canonical

@@ -4,6 +4,8 @@ Contents
 - `ball_query` -> `BallQuery`: the first `nsample` points within a radius of each centre.
 - `group_points`, `group_neighbours`: gather (M, nsample, C) by point indices; zero rows for
   empty slots; differentiable w.r.t. the features.
+- `group_linear`: a linear layer applied to `group_neighbours`' output, its feature term computed
+  per point before the gather (a point shared by several balls is multiplied once).
 
 Batches, indices, arithmetic and backends follow detbench.ops.point_batch. Departure from the
 OpenPCDet kernel, on purpose: the ball test is inclusive (d^2 <= r^2, OpenPCDet: d^2 < r^2).
@@ -21,7 +23,7 @@ from numba import njit, prange
 from detbench.ops.point_batch import (EMPTY_INDEX, TORCH_CHUNK_ELEMS, check_counts, check_same_frames, check_xyz,
                                       num_chunks, pick_backend, xyz_float64)
 
-__all__ = ["BallQuery", "ball_query", "group_points", "group_neighbours"]
+__all__ = ["BallQuery", "ball_query", "group_points", "group_neighbours", "group_linear"]
 
 # Estimated candidate pairs (centres x 27 x mean points per cell) below which the serial numba
 # kernel runs (see PARALLEL_MIN_POINTS in points_in_boxes.py).
@@ -305,3 +307,49 @@ def group_neighbours(xyz: torch.Tensor, centres: torch.Tensor, index: torch.Tens
     if features is not None:
         parts.append(group_points(features, index))
     return torch.cat(parts, dim=2) if len(parts) > 1 else parts[0]
+
+
+def group_linear(xyz: torch.Tensor, centres: torch.Tensor, index: torch.Tensor, features: torch.Tensor | None,
+                 weight: torch.Tensor, bias: torch.Tensor | None = None) -> torch.Tensor:
+    """`F.linear(group_neighbours(xyz, centres, index, features), weight, bias)`, computed without
+    the (M, K, 3 + C) grouped tensor.
+
+    The layer is linear, so W [x_j - c, f_j] + b = W_xyz (x_j - c) + (W_f f_j + b): the feature term is
+    computed once per point (N rows) and gathered, so a point in several balls is multiplied once;
+    the relative coordinates are formed as in `group_neighbours` (x_j - c before any product, so far
+    points lose no precision). An empty slot (EMPTY_INDEX) gives `bias` (zeros without one), as a
+    zero input row does. Equal to the grouped form up to float rounding; differentiable w.r.t. xyz,
+    centres, features, weight and bias.
+
+    Args:
+        xyz: (N, >=3) points (metres); centres: (M, >=3); index: (M, K) from `ball_query`.
+        features: optional (N, C). weight: (O, 3 + C), the relative coordinates' columns first.
+
+    Returns:
+        (M, K, O).
+    """
+    func = "group_linear"
+    c = 0 if features is None else features.shape[1]
+    if weight.ndim != 2 or weight.shape[1] != 3 + c:
+        raise ValueError(f"{func}: weight must be (O, 3 + C) = (O, {3 + c}) for {c} feature channels, got "
+                         f"{tuple(weight.shape)}")
+    if not isinstance(index, torch.Tensor) or index.dtype.is_floating_point:
+        raise ValueError(f"{func}: index must be an integer tensor (e.g. BallQuery.index), got {type(index).__name__}")
+    index = index.to(xyz.device).long()
+    if index.numel() and int(index.max()) >= xyz.shape[0]:
+        raise ValueError(f"{func}: index holds row {int(index.max())} but xyz has {xyz.shape[0]} rows; pass the "
+                         "points the indices refer to")
+    out_channels = weight.shape[0]
+    if xyz.shape[0] == 0:
+        out = xyz.new_zeros((*index.shape, out_channels))
+    else:
+        safe = index.clamp_min(0)
+        rel = xyz[:, :3][safe] - centres[:, None, :3]  # (M, K, 3)
+        out = rel @ weight[:, :3].t()
+        if features is not None:
+            per_point = features @ weight[:, 3:].t() if bias is None else torch.addmm(bias, features, weight[:, 3:].t())
+            out = out + per_point[safe]
+        elif bias is not None:
+            out = out + bias
+    empty = torch.zeros((), dtype=out.dtype, device=out.device) if bias is None else bias.to(out.dtype)
+    return torch.where((index >= 0)[..., None], out, empty)

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 import torch.nn as nn
 
-from detbench.ops import ball_query, farthest_point_sample, group_neighbours, three_nn_interpolate, unique_voxels
+from detbench.ops import ball_query, farthest_point_sample, group_linear, three_nn_interpolate, unique_voxels
 
 from detbench.sparse import SafeBatchNorm1d
 
@@ -155,6 +155,16 @@ class SharedMLP(nn.Module):
         shape = x.shape
         return self.layers(x.reshape(-1, shape[-1])).reshape(*shape[:-1], self.out_channels)
 
+    def forward_grouped(self, xyz: torch.Tensor, centres: torch.Tensor, index: torch.Tensor,
+                        features: torch.Tensor | None) -> torch.Tensor:
+        """`self(group_neighbours(xyz, centres, index, features))` -> (M, K, C_out), with the first linear
+        layer applied per point before the gather (detbench.ops.group_linear): a point in several balls
+        is multiplied once, and the grouped input is never built."""
+        first = self.layers[0]
+        x = group_linear(xyz, centres, index, features, first.weight, first.bias)
+        m, k = x.shape[:2]
+        return self.layers[1:](x.reshape(m * k, -1)).reshape(m, k, self.out_channels)
+
 
 class PointLevel(NamedTuple):
     xyz: torch.Tensor  # (F * n, 3) metres
@@ -196,8 +206,8 @@ class SetAbstraction(nn.Module):
         outs = []
         for r, ns, mlp in zip(self.radii, self.nsamples, self.mlps):
             bq = ball_query(xyz.detach(), new_xyz.detach(), r, ns, xyz_counts=counts, centre_counts=new_counts)
-            grouped = group_neighbours(xyz, new_xyz, bq.index, feats)  # (M, ns, 3 + C), zeros for empty balls
-            outs.append(mlp(grouped).max(dim=1).values)
+            # mlp over the (M, ns, 3 + C) grouped points (zeros for empty slots), grouped after its first layer
+            outs.append(mlp.forward_grouped(xyz, new_xyz, bq.index, feats).max(dim=1).values)
         return PointLevel(new_xyz, torch.cat(outs, dim=1), self.npoint)
 
 

@@ -285,8 +285,13 @@ def test_evaluation_reads_no_ground_truth(name):
 
 # ---------------------------------------------------------------- the two-stage output switch
 def _scores_from(dets: list[Detections], probs: list[torch.Tensor]) -> bool:
-    """Every detection's score is one of its frame's candidate probabilities."""
-    return all(bool(torch.isin(d.scores, p.float()).all()) for d, p in zip(dets, probs))
+    """Every detection's score is one of its frame's candidate probabilities, to within 2 float32 ulps
+    (torch's sigmoid rounds a value in a vectorised block and in a tensor's tail differently)."""
+    for d, p in zip(dets, probs):
+        if d.scores.numel() and (p.numel() == 0 or
+                                 (d.scores[:, None] - p.float()[None]).abs().min(dim=1).values.max() > 1.2e-7):
+            return False
+    return True
 
 
 @pytest.mark.parametrize("name", TWO_STAGE)

@@ -15,6 +15,7 @@ from detbench.ops import (
     cylinder_query,
     farthest_point_sample,
     from_canonical,
+    group_linear,
     group_neighbours,
     group_points,
     grouping,
@@ -228,6 +229,42 @@ def test_grouping_gradcheck_float64():
     assert torch.autograd.gradcheck(lambda p, f: group_neighbours(p, centres, bq.index, f), (pts, feats))
     group_points(feats, bq.index)[5].sum().backward()
     assert not feats.grad.any()  # an empty ball sends no gradient anywhere
+
+
+@pytest.mark.parametrize("with_features,with_bias", [(True, True), (True, False), (False, True)])
+def test_group_linear_equals_linear_of_grouped(with_features, with_bias):
+    xyz = clouds(7, [60, 25])
+    centres = torch.cat([xyz[:5], xyz[60:63], torch.tensor([[200.0, 0, 0]])])  # the last ball is empty
+    bq = ball_query(xyz, centres, 1.0, 6, xyz_counts=[60, 25], centre_counts=[5, 4])
+    assert bq.empty[-1] and ((bq.count > 0) & (bq.count < 6)).any()  # partly filled balls (slots repeat) too
+    index = bq.index.clone()
+    index[0, 5] = -1  # one empty slot in a filled ball: zero input, as group_neighbours has it
+    gen = torch.Generator().manual_seed(0)
+    feats = torch.randn(85, 4, generator=gen) if with_features else None
+    weight = torch.randn(8, 3 + (4 if with_features else 0), generator=gen)
+    bias = torch.randn(8, generator=gen) if with_bias else None
+    want = torch.nn.functional.linear(group_neighbours(xyz, centres, index, feats), weight, bias)
+    got = group_linear(xyz, centres, index, feats, weight, bias)
+    assert got.shape == want.shape == (9, 6, 8)
+    torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    empty = bias if with_bias else torch.zeros(8)
+    assert torch.equal(got[-1], empty.expand(6, 8)) and torch.equal(got[0, 5], empty)  # as a zero input row
+
+
+def test_group_linear_gradcheck_and_errors():
+    xyz = clouds(8, [30]).double()
+    centres = xyz[:4].clone()
+    centres[3] += 100.0
+    bq = ball_query(xyz, centres, 1.0, 4)
+    gen = torch.Generator().manual_seed(1)
+    args = [xyz.clone(), centres.clone(), torch.randn(30, 2, dtype=torch.float64, generator=gen),
+            torch.randn(5, 5, dtype=torch.float64, generator=gen), torch.randn(5, dtype=torch.float64, generator=gen)]
+    args = [a.requires_grad_(True) for a in args]
+    assert torch.autograd.gradcheck(lambda p, c, f, w, b: group_linear(p, c, bq.index, f, w, b), args)
+    with pytest.raises(ValueError, match=r"group_linear: weight must be \(O, 3 \+ C\) = \(O, 5\)"):
+        group_linear(xyz, centres, bq.index, args[2], torch.zeros(5, 4, dtype=torch.float64))
+    with pytest.raises(ValueError, match="group_linear: index holds row 30"):
+        group_linear(xyz, centres, torch.tensor([[30]]), None, torch.zeros(2, 3, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------------------- three nearest neighbours
