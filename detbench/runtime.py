@@ -20,6 +20,14 @@ torch):
   (``NUMBA_NUM_THREADS`` is numba's default). numba's ``workqueue`` layer wakes its threads
   through condition variables, which made the simulator 2x slower on the idle machine.
 
+The C allocator (glibc on Linux) is set once at import too (`tune_malloc`): allocations up to
+64 MiB come from the heap rather than from fresh ``mmap`` pages, and up to 256 MiB of freed heap
+stays mapped. A forward pass allocates and frees tensors of a few MiB hundreds of times; with
+glibc's defaults many of them are new pages, zeroed by the kernel on first touch, which made
+PointRCNN's inference about 1.5x slower (docs/benchmarks.md, "The allocator"). The outputs do
+not change. ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` in the environment (glibc
+reads them itself) leaves glibc's settings alone.
+
 numba's omp layer resets OpenMP's thread count to numba's when its pool starts, and torch
 reads that count; so the pool is started here, at import (about 0.1 s), and the count put
 back (`_start_numba_pool`).
@@ -31,11 +39,13 @@ torch and one numba thread each (`worker_threads`).
 """
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import os
 import sys
 import warnings
 
-__all__ = ["DEFAULTS", "apply_defaults", "describe", "worker_threads", "set_threads"]
+__all__ = ["DEFAULTS", "MALLOC", "apply_defaults", "describe", "tune_malloc", "worker_threads", "set_threads"]
 
 # Environment defaults, applied with setdefault before torch or numba reads them.
 DEFAULTS: dict[str, str] = {
@@ -43,6 +53,10 @@ DEFAULTS: dict[str, str] = {
     "GOMP_SPINCOUNT": "3000",
     "NUMBA_THREADING_LAYER": "omp",
 }
+# glibc mallopt parameters (bytes) set at import: M_MMAP_THRESHOLD (-3), M_TRIM_THRESHOLD (-1).
+MALLOC: dict[str, tuple[int, int]] = {"MALLOC_MMAP_THRESHOLD_": (-3, 64 << 20),
+                                      "MALLOC_TRIM_THRESHOLD_": (-1, 256 << 20)}
+_malloc_state: dict[str, object] = {"set_by": None}
 # Names of the DEFAULTS that detbench (not the user) set, for child processes that inherit them.
 MARKER = "DETBENCH_RUNTIME_DEFAULTS"
 # Variables that describe() reports (the defaults and the ones a user may set instead).
@@ -141,6 +155,29 @@ def _start_numba_pool() -> None:
         pass
 
 
+def tune_malloc() -> str | None:
+    """Set glibc's mmap and trim thresholds to `MALLOC` (module docstring); idempotent. Returns who set
+    the allocator: "detbench", "user" (a MALLOC_ variable in the environment: nothing changed) or
+    None (not glibc, e.g. macOS, Windows or musl: nothing changed)."""
+    if _malloc_state["set_by"] is not None:
+        return _malloc_state["set_by"]
+    if any(k in os.environ for k in MALLOC):
+        _malloc_state["set_by"] = "user"
+        return "user"
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+        if not hasattr(libc, "gnu_get_libc_version"):  # mallopt's parameters are glibc's
+            return None
+    except (OSError, AttributeError):
+        return None
+    if all(mallopt(param, value) == 1 for param, value in MALLOC.values()):
+        _malloc_state["set_by"] = "detbench"
+    return _malloc_state["set_by"]
+
+
 def set_threads(n: int) -> None:
     """Use ``n`` threads in torch's intra-op pool and in numba's parallel kernels (numba: at most
     its pool size, NUMBA_NUM_THREADS, fixed when its pool starts)."""
@@ -160,7 +197,8 @@ def worker_threads() -> None:
 def describe() -> dict:
     """The runtime settings in force, for reports: each variable's value and whether it came from
     the user's environment or from detbench; torch's and numba's thread counts; numba's
-    threading layer (None until its first parallel launch); the 1-minute load average."""
+    threading layer (None until its first parallel launch); the allocator's thresholds (bytes) and who
+    set them; the 1-minute load average."""
     out: dict = {"env": {}}
     for key in REPORTED:
         value = os.environ.get(key)
@@ -175,9 +213,13 @@ def describe() -> dict:
             out["numba_threading_layer"] = numba.threading_layer()
         except ValueError:  # no parallel kernel has run yet
             out["numba_threading_layer"] = None
+    out["malloc"] = {"set_by": _malloc_state["set_by"],
+                     **{k: (os.environ.get(k) if _malloc_state["set_by"] == "user" else
+                            v if _malloc_state["set_by"] == "detbench" else None) for k, (_, v) in MALLOC.items()}}
     out["load_average_1min"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     return out
 
 
 apply_defaults()
+tune_malloc()
 _start_numba_pool()

@@ -13,7 +13,7 @@ from detbench.utils.bench import BusyLoad, idle_and_loaded, load_line, ratio, ru
 import tools.bench_sim
 
 KEYS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS",
-        runtime.MARKER)
+        runtime.MARKER, *runtime.MALLOC)
 
 
 def python(code: str, **env) -> subprocess.CompletedProcess:
@@ -55,6 +55,28 @@ def test_child_processes_inherit_the_defaults_as_detbench_s():
     assert p.returncode == 0, p.stderr
     env = json.loads(p.stdout)
     assert env["GOMP_SPINCOUNT"] == [runtime.DEFAULTS["GOMP_SPINCOUNT"], "detbench"]
+
+
+MMAPPED = ("import ctypes, json, detbench.runtime as r; libc = ctypes.CDLL('libc.so.6'); "
+           "libc.malloc.restype = ctypes.c_void_p; p = libc.malloc(16 << 20); "
+           "print(json.dumps([r.describe()['malloc'], bool(ctypes.c_size_t.from_address(p - 8).value & 2)]))")
+
+
+@pytest.mark.skipif(not (sys.platform.startswith("linux") and os.confstr("CS_GNU_LIBC_VERSION")),
+                    reason="glibc's allocator only")
+def test_the_allocator_serves_mib_tensors_from_the_heap_unless_the_user_set_it():
+    # A 16 MiB block comes from the heap after import detbench (glibc's size field: bit 2 = mmapped),
+    # from its own mmap with glibc's defaults, which a MALLOC_ variable of the user's keeps.
+    p = python(MMAPPED)
+    assert p.returncode == 0, p.stderr
+    malloc, mmapped = json.loads(p.stdout)
+    assert malloc == {"set_by": "detbench", "MALLOC_MMAP_THRESHOLD_": 64 << 20, "MALLOC_TRIM_THRESHOLD_": 256 << 20}
+    assert mmapped is False
+    p = python(MMAPPED, MALLOC_TRIM_THRESHOLD_="131072")
+    assert p.returncode == 0, p.stderr
+    malloc, mmapped = json.loads(p.stdout)
+    assert malloc == {"set_by": "user", "MALLOC_MMAP_THRESHOLD_": None, "MALLOC_TRIM_THRESHOLD_": "131072"}
+    assert mmapped is True
 
 
 def test_torch_keeps_its_thread_count_after_a_numba_kernel():
