@@ -26,7 +26,7 @@ stays mapped. A forward pass allocates and frees tensors of a few MiB hundreds o
 glibc's defaults many of them are new pages, zeroed by the kernel on first touch, which made
 PointRCNN's inference about 1.5x slower (docs/benchmarks.md, "The allocator"). The outputs do
 not change. ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` in the environment (glibc
-reads them itself) leaves glibc's settings alone.
+reads them itself) or ``DETBENCH_MALLOC=glibc`` (glibc's own defaults) leaves the allocator alone.
 
 numba's omp layer resets OpenMP's thread count to numba's when its pool starts, and torch
 reads that count; so the pool is started here, at import (about 0.1 s), and the count put
@@ -157,11 +157,11 @@ def _start_numba_pool() -> None:
 
 def tune_malloc() -> str | None:
     """Set glibc's mmap and trim thresholds to `MALLOC` (module docstring); idempotent. Returns who set
-    the allocator: "detbench", "user" (a MALLOC_ variable in the environment: nothing changed) or
+    the allocator: "detbench", "user" (a MALLOC_ variable or DETBENCH_MALLOC=glibc: nothing changed) or
     None (not glibc, e.g. macOS, Windows or musl: nothing changed)."""
     if _malloc_state["set_by"] is not None:
         return _malloc_state["set_by"]
-    if any(k in os.environ for k in MALLOC):
+    if any(k in os.environ for k in MALLOC) or os.environ.get("DETBENCH_MALLOC") == "glibc":
         _malloc_state["set_by"] = "user"
         return "user"
     if not sys.platform.startswith("linux"):

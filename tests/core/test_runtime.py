@@ -13,7 +13,7 @@ from detbench.utils.bench import BusyLoad, idle_and_loaded, load_line, ratio, ru
 import tools.bench_sim
 
 KEYS = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "OMP_NUM_THREADS", "NUMBA_THREADING_LAYER", "NUMBA_NUM_THREADS",
-        runtime.MARKER, *runtime.MALLOC)
+        runtime.MARKER, *runtime.MALLOC, "DETBENCH_MALLOC")
 
 
 def python(code: str, **env) -> subprocess.CompletedProcess:
@@ -77,6 +77,10 @@ def test_the_allocator_serves_mib_tensors_from_the_heap_unless_the_user_set_it()
     malloc, mmapped = json.loads(p.stdout)
     assert malloc == {"set_by": "user", "MALLOC_MMAP_THRESHOLD_": None, "MALLOC_TRIM_THRESHOLD_": "131072"}
     assert mmapped is True
+    p = python(MMAPPED, DETBENCH_MALLOC="glibc")
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout) == [{"set_by": "user", "MALLOC_MMAP_THRESHOLD_": None,
+                                     "MALLOC_TRIM_THRESHOLD_": None}, True]
 
 
 def test_torch_keeps_its_thread_count_after_a_numba_kernel():
