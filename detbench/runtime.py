@@ -24,7 +24,7 @@ The C allocator (glibc on Linux) is set once at import too (`tune_malloc`): allo
 64 MiB come from the heap rather than from fresh ``mmap`` pages, and up to 256 MiB of freed heap
 stays mapped. A forward pass allocates and frees tensors of a few MiB hundreds of times; with
 glibc's defaults many of them are new pages, zeroed by the kernel on first touch, which made
-PointRCNN's inference about 1.5x slower (docs/benchmarks.md, "The allocator"). The outputs do
+PointRCNN's inference about 1.4x slower (docs/benchmarks.md, "The allocator"). The outputs do
 not change. ``MALLOC_MMAP_THRESHOLD_`` or ``MALLOC_TRIM_THRESHOLD_`` in the environment (glibc
 reads them itself) or ``DETBENCH_MALLOC=glibc`` (glibc's own defaults) leaves the allocator alone.
 
@@ -213,9 +213,10 @@ def describe() -> dict:
             out["numba_threading_layer"] = numba.threading_layer()
         except ValueError:  # no parallel kernel has run yet
             out["numba_threading_layer"] = None
-    out["malloc"] = {"set_by": _malloc_state["set_by"],
-                     **{k: (os.environ.get(k) if _malloc_state["set_by"] == "user" else
-                            v if _malloc_state["set_by"] == "detbench" else None) for k, (_, v) in MALLOC.items()}}
+    set_by = _malloc_state["set_by"]
+    thresholds = {k: v for k, (_, v) in MALLOC.items()} if set_by == "detbench" else \
+        {k: os.environ.get(k) for k in MALLOC}  # the user's (or glibc's defaults: None)
+    out["malloc"] = {"set_by": set_by, **thresholds}
     out["load_average_1min"] = round(os.getloadavg()[0], 2) if hasattr(os, "getloadavg") else None
     return out
 

@@ -261,6 +261,17 @@ def ball_query(xyz, centres, radius: float, nsample: int, xyz_counts=None, centr
     return BallQuery(index, found, found == 0)
 
 
+def _gather_index(index, rows: torch.Tensor, func: str, name: str, fix: str) -> torch.Tensor:
+    """`index` as int64 on `rows`' device, checked: an integer tensor whose entries are EMPTY_INDEX or
+    rows of `rows` (named `name` in the error, with `fix`)."""
+    if not isinstance(index, torch.Tensor) or index.dtype.is_floating_point:
+        raise ValueError(f"{func}: index must be an integer tensor (e.g. BallQuery.index), got {type(index).__name__}")
+    index = index.to(rows.device).long()
+    if index.numel() and int(index.max()) >= rows.shape[0]:
+        raise ValueError(f"{func}: index holds row {int(index.max())} but {name} has {rows.shape[0]} rows; {fix}")
+    return index
+
+
 def group_points(features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """Gather rows of `features` (N, C) by `index` (M, K) -> (M, K, C); EMPTY_INDEX gives zeros.
 
@@ -271,13 +282,9 @@ def group_points(features: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     if not isinstance(features, torch.Tensor) or features.ndim != 2:
         raise ValueError(f"{func}: features must be an (N, C) tensor, got "
                          f"{tuple(features.shape) if isinstance(features, torch.Tensor) else type(features).__name__}")
-    if not isinstance(index, torch.Tensor) or index.dtype.is_floating_point:
-        raise ValueError(f"{func}: index must be an integer tensor (e.g. BallQuery.index), got {type(index).__name__}")
-    index = index.to(features.device).long()
+    index = _gather_index(index, features, func, "features",
+                          "pass the features of the same concatenated points the indices refer to")
     valid = index >= 0
-    if index.numel() and int(index.max()) >= features.shape[0]:
-        raise ValueError(f"{func}: index holds row {int(index.max())} but features has {features.shape[0]} rows; "
-                         "pass the features of the same concatenated points the indices refer to")
     if features.shape[0] == 0:
         return features.new_zeros((*index.shape, features.shape[1]))
     g = features[index.clamp_min(0)]
@@ -333,12 +340,7 @@ def group_linear(xyz: torch.Tensor, centres: torch.Tensor, index: torch.Tensor, 
     if weight.ndim != 2 or weight.shape[1] != 3 + c:
         raise ValueError(f"{func}: weight must be (O, 3 + C) = (O, {3 + c}) for {c} feature channels, got "
                          f"{tuple(weight.shape)}")
-    if not isinstance(index, torch.Tensor) or index.dtype.is_floating_point:
-        raise ValueError(f"{func}: index must be an integer tensor (e.g. BallQuery.index), got {type(index).__name__}")
-    index = index.to(xyz.device).long()
-    if index.numel() and int(index.max()) >= xyz.shape[0]:
-        raise ValueError(f"{func}: index holds row {int(index.max())} but xyz has {xyz.shape[0]} rows; pass the "
-                         "points the indices refer to")
+    index = _gather_index(index, xyz, func, "xyz", "pass the points the indices refer to")
     out_channels = weight.shape[0]
     if xyz.shape[0] == 0:
         out = xyz.new_zeros((*index.shape, out_channels))
