@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import warnings
 
 import pytest
 import torch
@@ -102,10 +103,19 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+def _aborted_in_teardown(err: Exception, out) -> bool:
+    """A rank died by SIGABRT after every rank wrote its result: gloo's teardown, not the training under test
+    (rare; seen once on CI as "terminate called without an active exception" after the barrier of cleanup)."""
+    return "SIGABRT" in str(err) and all((out / f"rank{r}.pt").is_file() for r in (0, 1))
+
+
 def _detector_worker(rank: int, world: int, port: int, out: str, name: str) -> None:
     """One rank: `name` at the smoke preset, one epoch on the 8 test frames, every op on its torch path (the
     GPU's), its initial weights drawn from a rank-dependent seed (DDP must give every rank rank 0's)."""
+    import faulthandler
     from pathlib import Path
+
+    faulthandler.enable(all_threads=True)  # an abort prints every thread's Python stack to the captured stderr
 
     import numpy as np
 
@@ -150,6 +160,10 @@ def test_two_process_training_of_a_real_detector_on_the_torch_path(tmp_path):
                      join=True)
             break
         except Exception as err:
+            if attempt == 0 and _aborted_in_teardown(err, tmp_path / f"try{attempt}"):
+                warnings.warn(f"a rank aborted after both ranks had saved their results ({err}); the teardown's "
+                              "stack is in the captured stderr; training is checked on a second run", stacklevel=1)
+                continue
             if attempt == 1 or not any(w in str(err).lower() for w in ("address already in use", "connection",
                                                                        "timed out", "gloo", "store")):
                 raise
