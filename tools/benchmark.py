@@ -40,10 +40,11 @@ if not __package__:  # run as a file (python tools/<name>.py): the checkout root
 
 import detbench  # noqa: F401  (first: sets the thread runtimes' defaults before torch starts)
 import models
-from detbench.benchmarks.detectors import (benchmark_markdown, channels_last_2d, loaded_figures, measure_detector,
+from detbench.benchmarks.detectors import (benchmark_markdown, loaded_figures, measure_detector,
                                             peak_rss_mib)
 from detbench.benchmarks.profile import profile_markdown
 from detbench.data.road import RoadConfig
+from detbench.train.detector import channels_last_2d
 from detbench.train.run_config import preset_names
 from detbench.utils.bench import idle_and_loaded
 from detbench.utils.cli import (

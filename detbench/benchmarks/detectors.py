@@ -21,7 +21,7 @@ from detbench.data.road import RoadConfig, crop_model_input
 from detbench.train.inference import frame_sample
 from detbench.utils.bench import StageTimer, load_line, ratio, runtime_line
 
-__all__ = ["benchmark_markdown", "channels_last_2d", "idle_loaded_markdown", "loaded_figures",
+__all__ = ["benchmark_markdown", "idle_loaded_markdown", "loaded_figures",
            "measure_detector", "peak_rss_mib", "train_step_ms"]
 
 
@@ -99,16 +99,6 @@ def train_step_ms(model: nn.Module, frames, point_cloud_range, steps: int, batch
             times.append((time.perf_counter() - t0) * 1000)
     model.eval()
     return round(statistics.median(times), 2)
-
-
-def channels_last_2d(model: nn.Module) -> nn.Module:
-    """`model` with the weights of its 2D (transposed) convolutions in channels-last memory format (NHWC), in
-    place: a dense BEV map meeting them runs through the NHWC convolution kernels, and the ops after keep its
-    format. The sparse and point layers' weights (other ranks) stay as they are."""
-    for m in model.modules():
-        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
-            m.to(memory_format=torch.channels_last)
-    return model
 
 
 def benchmark_markdown(meta: dict, results: list[dict]) -> str:

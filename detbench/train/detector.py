@@ -24,10 +24,11 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 import torch
+from torch import nn
 
 from detbench.data.batch import Batch, Detections
 
-__all__ = ["Detector", "TwoStageDetector"]
+__all__ = ["Detector", "TwoStageDetector", "channels_last_2d"]
 
 
 @runtime_checkable
@@ -84,3 +85,14 @@ class TwoStageDetector(Detector, Protocol):
         """'refined' (the default): `predict` returns the second stage's boxes; 'proposals': the
         first stage's detections, through the same final selection. Any other stage is a ValueError."""
         ...
+
+
+def channels_last_2d(model: nn.Module) -> nn.Module:
+    """`model` with the weights of its 2D (transposed) convolutions in channels-last memory format (NHWC), in
+    place: a dense BEV map meeting them runs through the NHWC convolution kernels, and the ops after keep its
+    format (train.channels_last, tools/benchmark.py --channels-last). The sparse and point layers' weights
+    (other ranks) stay as they are; the outputs are the contiguous model's up to float32 summation order."""
+    for m in model.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            m.to(memory_format=torch.channels_last)
+    return model

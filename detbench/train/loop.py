@@ -62,6 +62,7 @@ from detbench.config import dump
 from detbench.data.batch import Batch, Sample, collate
 from detbench.train.checkpoint import CheckpointError, CheckpointManager, TrainState, load_checkpoint, restore_training
 from detbench.train.dataset import EpochBatches
+from detbench.train.detector import channels_last_2d
 from detbench.train.distributed import DistInfo, any_rank, barrier, reduce_mean, sync_buffers, wrap_model
 from detbench.train.logger import TrainLogger, bev_figure, format_epoch_summary
 from detbench.train.optim import build_optimizer, build_scheduler
@@ -238,6 +239,8 @@ def _setup(model: nn.Module, train_set, cfg: TrainConfig, out_dir: Path, info: D
                               f"add --resume to continue it, or choose another --out folder (or delete that one)")
     seed_everything(rank_seed(cfg.seed, info.rank))  # each rank its own draws; the weights are rank 0's (DDP)
     core = model.to(device)
+    if cfg.channels_last:
+        channels_last_2d(core)
     sampler = DistributedSampler(train_set, num_replicas=info.world_size, rank=info.rank, shuffle=True,
                                  seed=cfg.seed, drop_last=False)
     batches = EpochBatches(sampler, cfg.batch_size, cfg.drop_last)

@@ -47,6 +47,7 @@ class TrainConfig:
     log_every: int
     drop_last: bool
     find_unused_parameters: bool
+    channels_last: bool  # 2D convolution weights in NHWC memory format
     tensorboard: bool
     bev_image: bool
     max_nonfinite_steps: int  # skipped non-finite steps in a row that stop the run

@@ -82,12 +82,13 @@ def test_model_follows_the_contract(name):
 
 @pytest.mark.parametrize("name", sorted(models.REGISTRY))
 def test_channels_last_weights_compute_the_same_model(name):
-    """tools/benchmark.py --channels-last holds the 2D convolution weights in NHWC: every 2D convolution's output
-    and the training loss are those of the contiguous model (float32 sums in another order: within 1e-4; the
-    proposals of an untrained model tie in score, so their order, not their values, may differ)."""
+    """train.channels_last and tools/benchmark.py --channels-last hold the 2D convolution weights in NHWC: every
+    2D convolution's output and the training loss are those of the contiguous model (float32 sums in another
+    order: within 1e-4; the proposals of an untrained model tie in score, so their order, not their values, may
+    differ)."""
     import copy
 
-    from detbench.benchmarks.detectors import channels_last_2d
+    from detbench.train.detector import channels_last_2d
 
     model = smoke_model(name)
     nhwc = channels_last_2d(copy.deepcopy(model))

@@ -283,3 +283,42 @@ def test_cleanup_on_an_error_path_does_not_wait_for_a_peer_that_never_comes(tmp_
 
     mp.spawn(_cleanup_worker, args=(2, _free_port(), str(tmp_path / "t")), nprocs=2, join=True)
     assert float((tmp_path / "t").read_text()) < 2.0  # a barrier would have waited the peer's 3 s (or forever)
+
+
+def test_channels_last_training_trains_the_same_model_and_its_checkpoint_loads_contiguous(tmp_path):
+    """train.channels_last holds the 2D convolution weights in NHWC while training (SECOND at the smoke preset):
+    the losses are the contiguous run's up to float32 summation order, and the checkpoint rebuilds the
+    ordinary (contiguous) model, which predicts what the trained NHWC model predicts."""
+    import models
+    from detbench.train.run_config import load_run_config
+    from tests.helpers import FRAMES
+
+    off = AugmentConfig.from_dict({k: {"enabled": False} for k in (
+        "random_world_flip", "random_world_rotation", "random_world_scaling", "gt_sampling")})
+    trained, losses = {}, {}
+    for nhwc in (False, True):
+        run_cfg = load_run_config("second", "smoke", overrides=[
+            "train.epochs=2", "train.batch_size=2", "train.workers=0", "train.tensorboard=false",
+            "train.bev_image=false", f"train.channels_last={str(nhwc).lower()}"])
+        run_cfg["model"] = models.prepare_model_config("second", run_cfg["model"],
+                                                       np.concatenate([f.boxes for f in FRAMES]))
+        seed_everything(0)
+        model = models.build_model("second", run_cfg["model"])
+        ts = TrainingSet(FRAMES, run_cfg["model"]["point_cloud_range"], augment=off, seed=0)
+        res = train(model, ts, TrainConfig.from_dict(run_cfg["train"]), tmp_path / f"nhwc{nhwc}",
+                    model_name="second", run_config=run_cfg, data_info=DATA, progress=False)
+        trained[nhwc], losses[nhwc] = (model, res), [r["losses"]["loss"] for r in res.history]
+    convs = [m for m in trained[True][0].modules() if isinstance(m, nn.Conv2d)]
+    assert convs and all(m.weight.is_contiguous(memory_format=torch.channels_last) for m in convs)
+    assert not any(m.weight.is_contiguous(memory_format=torch.channels_last) and not m.weight.is_contiguous()
+                   for m in trained[False][0].modules() if isinstance(m, nn.Conv2d))
+    assert losses[True] == pytest.approx(losses[False], rel=1e-3)
+    rebuilt, _ = models.load_from_checkpoint(trained[True][1].last_checkpoint)
+    assert all(m.weight.is_contiguous() for m in rebuilt.modules() if isinstance(m, nn.Conv2d))
+    batch = collate([ts.get(i, 0, augment=False) for i in range(2)])
+    with torch.no_grad():
+        a = trained[True][0].eval()(batch)
+        b = rebuilt(batch)
+    assert len(a) == len(b) == 3  # the anchor head's class logits, box residuals and direction logits
+    for x, y in zip(a, b):
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4)
