@@ -184,10 +184,11 @@ class _Run:
     last_ckpt: Path | None = None
     nonfinite_streak: int = 0  # skipped non-finite steps in a row (across epochs)
 
-    def save(self, state: TrainState) -> Path | None:
+    def save(self, state: TrainState, recompute_bn: bool = True) -> Path | None:
         """Write a checkpoint of `state` (rank 0; every rank takes part), its BatchNorm statistics first
-        recomputed for its weights (`train.precise_bn_batches`). Returns its path on rank 0."""
-        if self.cfg.precise_bn_batches > 0:
+        recomputed for its weights (`train.precise_bn_batches`) unless `recompute_bn` is false (a checkpoint
+        only resume reads: see `_bn_recompute_due`). Returns its path on rank 0."""
+        if recompute_bn and self.cfg.precise_bn_batches > 0:
             recompute_bn_statistics(self.core, _precise_bn_batches(self, state), _forward_batch)
             sync_buffers(self.core, self.info)
         rng_ranks = _gather_rng(self.info)  # every rank resumes its own generators
@@ -530,7 +531,7 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
     if run.use_amp:  # the steps the GradScaler skipped and where its scale ended: a collapsing scale shows
         record.update(scaler_skipped_steps=ep.n_scaler_skipped, loss_scale=run.scaler.get_scale())
     run.logger.add_epoch(record)
-    run.last_ckpt = run.save(run.state) or run.last_ckpt
+    run.last_ckpt = run.save(run.state, recompute_bn=_bn_recompute_due(run, epoch, eval_fn)) or run.last_ckpt
     if info.is_main:
         metrics = _evaluate(run, epoch, eval_fn)
         run.logger.scalars({**losses, "lr": lr, "seconds": seconds, "epoch": epoch + 1}, step, prefix="epoch/")
@@ -540,17 +541,38 @@ def _end_epoch(run: _Run, epoch: int, ep: _EpochRun,
     barrier(info)
 
 
+def _eval_due(run: _Run, epoch: int, eval_fn) -> bool:
+    """Whether epoch `epoch` (0-based) ends with an evaluation: every `train.eval_every` epochs and the last."""
+    return eval_fn is not None and ((epoch + 1) % run.cfg.eval_every == 0 or epoch + 1 == run.cfg.epochs)
+
+
+def _preview_due(run: _Run) -> bool:
+    """Whether an epoch ends with the bird's-eye preview in TensorBoard (`train.bev_image`)."""
+    return run.cfg.bev_image and run.logger.writer is not None and run.preview is not None
+
+
+def _bn_recompute_due(run: _Run, epoch: int, eval_fn) -> bool:
+    """Whether the checkpoint of epoch `epoch` gets BatchNorm statistics recomputed for its weights: when its
+    model is used in eval mode (an evaluation or the preview), when it is the last, and when every checkpoint is
+    kept (`train.keep_checkpoints: 0`, e.g. for tools/curves.py). The others are only read by a resume, which
+    needs no recomputation: train mode normalises with the batch's statistics, and a later recomputation
+    replaces the running ones whole, so the trained weights and the last checkpoint are the same either way
+    (as detectron2's PreciseBN, which recomputes before evaluations only)."""
+    return (epoch + 1 == run.cfg.epochs or run.cfg.keep_checkpoints == 0 or _eval_due(run, epoch, eval_fn)
+            or _preview_due(run))
+
+
 def _evaluate(run: _Run, epoch: int, eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None
               ) -> dict[str, float]:
     """The epoch's evaluation metrics (when due) and preview image; the training's random stream is untouched."""
-    cfg, core = run.cfg, run.core
+    core = run.core
     metrics: dict[str, float] = {}
     rng_before = capture_rng_state()  # evaluation must not shift the training's random stream
-    if eval_fn is not None and ((epoch + 1) % cfg.eval_every == 0 or epoch + 1 == cfg.epochs):
+    if _eval_due(run, epoch, eval_fn):
         core.eval()
         with torch.no_grad():
             metrics = {k: float(v) for k, v in dict(eval_fn(core, epoch + 1)).items()}
-    if cfg.bev_image and run.logger.writer is not None and run.preview is not None:
+    if _preview_due(run):
         run.logger.preview("bev/predictions_vs_ground_truth", run.state.global_step,
                            lambda: _preview_figure(core, run.preview, run.train_set, epoch + 1, run.info.device),
                            f"the bird's-eye preview of epoch {epoch + 1}")

@@ -285,28 +285,38 @@ def test_cleanup_on_an_error_path_does_not_wait_for_a_peer_that_never_comes(tmp_
     assert float((tmp_path / "t").read_text()) < 2.0  # a barrier would have waited the peer's 3 s (or forever)
 
 
-def test_channels_last_training_trains_the_same_model_and_its_checkpoint_loads_contiguous(tmp_path):
-    """train.channels_last holds the 2D convolution weights in NHWC while training (SECOND at the smoke preset):
-    the losses are the contiguous run's up to float32 summation order, and the checkpoint rebuilds the
-    ordinary (contiguous) model, which predicts what the trained NHWC model predicts."""
+
+def _second_smoke_run(tmp_path, name: str, *overrides: str):
+    """SECOND at the smoke preset trained on the 8 test frames (no augmentation, seed 0) in tmp_path/name with
+    the config `overrides`; returns (model, TrainResult, training set)."""
     import models
     from detbench.train.run_config import load_run_config
     from tests.helpers import FRAMES
 
     off = AugmentConfig.from_dict({k: {"enabled": False} for k in (
         "random_world_flip", "random_world_rotation", "random_world_scaling", "gt_sampling")})
+    run_cfg = load_run_config("second", "smoke", overrides=[
+        "train.batch_size=2", "train.workers=0", "train.tensorboard=false", "train.bev_image=false", *overrides])
+    run_cfg["model"] = models.prepare_model_config("second", run_cfg["model"],
+                                                   np.concatenate([f.boxes for f in FRAMES]))
+    seed_everything(0)
+    model = models.build_model("second", run_cfg["model"])
+    ts = TrainingSet(FRAMES, run_cfg["model"]["point_cloud_range"], augment=off, seed=0)
+    res = train(model, ts, TrainConfig.from_dict(run_cfg["train"]), tmp_path / name, model_name="second",
+                run_config=run_cfg, data_info=DATA, progress=False)
+    return model, res, ts
+
+
+def test_channels_last_training_trains_the_same_model_and_its_checkpoint_loads_contiguous(tmp_path):
+    """train.channels_last holds the 2D convolution weights in NHWC while training (SECOND at the smoke preset):
+    the losses are the contiguous run's up to float32 summation order, and the checkpoint rebuilds the
+    ordinary (contiguous) model, which predicts what the trained NHWC model predicts."""
+    import models
+
     trained, losses = {}, {}
     for nhwc in (False, True):
-        run_cfg = load_run_config("second", "smoke", overrides=[
-            "train.epochs=2", "train.batch_size=2", "train.workers=0", "train.tensorboard=false",
-            "train.bev_image=false", f"train.channels_last={str(nhwc).lower()}"])
-        run_cfg["model"] = models.prepare_model_config("second", run_cfg["model"],
-                                                       np.concatenate([f.boxes for f in FRAMES]))
-        seed_everything(0)
-        model = models.build_model("second", run_cfg["model"])
-        ts = TrainingSet(FRAMES, run_cfg["model"]["point_cloud_range"], augment=off, seed=0)
-        res = train(model, ts, TrainConfig.from_dict(run_cfg["train"]), tmp_path / f"nhwc{nhwc}",
-                    model_name="second", run_config=run_cfg, data_info=DATA, progress=False)
+        model, res, ts = _second_smoke_run(tmp_path, f"nhwc{nhwc}", "train.epochs=2",
+                                           f"train.channels_last={str(nhwc).lower()}")
         trained[nhwc], losses[nhwc] = (model, res), [r["losses"]["loss"] for r in res.history]
     convs = [m for m in trained[True][0].modules() if isinstance(m, nn.Conv2d)]
     assert convs and all(m.weight.is_contiguous(memory_format=torch.channels_last) for m in convs)
@@ -322,3 +332,25 @@ def test_channels_last_training_trains_the_same_model_and_its_checkpoint_loads_c
     assert len(a) == len(b) == 3  # the anchor head's class logits, box residuals and direction logits
     for x, y in zip(a, b):
         torch.testing.assert_close(x, y, rtol=1e-4, atol=1e-4)
+
+
+def test_batchnorm_statistics_are_recomputed_where_a_checkpoint_is_used_and_the_model_is_the_same(tmp_path):
+    """A checkpoint only a resume reads keeps the running BatchNorm statistics; the last one (and every one when
+    train.keep_checkpoints is 0) has them recomputed. The weights, the last checkpoint and the losses are the
+    same bit for bit either way."""
+    from detbench.train.checkpoint import load_checkpoint
+
+    runs = {keep: _second_smoke_run(tmp_path, f"keep{keep}", "train.epochs=3", f"train.keep_checkpoints={keep}")
+            for keep in (3, 0)}
+    ckpts = {keep: [load_checkpoint(p) for p in CheckpointManager(tmp_path / f"keep{keep}" / "checkpoints").list()]
+             for keep in runs}
+    assert [len(c) for c in ckpts.values()] == [3, 3]
+    assert [r["losses"] for r in runs[3][1].history] == [r["losses"] for r in runs[0][1].history]
+    assert same_weights(runs[3][0], runs[0][0])
+    bn = [k for k in ckpts[0][0]["model"] if k.endswith("running_mean")]
+    assert bn
+    for epoch, (a, b) in enumerate(zip(ckpts[3], ckpts[0])):
+        stats_equal = all(torch.equal(a["model"][k], b["model"][k]) for k in bn)
+        assert stats_equal == (epoch == 2), epoch  # epochs 1 and 2: running against recomputed; the last: both
+        assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"] if "running" not in k
+                   and "num_batches" not in k)
