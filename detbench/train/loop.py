@@ -558,8 +558,10 @@ def _bn_recompute_due(run: _Run, epoch: int, eval_fn) -> bool:
     needs no recomputation: train mode normalises with the batch's statistics, and a later recomputation
     replaces the running ones whole, so the trained weights and the last checkpoint are the same either way
     (as detectron2's PreciseBN, which recomputes before evaluations only)."""
-    return (epoch + 1 == run.cfg.epochs or run.cfg.keep_checkpoints == 0 or _eval_due(run, epoch, eval_fn)
-            or _preview_due(run))
+    due = (epoch + 1 == run.cfg.epochs or run.cfg.keep_checkpoints == 0 or _eval_due(run, epoch, eval_fn)
+           or _preview_due(run))
+    # every rank takes part in the recomputation's buffer all-reduce, and only rank 0 writes the preview
+    return any_rank([due], run.info)[0]
 
 
 def _evaluate(run: _Run, epoch: int, eval_fn: Callable[[nn.Module, int], Mapping[str, float]] | None

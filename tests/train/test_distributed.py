@@ -129,8 +129,11 @@ def _detector_worker(rank: int, world: int, port: int, out: str, name: str) -> N
                       MASTER_PORT=str(port), DETBENCH_OPS="torch")
     torch.set_num_threads(1)
     info = init_distributed("cpu")
-    run_cfg = load_run_config(name, "smoke", overrides=["train.epochs=1", "train.batch_size=2", "train.workers=0",
-                                                        "train.tensorboard=false", "train.bev_image=false"])
+    # two epochs with the preview on: only rank 0 draws it, yet every rank recomputes epoch 1's BatchNorm
+    # statistics (their all-reduce needs all ranks)
+    run_cfg = load_run_config(name, "smoke", overrides=["train.epochs=2", "train.batch_size=2", "train.workers=0",
+                                                        "train.tensorboard=true", "train.bev_image=true",
+                                                        "train.keep_checkpoints=3"])
     run_cfg["model"] = models.prepare_model_config(name, run_cfg["model"], np.concatenate([f.boxes for f in FRAMES]))
     torch.manual_seed(100 + rank)
     model = models.build_model(name, run_cfg["model"])
@@ -149,7 +152,8 @@ def _detector_worker(rank: int, world: int, port: int, out: str, name: str) -> N
 def test_two_process_training_of_a_real_detector_on_the_torch_path(tmp_path):
     """CT3D (SECOND's first stage, NMS, cylinder query, the transformer) trained by two gloo processes with every
     op on its torch path: find_unused_parameters stays false (DDP fails a step in which a parameter gets no
-    gradient), both ranks end with the same weights and BatchNorm statistics, each drew from its own seed."""
+    gradient), both ranks end with the same weights and BatchNorm statistics, each drew from its own seed; with
+    the preview (rank 0 only) on, every rank still recomputes the BatchNorm statistics together."""
     import torch.multiprocessing as mp
 
     from detbench.train import CheckpointManager, load_checkpoint
@@ -171,7 +175,8 @@ def test_two_process_training_of_a_real_detector_on_the_torch_path(tmp_path):
     r0, r1 = (torch.load(out / f"rank{r}.pt", weights_only=True) for r in (0, 1))
     assert r0["state"].keys() == r1["state"].keys()
     assert all(torch.equal(r0["state"][k], r1["state"][k]) for k in r0["state"])
-    assert r0["steps"] == r1["steps"] == 2 and r0["frames"] == [8]  # 8 frames over 2 ranks, 2 per batch
+    assert r0["steps"] == r1["steps"] == 4 and r0["frames"] == [8, 8]  # 8 frames over 2 ranks, 2 per batch
+    assert (out / "run" / "tensorboard").is_dir()
     assert r0["seed"] != r1["seed"]  # dropout, point and proposal sampling differ per rank
     ckpt = load_checkpoint(CheckpointManager(out / "run" / "checkpoints").latest())
     assert all(torch.equal(ckpt["model"][k], r0["state"][k]) for k in r0["state"]) and len(ckpt["rng"]) == 2

@@ -285,7 +285,6 @@ def test_cleanup_on_an_error_path_does_not_wait_for_a_peer_that_never_comes(tmp_
     assert float((tmp_path / "t").read_text()) < 2.0  # a barrier would have waited the peer's 3 s (or forever)
 
 
-
 def _second_smoke_run(tmp_path, name: str, *overrides: str):
     """SECOND at the smoke preset trained on the 8 test frames (no augmentation, seed 0) in tmp_path/name with
     the config `overrides`; returns (model, TrainResult, training set)."""
